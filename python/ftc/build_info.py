@@ -1,0 +1,41 @@
+"""Locations of build products, with clear errors when the build is missing."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+from ftc import BUILD_DIR, REPO_ROOT
+
+
+class BuildMissingError(RuntimeError):
+    """The C++ build (plant binary, bindings or generated types) is not there."""
+
+
+def plant_binary() -> Path:
+    """Path of the plant executable (``FTC_PLANT_BIN`` overrides ``build/plant``)."""
+    path = Path(os.environ.get("FTC_PLANT_BIN", BUILD_DIR / "plant"))
+    if not path.is_file():
+        raise BuildMissingError(f"plant executable not found at {path}; run scripts/setup.sh")
+    return path
+
+
+def echo_binary() -> Path:
+    """Path of the LCM echo responder used as the benchmark floor."""
+    path = BUILD_DIR / "lcm_echo"
+    if not path.is_file():
+        raise BuildMissingError(f"lcm_echo not found at {path}; run scripts/setup.sh")
+    return path
+
+
+def git_revision() -> str:
+    """The repository's HEAD commit (with '-dirty' if the tree has changes), or 'unknown'."""
+    try:
+        rev = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(REPO_ROOT), "status", "--porcelain", "-uno"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+        return rev + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
