@@ -1,1 +1,71 @@
-int main() { return 0; }  // placeholder, being written
+// LCM echo responder: answers every valve command and control message with a
+// plant_state_t carrying its seq, exactly as the plant does, but with no
+// physics. The lockstep benchmark measures the plant against this floor.
+#include <lcm/lcm-cpp.hpp>
+
+#include <CLI/CLI.hpp>
+#include <csignal>
+#include <iostream>
+
+#include "plant/lcm_bridge.h"
+
+namespace {
+
+volatile std::sig_atomic_t g_stop = 0;
+void OnSignal(int) { g_stop = 1; }
+
+class Echo final {
+ public:
+  Echo(lcm::LCM* lcm, const std::string& prefix) : lcm_(lcm), channels_(prefix) {
+    lcm_->subscribe(channels_.command, &Echo::OnCommand, this);
+    lcm_->subscribe(channels_.control, &Echo::OnControl, this);
+  }
+  bool shutdown() const { return shutdown_; }
+
+ private:
+  void OnCommand(const lcm::ReceiveBuffer*, const std::string&, const ftc::valve_command_t* cmd) {
+    Answer(cmd->seq);
+  }
+  void OnControl(const lcm::ReceiveBuffer*, const std::string&, const ftc::plant_control_t* msg) {
+    if (msg->command == ftc::plant_control_t::SHUTDOWN) shutdown_ = true;
+    Answer(msg->seq);
+  }
+  void Answer(std::int64_t seq) {
+    const auto msg = ftc::ToStateMessage(outcome_, ++state_seq_, seq, 0, counters_);
+    lcm_->publish(channels_.state, &msg);
+  }
+
+  lcm::LCM* lcm_;
+  ftc::Channels channels_;
+  ftc::StepOutcome outcome_;
+  ftc::LinkCounters counters_;
+  std::int64_t state_seq_ = 0;
+  bool shutdown_ = false;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string url = "udpm://239.255.76.67:7667?ttl=0";
+  std::string prefix = "FTC_";
+  CLI::App app{"LCM echo responder: the plant's message pattern without physics (benchmark floor)"};
+  app.add_option("--lcm-url", url, "LCM provider URL")->capture_default_str();
+  app.add_option("--prefix", prefix, "Channel prefix")->capture_default_str();
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e) == 0 ? 0 : 2;
+  }
+  lcm::LCM lcm(url);
+  if (!lcm.good()) {
+    std::cerr << "lcm_echo: error: cannot open LCM at '" << url << "'\n";
+    return 1;
+  }
+  Echo echo(&lcm, prefix);
+  std::signal(SIGINT, OnSignal);
+  std::signal(SIGTERM, OnSignal);
+  while (!g_stop && !echo.shutdown()) {
+    if (lcm.handleTimeout(100) < 0) return 1;
+  }
+  return 0;
+}

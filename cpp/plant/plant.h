@@ -42,6 +42,12 @@ class Plant final {
   const StepOutcome& last() const { return last_; }
   bool episode_over() const { return last_.terminal || last_.truncated; }
   std::int64_t operating_steps() const { return operating_steps_; }
+  // Sets the operating steps already done (to resume a run at its age); the
+  // next step is taken at AgeAt(scenario, steps).
+  void SetOperatingSteps(std::int64_t steps) {
+    operating_steps_ = steps;
+    last_operating_age_ = steps > 0 ? AgeAt(scenario_, steps - 1) : 0.0;
+  }
   // Age the next step would be taken at.
   double current_age() const;
   PlantParams ParamsAt(double age) const { return DegradedParams(nominal_, scenario_, age); }

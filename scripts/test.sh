@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# Runs every test: sets up what a fresh clone lacks (idempotent, quick when
+# done), then the C++ suite (ctest) and the Python suite (pytest).
+# Extra arguments go to pytest (e.g. -k physics, -m slow).
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+bash scripts/setup.sh
+status=0
+(cd build && ctest --output-on-failure -j2) || status=$?
+.venv/bin/python -m pytest -q "$@" || status=$?
+exit $status
