@@ -82,12 +82,17 @@ class CorePlant:
     plant is checked against.
     """
 
-    def __init__(self, scenario: str | None = None, seed: int = 0) -> None:
+    def __init__(self, scenario: str | None = None, seed: int = 0, *,
+                 steps_per_interval: int | None = None, start_step: int = 0) -> None:
         from ftc import _core  # built by CMake into build/python
 
         self._core = _core
         self.scenario = _core.load_scenario(str(scenario)) if scenario else _core.Scenario()
+        if steps_per_interval is not None:
+            self.scenario.steps_per_interval = int(steps_per_interval)
         self._plant = _core.Plant(self.scenario, int(seed))
+        if start_step:
+            self._plant.set_operating_steps(int(start_step))
 
     def _observation(self, d: dict) -> PlantObservation:
         return PlantObservation(
