@@ -57,6 +57,9 @@ EMPTY_VOLUME = 1e-6     # m^3: below this the reward's cg and spread are 0
 RTOL = 1e-10
 ATOL = 1e-12            # m
 SIMULTANEOUS = 1e-12    # s: events closer than this in time are applied together
+ROOT_OFFSET = 1e-15     # added to every root: scipy fires a root that sits at exactly 0
+                        # (two open tanks at one level, a tank filling from 0 at rate 0), and
+                        # each condition it encodes is strict (leave when s/c > rho, ...)
 MAX_EVENTS = 1000       # per step; more means chattering, which the spec rules out
 
 FUEL, PINNED, EMPTY = 0, 1, 2  # tank status within a mode
@@ -229,7 +232,7 @@ class EventStats:
     group_time: float = 0.0    # s spent with a source group of 2+ tanks
     pinned_time: float = 0.0   # s spent with an empty tank pinned at 0 by its inflow
     refill_time: float = 0.0   # s spent with an empty open tank filling from 0
-    ties_formed: int = 0       # join events after which the sink stayed in the group
+    ties_formed: int = 0       # join events after which 2+ tanks fall together
 
     def merge(self, other: "EventStats") -> None:
         for k, v in other.counts.items():
@@ -270,7 +273,7 @@ def integrate_step(x0: Sequence[float], u: Sequence[int], p: Params, dt: float =
 
         evs = []
         for _kind, _i, g in roots:
-            ev = (lambda _t, y, g=g: g(y[:N_TANKS]))
+            ev = (lambda _t, y, g=g: g(y[:N_TANKS]) + ROOT_OFFSET)
             ev.terminal = True
             ev.direction = -1
             evs.append(ev)
@@ -311,7 +314,7 @@ def integrate_step(x0: Sequence[float], u: Sequence[int], p: Params, dt: float =
                     force_rise.add(i)
             if stats is not None and any(k == "join" for k, _i, _g in fired):
                 after = classify(x, u, p, force_leave, force_rise)
-                stats.ties_formed += sum(1 for k, i, _g in fired if k == "join" and i in after.group)
+                stats.ties_formed += int(len(after.group) > 1)
             if events > MAX_EVENTS:
                 raise RuntimeError(f"more than {MAX_EVENTS} events in one step (chattering)")
         else:
