@@ -125,8 +125,12 @@ class ActorCritic(nn.Module):
                          actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Log-probability and entropy of valve actions (..., 6) under independent
         Bernoullis with the given logits, each summed over the valves -> (...,)."""
-        dist = torch.distributions.Bernoulli(logits=logits)
-        return dist.log_prob(actions).sum(-1), dist.entropy().sum(-1)
+        # closed forms (faster than torch.distributions on single steps):
+        # log p(a) = a log s(l) + (1 - a) log s(-l);  H = softplus(l) - s(l) l
+        log_p = actions * nn.functional.logsigmoid(logits) \
+            + (1.0 - actions) * nn.functional.logsigmoid(-logits)
+        entropy = nn.functional.softplus(logits) - torch.sigmoid(logits) * logits
+        return log_p.sum(-1), entropy.sum(-1)
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, generator: torch.Generator | None = None,
