@@ -1,0 +1,359 @@
+"""Read a recorded LCM log of a plant run back into a trajectory.
+
+    python -m ftc.replay runs/NAME/.../plant.lcmlog [--episode N] [--figure out.png] [--fit-model]
+
+The log is what ``lcm-logger`` recorded of one plant's traffic (the
+experiments record one per run). Only ``<prefix>STATE`` messages are used: they
+carry the levels, the valves applied and the episode bookkeeping, so the
+trajectory, the episodes and the rewards (recomputed with :mod:`ftc.reward`
+from the published levels, as the controller computed them) follow from the
+log alone. A plant re-sends its last state when a command is retried or a
+HELLO arrives; such repeats are counted and dropped, keyed by (episode, step).
+
+A truncated or corrupt log is an error naming the file and the byte offset
+where reading stopped (exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ftc.reward import reward
+
+STATE_SUFFIX = "STATE"
+TRAJECTORY_HEADER = ["episode", "step", "age", "evaluation", "terminal", "truncated",
+                     *[f"u{i}" for i in range(1, 7)], *[f"x{i}" for i in range(1, 7)],
+                     "reward"]
+
+
+class LogError(RuntimeError):
+    """The log cannot be read as a plant log (truncated, corrupt, or no plant states)."""
+
+
+@dataclass
+class Trajectory:
+    """One row per plant step (states with step > 0), in the order the plant took them.
+
+    episode, step: (n,) int; age: (n,) float, intervals; operating_steps: (n,) int
+    level, true_level: (n, 6) m, after the step (level as published, noise included)
+    valves: (n, 6) int8, applied during the step; deficit: (n, 2) m^3
+    terminal, truncated, evaluation: (n,) bool
+    utime: (n,) int, plant publication time, microseconds since the epoch
+    reward: (n,) recomputed with ftc.reward from (level, valves)
+    initial_level: episode -> (6,) published level of its initial state (step 0)
+    """
+
+    episode: np.ndarray
+    step: np.ndarray
+    age: np.ndarray
+    operating_steps: np.ndarray
+    level: np.ndarray
+    true_level: np.ndarray
+    valves: np.ndarray
+    deficit: np.ndarray
+    terminal: np.ndarray
+    truncated: np.ndarray
+    evaluation: np.ndarray
+    utime: np.ndarray
+    reward: np.ndarray
+    initial_level: dict[int, np.ndarray] = field(default_factory=dict)
+    channel: str = ""
+    events: int = 0
+    repeats: int = 0
+
+    def __len__(self) -> int:
+        return len(self.step)
+
+    def episodes(self, evaluation: bool | None = None) -> list[int]:
+        """Episode numbers present, optionally only (non-)evaluation ones."""
+        keep = np.ones(len(self), bool) if evaluation is None else self.evaluation == evaluation
+        return sorted(set(self.episode[keep].tolist()))
+
+    def select(self, mask: np.ndarray) -> "Trajectory":
+        """The rows where mask (n,) is true."""
+        arrays = {k: getattr(self, k)[mask] for k in _ARRAY_FIELDS}
+        return Trajectory(**arrays, initial_level=self.initial_level, channel=self.channel,
+                          events=self.events, repeats=self.repeats)
+
+    def episode_rows(self, episode: int) -> "Trajectory":
+        rows = self.select(self.episode == episode)
+        if len(rows) == 0:
+            raise LogError(f"episode {episode} has no steps in the log "
+                           f"(episodes present: {_ranges(self.episodes())})")
+        return rows
+
+    def interval(self) -> np.ndarray:
+        """(n,) degradation interval of each step: the integer part of its age."""
+        return np.floor(self.age + 1e-9).astype(int)
+
+    def reward_per_interval(self, evaluation: bool = False) -> dict[int, float]:
+        """Mean reward per step of each interval, over its operating (or evaluation) steps.
+
+        Evaluation episodes are frozen at the age of the last operating step, so
+        they fall into the interval they evaluate.
+        """
+        keep = self.evaluation == evaluation
+        out: dict[int, float] = {}
+        for k in sorted(set(self.interval()[keep].tolist())):
+            out[k] = float(np.mean(self.reward[keep & (self.interval() == k)]))
+        return out
+
+
+_ARRAY_FIELDS = ("episode", "step", "age", "operating_steps", "level", "true_level", "valves",
+                 "deficit", "terminal", "truncated", "evaluation", "utime", "reward")
+
+
+def _ranges(values: list[int]) -> str:
+    if not values:
+        return "none"
+    return f"{values[0]}..{values[-1]} ({len(values)})" if len(values) > 3 else str(values)
+
+
+def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
+    """Rebuild the trajectory from the plant states in an LCM log.
+
+    channel: the STATE channel to read; default: the one channel ending in
+    'STATE' (an error if the log holds several, e.g. two plants' traffic).
+    Raises LogError on a truncated or corrupt log, with the file and byte offset.
+    """
+    import lcm
+
+    from ftc.plant_state_t import plant_state_t
+
+    path = Path(path)
+    if not path.is_file():
+        raise LogError(f"{path}: no such file")
+    size = path.stat().st_size
+    try:
+        log = lcm.EventLog(str(path), "r")
+    except (OSError, ValueError) as e:
+        raise LogError(f"{path}: cannot open as an LCM log: {e}") from None
+    states: dict[str, list] = {}
+    events = 0
+    offset = 0
+    try:
+        while True:
+            offset = log.tell()
+            try:
+                event = log.read_next_event()
+            except (OSError, ValueError) as e:
+                raise LogError(f"{path}: corrupt event at byte offset {offset}: {e}") from None
+            if event is None:
+                break
+            if event.eventnum != events:
+                raise LogError(f"{path}: corrupt log at byte offset {offset}: event number "
+                               f"{event.eventnum} where {events} was expected")
+            events += 1
+            if event.channel.endswith(STATE_SUFFIX) and (channel is None or event.channel == channel):
+                try:
+                    msg = plant_state_t.decode(event.data)
+                except ValueError as e:
+                    raise LogError(f"{path}: event {event.eventnum} at byte offset {offset} on "
+                                   f"{event.channel} does not decode as plant_state_t: {e}") from None
+                states.setdefault(event.channel, []).append(msg)
+    finally:
+        log.close()
+    if offset != size:
+        raise LogError(f"{path}: truncated or corrupt log: reading stopped at byte offset "
+                       f"{offset} of {size} (after {events} events)")
+    if not states:
+        raise LogError(f"{path}: no plant_state_t messages"
+                       + (f" on channel {channel}" if channel else " on any *STATE channel")
+                       + f" among {events} events")
+    if len(states) > 1:
+        raise LogError(f"{path}: several STATE channels ({', '.join(sorted(states))}); "
+                       "choose one with --channel")
+    (name, msgs), = states.items()
+    return _trajectory(msgs, name, events)
+
+
+def _trajectory(msgs: list, channel: str, events: int) -> Trajectory:
+    seen: set[tuple[int, int]] = set()
+    rows = []
+    initial: dict[int, np.ndarray] = {}
+    repeats = 0
+    for m in msgs:
+        key = (m.episode, m.step)
+        if key in seen:
+            repeats += 1
+            continue
+        seen.add(key)
+        if m.step == 0:
+            initial[int(m.episode)] = np.array(m.level, dtype=np.float64)
+        else:
+            rows.append(m)
+    n = len(rows)
+    level = np.array([m.level for m in rows], dtype=np.float64).reshape(n, 6)
+    valves = np.array([m.valve for m in rows], dtype=np.int8).reshape(n, 6)
+    return Trajectory(
+        episode=np.array([m.episode for m in rows], dtype=np.int64),
+        step=np.array([m.step for m in rows], dtype=np.int64),
+        age=np.array([m.age for m in rows], dtype=np.float64),
+        operating_steps=np.array([m.operating_steps for m in rows], dtype=np.int64),
+        level=level,
+        true_level=np.array([m.true_level for m in rows], dtype=np.float64).reshape(n, 6),
+        valves=valves,
+        deficit=np.array([m.deficit for m in rows], dtype=np.float64).reshape(n, 2),
+        terminal=np.array([m.terminal for m in rows], dtype=bool),
+        truncated=np.array([m.truncated for m in rows], dtype=bool),
+        evaluation=np.array([m.evaluation for m in rows], dtype=bool),
+        utime=np.array([m.utime for m in rows], dtype=np.int64),
+        reward=np.array([float(reward(level[i], valves[i])) for i in range(n)], dtype=np.float64),
+        initial_level=initial, channel=channel, events=events, repeats=repeats)
+
+
+def control_episode(traj: Trajectory) -> int:
+    """The episode that best shows control at the highest degradation in the log.
+
+    The last complete (terminal) evaluation episode, as it shows the
+    deterministic policy; failing that the last terminal operating episode at
+    the highest age; failing that the longest episode at the highest age.
+    """
+    top = traj.interval().max()
+    at_top = traj.interval() == top
+    for evaluation in (True, False):
+        done = traj.terminal & at_top & (traj.evaluation == evaluation)
+        if done.any():
+            return int(traj.episode[done][-1])
+    eps, counts = np.unique(traj.episode[at_top], return_counts=True)
+    return int(eps[np.argmax(counts)])
+
+
+def write_trajectory_csv(rows: Trajectory, out: Path) -> None:
+    """Write rows as CSV (TRAJECTORY_HEADER), atomically. A single episode
+    starts with its initial state (step 0, valves closed, no reward) when the
+    log has it."""
+    lines = []
+    episodes = set(rows.episode.tolist())
+    if len(episodes) == 1 and (ep := episodes.pop()) in rows.initial_level and rows.step[0] == 1:
+        lines.append([ep, 0, f"{rows.age[0]:.6g}", int(rows.evaluation[0]), 0, 0, *[0] * 6,
+                      *[repr(float(x)) for x in rows.initial_level[ep]], ""])
+    lines += [[int(rows.episode[i]), int(rows.step[i]), f"{rows.age[i]:.6g}",
+               int(rows.evaluation[i]), int(rows.terminal[i]), int(rows.truncated[i]),
+               *rows.valves[i].tolist(), *[repr(float(x)) for x in rows.level[i]],
+               repr(float(rows.reward[i]))] for i in range(len(rows))]
+    atomic_write_csv(out, TRAJECTORY_HEADER, lines)
+
+
+def atomic_write_csv(out: Path, header: list[str], rows: list[list]) -> None:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(header)
+            writer.writerows(rows)
+        os.replace(tmp, out)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def summary(traj: Trajectory) -> str:
+    """A human-readable summary: episodes, steps, per-interval mean rewards."""
+    operating = traj.episodes(evaluation=False)
+    evaluation = traj.episodes(evaluation=True)
+    lines = [f"channel {traj.channel}: {traj.events} log events, {len(traj)} plant steps "
+             f"({traj.repeats} repeated states dropped)",
+             f"episodes: {len(operating)} operating, {len(evaluation)} evaluation; "
+             f"terminal {int(traj.terminal.sum())}, truncated {int(traj.truncated.sum())}",
+             f"mean reward per step over all operating steps: "
+             f"{float(np.mean(traj.reward[~traj.evaluation])) if (~traj.evaluation).any() else float('nan'):.4f}",
+             "interval  steps  reward/step  eval steps  eval reward/step"]
+    exp, ev = traj.reward_per_interval(False), traj.reward_per_interval(True)
+    counts = {k: int(((traj.interval() == k) & ~traj.evaluation).sum()) for k in exp}
+    ecounts = {k: int(((traj.interval() == k) & traj.evaluation).sum()) for k in ev}
+    for k in sorted(set(exp) | set(ev)):
+        lines.append(f"{k:8d}  {counts.get(k, 0):5d}  {exp.get(k, float('nan')):11.4f}  "
+                     f"{ecounts.get(k, 0):10d}  {ev.get(k, float('nan')):16.4f}")
+    return "\n".join(lines)
+
+
+def fit_model_from_log(traj: Trajectory, seed: int = 0) -> dict:
+    """Fit the controller's default world model on the log's transitions.
+
+    Transitions are consecutive states within an episode (the initial state
+    included). Returns {"transitions": n, "r2": cross-validated R^2}.
+    """
+    from ftc import world_model as wm
+
+    xs, us, xn, eps = [], [], [], []
+    for ep in traj.episodes():
+        rows = traj.select(traj.episode == ep)
+        prev, prev_step = traj.initial_level.get(ep), 0
+        for i in range(len(rows)):
+            if prev is not None and rows.step[i] == prev_step + 1:
+                xs.append(prev)
+                us.append(rows.valves[i])
+                xn.append(rows.level[i])
+                eps.append(ep)
+            prev, prev_step = rows.level[i], rows.step[i]
+    if len(set(eps)) < 3:
+        raise LogError(f"only {len(xs)} transitions in {len(set(eps))} episodes in the log; "
+                       "fitting needs at least 3 episodes (3-fold cross-validation)")
+    data = wm.Transitions(np.array(xs), np.array(us), np.array(xn), np.array(eps))
+    r2 = wm.cross_validated_r2(data, wm.WorldModelConfig(seed=seed), folds=3)
+    return {"transitions": len(xs), "episodes": len(set(eps)), "r2": float(r2)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m ftc.replay", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
+    parser.add_argument("log", type=Path, help="LCM log file written by lcm-logger")
+    parser.add_argument("--channel", default=None,
+                        help="STATE channel to read (default: the only *STATE channel)")
+    parser.add_argument("--episode", type=int, default=None,
+                        help="episode to draw (default: the last complete one at the highest "
+                             "degradation, preferring deterministic evaluation episodes)")
+    parser.add_argument("--figure", type=Path, default=None,
+                        help="draw the tank-control figure for the episode (PNG; SVG too if "
+                             "the name ends in .svg)")
+    parser.add_argument("--csv", type=Path, default=None, help="write the whole trajectory as CSV")
+    parser.add_argument("--fit-model", action="store_true",
+                        help="fit the world model on the log's transitions and print its CV R^2")
+    args = parser.parse_args(argv)
+    try:
+        traj = read_log(args.log, args.channel)
+        print(summary(traj))
+        if args.csv:
+            write_trajectory_csv(traj, args.csv)
+            print(f"wrote {args.csv}")
+        if args.figure or args.episode is not None:
+            episode = args.episode if args.episode is not None else control_episode(traj)
+            rows = traj.episode_rows(episode)
+            print(f"episode {episode}: {len(rows)} steps at age {rows.age[0]:g}"
+                  f"{' (evaluation)' if rows.evaluation[0] else ''}, "
+                  f"mean reward per step {float(np.mean(rows.reward)):.4f}")
+            if args.figure:
+                from ftc import figures
+
+                with tempfile.TemporaryDirectory() as tmp:
+                    csv_path = Path(tmp) / "episode.csv"
+                    write_trajectory_csv(rows, csv_path)
+                    figures.tank_control([(f"{args.log.name}, episode {episode}", csv_path)],
+                                         args.figure.with_suffix(""),
+                                         formats=(args.figure.suffix.lstrip(".") or "png",))
+                print(f"wrote {args.figure}")
+        if args.fit_model:
+            fit = fit_model_from_log(traj)
+            print(f"world model fitted on {fit['transitions']} transitions: "
+                  f"3-fold CV R^2 = {fit['r2']:.4f}")
+    except LogError as e:
+        print(f"ftc.replay: error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
