@@ -40,7 +40,7 @@ fi
 
 lcm_cmake="$(.venv/bin/python -c 'import lcm, os; print(os.path.join(os.path.dirname(os.path.dirname(lcm.__file__)), "lib", "lcm", "cmake"))')"
 pybind_cmake="$(.venv/bin/python -m pybind11 --cmakedir)"
-if [ ! -f build/CMakeCache.txt ]; then
+if [ ! -f build/Makefile ]; then
   cmake -S . -B build -DCMAKE_BUILD_TYPE=Release \
     -Dlcm_DIR="$lcm_cmake" -Dpybind11_DIR="$pybind_cmake" \
     -DPython_EXECUTABLE="$root/.venv/bin/python" >/dev/null
