@@ -16,6 +16,11 @@ namespace ftc {
 struct Mode {
   // Tanks whose pump supplies fuel, and how much (m^3/s), by the innermost-first rule.
   Vec6 pump_draw = Vec6::Zero();
+  // Tanks whose pump is live (fuel in the tank, or an empty tank filled by the
+  // conduit faster than its pump draws). Their draw min(p_i, remaining demand)
+  // is re-evaluated at x, since a pinned tank upstream passes on a draw that
+  // varies with x; pump_draw above is its value where the mode was computed.
+  std::array<bool, kTanks> pumping{};
   // Engine demand no tank on its wing supplies, m^3/s.
   Vec2 deficit = Vec2::Zero();
   // Open tanks in the source group (at the conduit potential).
@@ -43,6 +48,10 @@ Flows ComputeFlows(const Vec6& x, const Valves& u, const PlantParams& p, const M
 
 // dx/dt = (conduit - supply) / area at x under a fixed mode.
 Vec6 Derivative(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode);
+
+// Derivative and flows from one evaluation (the integrator's right-hand side).
+void EvaluateField(const Vec6& x, const PlantParams& p, const Mode& mode, Vec6* derivative,
+                   Flows* flows);
 
 // Number of root functions used by the integrator.
 constexpr int kNumRoots = 2 * kTanks;

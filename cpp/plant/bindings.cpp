@@ -1,0 +1,275 @@
+// Python bindings of the physics core (imported as ftc._core): the same Plant
+// the LCM process runs, for in-process rollouts, plus the pieces (degraded
+// parameters, one integrated step, flows, reward) that the Python tests check
+// against an independent reference. Arrays cross as numpy float64 / int arrays.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "plant/degradation.h"
+#include "plant/dynamics.h"
+#include "plant/integrator.h"
+#include "plant/plant.h"
+#include "plant/reward.h"
+#include "plant/scenario.h"
+
+namespace py = pybind11;
+
+namespace {
+
+using ftc::kEngines;
+using ftc::kTanks;
+
+template <typename Derived>
+py::array_t<typename Derived::Scalar> ToNumpy(const Eigen::MatrixBase<Derived>& v) {
+  py::array_t<typename Derived::Scalar> a(v.size());
+  auto out = a.template mutable_unchecked<1>();
+  for (Eigen::Index k = 0; k < v.size(); ++k) out(k) = v[k];
+  return a;
+}
+
+template <int N>
+Eigen::Matrix<double, N, 1> ToVec(const py::handle& obj, const char* what) {
+  const auto a = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(obj);
+  if (!a || a.ndim() != 1 || a.shape(0) != N) {
+    throw py::value_error(std::string(what) + " must be a sequence of " + std::to_string(N) +
+                          " numbers");
+  }
+  Eigen::Matrix<double, N, 1> v;
+  for (int k = 0; k < N; ++k) v[k] = a.at(k);
+  return v;
+}
+
+ftc::Valves ToValves(const py::handle& obj) {
+  const auto a = py::array_t<long long, py::array::c_style | py::array::forcecast>::ensure(obj);
+  if (!a || a.ndim() != 1 || a.shape(0) != kTanks)
+    throw py::value_error("valves must be a sequence of 6 ints");
+  ftc::Valves u;
+  for (int k = 0; k < kTanks; ++k) {
+    const long long v = a.at(k);
+    if (v != 0 && v != 1) throw py::value_error("valves must be 0 or 1");
+    u[k] = static_cast<int>(v);
+  }
+  return u;
+}
+
+template <int N>
+Eigen::Matrix<double, N, 1> Factors(const std::vector<double>& v, const char* what) {
+  if (static_cast<int>(v.size()) != N) {
+    throw py::value_error(std::string(what) + ": expected " + std::to_string(N) +
+                          " numbers, got " + std::to_string(v.size()));
+  }
+  Eigen::Matrix<double, N, 1> out;
+  for (int k = 0; k < N; ++k) {
+    if (std::isnan(v[k]) || !(v[k] > 0))
+      throw py::value_error(std::string(what) + ": factors must be > 0 (inf = healthy)");
+    out[k] = v[k];
+  }
+  return out;
+}
+
+template <int N>
+std::vector<double> ToList(const Eigen::Matrix<double, N, 1>& v) {
+  return std::vector<double>(v.data(), v.data() + N);
+}
+
+py::dict ParamsDict(const ftc::PlantParams& p) {
+  py::dict d;
+  d["g"] = p.g;
+  d["height"] = ToNumpy(p.height);
+  d["area"] = ToNumpy(p.area);
+  d["resistance"] = ToNumpy(p.resistance);
+  d["pump"] = ToNumpy(p.pump);
+  d["demand"] = ToNumpy(p.demand);
+  return d;
+}
+
+// Keys not given keep their nominal values; unknown keys are an error.
+ftc::PlantParams ParamsFromDict(const py::dict& d) {
+  ftc::PlantParams p;
+  for (const auto& item : d) {
+    const std::string key = py::str(item.first);
+    if (key == "g") {
+      p.g = item.second.cast<double>();
+    } else if (key == "height") {
+      p.height = ToVec<kTanks>(item.second, "params['height']");
+    } else if (key == "area") {
+      p.area = ToVec<kTanks>(item.second, "params['area']");
+    } else if (key == "resistance") {
+      p.resistance = ToVec<kTanks>(item.second, "params['resistance']");
+    } else if (key == "pump") {
+      p.pump = ToVec<kTanks>(item.second, "params['pump']");
+    } else if (key == "demand") {
+      p.demand = ToVec<kEngines>(item.second, "params['demand']");
+    } else {
+      throw py::value_error("params: unknown key '" + key +
+                            "' (known: g, height, area, resistance, pump, demand)");
+    }
+  }
+  return p;
+}
+
+py::dict OutcomeDict(const ftc::StepOutcome& o) {
+  py::dict d;
+  d["level"] = ToNumpy(o.level);
+  d["observed"] = ToNumpy(o.observed);
+  d["valves"] = ToNumpy(o.valves);
+  d["deficit"] = ToNumpy(o.deficit);
+  d["age"] = o.age;
+  d["step"] = o.step;
+  d["episode"] = o.episode;
+  d["terminal"] = o.terminal;
+  d["truncated"] = o.truncated;
+  d["evaluation"] = o.evaluation;
+  return d;
+}
+
+std::string ModeName(ftc::DegradationMode m) {
+  return m == ftc::DegradationMode::kContinuous ? "continuous" : "stepwise";
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "C++ physics core of the fuel-transfer plant (CVODE, hybrid dynamics).";
+  py::register_exception<ftc::ScenarioError>(m, "ScenarioError", PyExc_ValueError);
+
+  py::class_<ftc::FaultScenario>(m, "Scenario", "Fault scenario (default: nominal, healthy).")
+      .def(py::init<>())
+      .def_readwrite("name", &ftc::FaultScenario::name)
+      .def_property(
+          "tank_factor", [](const ftc::FaultScenario& s) { return ToList(s.tank_factor); },
+          [](ftc::FaultScenario& s, const std::vector<double>& v) {
+            s.tank_factor = Factors<kTanks>(v, "tank_factor");
+          },
+          "D_T per tank (6 floats, inf = healthy)")
+      .def_property(
+          "engine_factor", [](const ftc::FaultScenario& s) { return ToList(s.engine_factor); },
+          [](ftc::FaultScenario& s, const std::vector<double>& v) {
+            s.engine_factor = Factors<kEngines>(v, "engine_factor");
+          },
+          "D_E per engine (2 floats, inf = healthy)")
+      .def_property(
+          "mode", [](const ftc::FaultScenario& s) { return ModeName(s.mode); },
+          [](ftc::FaultScenario& s, const std::string& v) {
+            if (v == "stepwise") {
+              s.mode = ftc::DegradationMode::kStepwise;
+            } else if (v == "continuous") {
+              s.mode = ftc::DegradationMode::kContinuous;
+            } else {
+              throw py::value_error("mode must be 'stepwise' or 'continuous', got '" + v + "'");
+            }
+          },
+          "'stepwise' (age = interval index) or 'continuous'")
+      .def_property(
+          "noise_std", [](const ftc::FaultScenario& s) { return s.noise_std; },
+          [](ftc::FaultScenario& s, double v) {
+            if (!std::isfinite(v) || v < 0) throw py::value_error("noise_std must be >= 0");
+            s.noise_std = v;
+          },
+          "sensor noise on published levels, m")
+      .def_readwrite("random_start", &ftc::FaultScenario::random_start)
+      .def_property(
+          "steps_per_interval", [](const ftc::FaultScenario& s) { return s.steps_per_interval; },
+          [](ftc::FaultScenario& s, int v) {
+            if (v <= 0) throw py::value_error("steps_per_interval must be > 0");
+            s.steps_per_interval = v;
+          },
+          "control steps per degradation interval (t_online)")
+      .def("__repr__", [](const ftc::FaultScenario& s) {
+        std::string r = "Scenario(name='" + s.name + "', tank_factor=[";
+        for (int i = 0; i < kTanks; ++i) r += (i ? ", " : "") + py::repr(py::float_(s.tank_factor[i])).cast<std::string>();
+        r += "], engine_factor=[";
+        for (int j = 0; j < kEngines; ++j) r += (j ? ", " : "") + py::repr(py::float_(s.engine_factor[j])).cast<std::string>();
+        r += "], mode='" + ModeName(s.mode) + "', noise_std=" + std::to_string(s.noise_std) +
+             ", random_start=" + (s.random_start ? "True" : "False") +
+             ", steps_per_interval=" + std::to_string(s.steps_per_interval) + ")";
+        return r;
+      });
+
+  m.def("load_scenario", &ftc::LoadScenario, py::arg("path"),
+        "Read a scenario TOML file; raises ScenarioError (a ValueError) naming file and key.");
+  m.def("parse_scenario", &ftc::ParseScenario, py::arg("text"), py::arg("source_name"),
+        "Parse scenario TOML text; source_name is used in error messages.");
+
+  py::class_<ftc::Plant>(m, "Plant", "The plant: episodes, degradation, noise, CVODE steps.")
+      .def(py::init([](const ftc::FaultScenario& s, std::uint64_t seed) {
+             return std::make_unique<ftc::Plant>(s, seed);
+           }),
+           py::arg("scenario"), py::arg("seed"))
+      .def("reset", &ftc::Plant::Reset, "Start a new operating episode (full tanks).")
+      .def("reset_evaluation", &ftc::Plant::ResetEvaluation,
+           "Start an evaluation episode (age frozen, steps not counted).")
+      .def(
+          "step",
+          [](ftc::Plant& p, const py::object& valves) {
+            return OutcomeDict(p.Step(ToValves(valves)));
+          },
+          py::arg("valves"), "Apply 6 valves (0/1) for one 1 s step; returns the outcome dict.")
+      .def("last", [](const ftc::Plant& p) { return OutcomeDict(p.last()); })
+      .def_property_readonly("operating_steps", &ftc::Plant::operating_steps)
+      .def_property_readonly("current_age", &ftc::Plant::current_age)
+      .def("set_operating_steps", &ftc::Plant::SetOperatingSteps, py::arg("steps"),
+           "Resume at an operating age: the next step is taken at AgeAt(steps).")
+      .def_property_readonly("scenario", &ftc::Plant::scenario)
+      .def(
+          "params_at", [](const ftc::Plant& p, double age) { return ParamsDict(p.ParamsAt(age)); },
+          py::arg("age"));
+
+  m.def(
+      "degraded_params",
+      [](const ftc::FaultScenario& s, double age) {
+        return ParamsDict(ftc::DegradedParams(ftc::PlantParams{}, s, age));
+      },
+      py::arg("scenario"), py::arg("age"), "Nominal parameters degraded to an age (intervals).");
+
+  m.def(
+      "integrate_step",
+      [](const py::object& x0, const py::object& valves, const py::dict& params, double dt) {
+        const ftc::PlantParams p = ParamsFromDict(params);
+        ftc::StepIntegrator integrator;
+        const ftc::StepResult r = integrator.Step(ToVec<kTanks>(x0, "x0"), ToValves(valves), p, dt);
+        py::dict d;
+        d["x"] = ToNumpy(r.x);
+        d["supplied"] = ToNumpy(r.supplied);
+        d["deficit"] = ToNumpy(r.deficit);
+        d["events"] = r.events;
+        return d;
+      },
+      py::arg("x0"), py::arg("valves"), py::arg("params"), py::arg("dt") = 1.0,
+      "Integrate one step from x0 with valves held; supplied/deficit in m^3.");
+
+  m.def(
+      "reward",
+      [](const py::object& x_next, const py::object& valves) {
+        const ftc::RewardTerms t =
+            ftc::ComputeReward(ToVec<kTanks>(x_next, "x_next"), ToValves(valves), ftc::PlantParams{});
+        py::dict d;
+        d["reward"] = t.reward;
+        d["cg"] = t.cg;
+        d["spread"] = t.spread;
+        d["activity"] = t.activity;
+        return d;
+      },
+      py::arg("x_next"), py::arg("valves"), "Reward terms at the levels after a step (nominal areas).");
+
+  m.def(
+      "compute_flows",
+      [](const py::object& x, const py::object& valves, const py::dict& params) {
+        const ftc::PlantParams p = ParamsFromDict(params);
+        const ftc::Vec6 xv = ToVec<kTanks>(x, "x");
+        const ftc::Valves u = ToValves(valves);
+        const ftc::Flows f = ftc::ComputeFlows(xv, u, p, ftc::ComputeMode(xv, u, p));
+        py::dict d;
+        d["conduit"] = ToNumpy(f.conduit);
+        d["supply"] = ToNumpy(f.supply);
+        d["deficit"] = ToNumpy(f.deficit);
+        return d;
+      },
+      py::arg("x"), py::arg("valves"), py::arg("params"),
+      "Flows (m^3/s) at x with the mode computed at x.");
+}

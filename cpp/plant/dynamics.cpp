@@ -1,0 +1,224 @@
+// Hybrid vector field of the six-tank fuel plant (plant-model.md, "Dynamics").
+//
+//   dx_i/dt = (q_in_i - q_out_i - s_i) / c_i
+//
+// A Mode freezes the discrete decisions (which pumps are live, which open
+// tanks are sources, sinks or pinned empties); within a mode the field is
+// affine in x, hence smooth for the integrator. Every root function is
+// positive while its mode stays valid and reaches zero, decreasing, where the
+// mode must be recomputed; ComputeMode applies the matching test with the
+// boundary itself on the side the crossing leads to, so a located root always
+// yields the new mode.
+#include "plant/dynamics.h"
+
+#include <algorithm>
+#include <limits>
+
+namespace ftc {
+namespace {
+
+// A member whose pump makes it fall faster than the group, up to this relative
+// margin, leaves it. The margin keeps a member whose draw exactly equals the
+// group rate (symmetric plants) from leaving on a rounding error.
+constexpr double kLeaveMargin = 1e-12;
+
+// Everything the field, the flows and the root functions need at x under a mode.
+struct Evaluation {
+  Flows flows;
+  Vec6 derivative = Vec6::Zero();
+  Vec6 want = Vec6::Zero();  // min(p_i, remaining demand) each pump would draw
+  double xref = 0;           // level of the source group (conduit potential / g)
+  double rho = 0;            // common fall rate of the source group, m/s
+  bool any_sink = false;
+  int group_size = 0;
+};
+
+Evaluation Evaluate(const Vec6& x, const PlantParams& p, const Mode& mode) {
+  Evaluation e;
+  double xref = -std::numeric_limits<double>::infinity();
+  for (int i = 0; i < kTanks; ++i) {
+    if (mode.source[i]) {
+      xref = std::max(xref, x[i]);
+      ++e.group_size;
+    }
+    e.any_sink = e.any_sink || mode.sink[i];
+  }
+  e.xref = e.group_size > 0 ? xref : 0.0;
+
+  // Sinks receive (V - phi_k) / R_k; pinned tanks are sinks too.
+  double inflow_total = 0;
+  for (int i = 0; i < kTanks; ++i) {
+    if (mode.sink[i]) {
+      e.flows.conduit[i] = p.g * (e.xref - x[i]) / p.resistance[i];
+      inflow_total += e.flows.conduit[i];
+    }
+  }
+
+  // Pumps, innermost first; min(p, remaining) is evaluated at x so that a
+  // pinned tank's varying supply passes its remainder on continuously.
+  for (int j = 0; j < kEngines; ++j) {
+    double remaining = p.demand[j];
+    for (const int i : kPumpOrder[j]) {
+      const double want = std::max(0.0, std::min(p.pump[i], remaining));
+      e.want[i] = want;
+      double s = 0;
+      if (mode.pinned[i]) {
+        s = std::clamp(e.flows.conduit[i], 0.0, want);
+      } else if (mode.pumping[i]) {
+        s = want;
+      }
+      e.flows.supply[i] = s;
+      remaining -= s;
+    }
+    e.flows.deficit[j] = std::max(0.0, remaining);
+  }
+
+  // The source group falls together and pays for the sinks' inflow.
+  if (e.group_size > 0) {
+    double draw = 0, area = 0;
+    for (int i = 0; i < kTanks; ++i) {
+      if (mode.source[i]) {
+        draw += e.flows.supply[i];
+        area += p.area[i];
+      }
+    }
+    e.rho = (inflow_total + draw) / area;
+    for (int i = 0; i < kTanks; ++i) {
+      if (mode.source[i]) e.flows.conduit[i] = -(p.area[i] * e.rho - e.flows.supply[i]);
+    }
+  }
+
+  for (int i = 0; i < kTanks; ++i) {
+    if (mode.source[i]) {
+      e.derivative[i] = -e.rho;  // exactly equal, so tied members stay tied
+    } else if (mode.pinned[i]) {
+      e.derivative[i] = 0.0;
+    } else {
+      e.derivative[i] = (e.flows.conduit[i] - e.flows.supply[i]) / p.area[i];
+    }
+  }
+  return e;
+}
+
+}  // namespace
+
+Mode ComputeMode(const Vec6& x, const Valves& u, const PlantParams& p) {
+  Mode m;
+  int open = 0;
+  double xmax = -std::numeric_limits<double>::infinity();
+  for (int i = 0; i < kTanks; ++i) {
+    if (u[i] != 0) {
+      ++open;
+      xmax = std::max(xmax, x[i]);
+    }
+  }
+  // One open tank has nobody to exchange with: the conduit is idle.
+  const bool conduit = open >= 2;
+  Vec6 inflow = Vec6::Zero();
+  if (conduit) {
+    for (int i = 0; i < kTanks; ++i) {
+      if (u[i] == 0) continue;
+      if (x[i] >= xmax - kTieTolerance) {
+        m.source[i] = true;
+      } else {
+        m.sink[i] = true;
+        inflow[i] = p.g * (xmax - x[i]) / p.resistance[i];
+      }
+    }
+  }
+
+  for (int j = 0; j < kEngines; ++j) {
+    double remaining = p.demand[j];
+    for (const int i : kPumpOrder[j]) {
+      const double want = std::max(0.0, std::min(p.pump[i], remaining));
+      double s = 0;
+      if (x[i] > 0) {
+        m.pumping[i] = true;
+        s = want;
+      } else if (m.sink[i] && inflow[i] > 0) {
+        if (inflow[i] < want) {  // stays at 0, passing its inflow to the pump
+          m.pinned[i] = true;
+          s = inflow[i];
+        } else {  // fills faster than it is drawn: rises off the bottom
+          m.pumping[i] = true;
+          s = want;
+        }
+      }
+      m.pump_draw[i] = s;
+      remaining -= s;
+    }
+    m.deficit[j] = std::max(0.0, remaining);
+  }
+
+  // A group member whose own pump outruns the group leaves it and becomes a
+  // sink. Leaving only lowers the group rate, so dropping every offender per
+  // pass converges; the member with the smallest draw per area never leaves.
+  if (conduit) {
+    for (;;) {
+      double xref = -std::numeric_limits<double>::infinity();
+      for (int i = 0; i < kTanks; ++i)
+        if (m.source[i]) xref = std::max(xref, x[i]);
+      double inflow_total = 0, draw = 0, area = 0;
+      double min_ratio = std::numeric_limits<double>::infinity();
+      for (int i = 0; i < kTanks; ++i) {
+        if (m.sink[i]) inflow_total += p.g * (xref - x[i]) / p.resistance[i];
+        if (m.source[i]) {
+          draw += m.pump_draw[i];
+          area += p.area[i];
+          min_ratio = std::min(min_ratio, m.pump_draw[i] / p.area[i]);
+        }
+      }
+      const double rho = (inflow_total + draw) / area;
+      const double threshold = std::max(rho * (1.0 - kLeaveMargin), min_ratio);
+      bool changed = false;
+      for (int i = 0; i < kTanks; ++i) {
+        if (m.source[i] && m.pump_draw[i] / p.area[i] > threshold) {
+          m.source[i] = false;
+          m.sink[i] = true;
+          changed = true;
+        }
+      }
+      if (!changed) break;
+    }
+  }
+  return m;
+}
+
+Flows ComputeFlows(const Vec6& x, const Valves& /*u*/, const PlantParams& p, const Mode& mode) {
+  return Evaluate(x, p, mode).flows;
+}
+
+Vec6 Derivative(const Vec6& x, const Valves& /*u*/, const PlantParams& p, const Mode& mode) {
+  return Evaluate(x, p, mode).derivative;
+}
+
+void EvaluateField(const Vec6& x, const PlantParams& p, const Mode& mode, Vec6* derivative,
+                   Flows* flows) {
+  Evaluation e = Evaluate(x, p, mode);
+  *derivative = e.derivative;
+  *flows = e.flows;
+}
+
+std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
+                                            const PlantParams& p, const Mode& mode) {
+  std::array<double, kNumRoots> r;
+  r.fill(1.0);
+  const Evaluation e = Evaluate(x, p, mode);
+  for (int i = 0; i < kTanks; ++i) {
+    // Slot i: a draining tank reaching the bottom (a live pump, or a source
+    // member paying for sinks).
+    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink))) r[i] = x[i];
+    // Slot kTanks + i: the tank's place in the conduit changes.
+    double& b = r[kTanks + i];
+    if (mode.pinned[i]) {
+      b = e.want[i] - e.flows.conduit[i];  // inflow rises to the pump draw
+    } else if (mode.sink[i]) {
+      b = e.xref - x[i];  // rises to the conduit level: joins the group
+    } else if (mode.source[i] && e.any_sink && e.flows.supply[i] > 0) {
+      b = p.area[i] * e.rho - e.flows.supply[i];  // own pump outruns the group
+    }
+  }
+  return r;
+}
+
+}  // namespace ftc

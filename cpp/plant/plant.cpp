@@ -1,0 +1,86 @@
+// The plant as a discrete-time system (plant-model.md, "Episodes" and
+// "Degradation"): episodes, termination, interval truncation, operating age
+// and sensor noise around the CVODE step.
+#include "plant/plant.h"
+
+namespace ftc {
+
+namespace {
+constexpr double kControlStep = 1.0;  // s of plant time per control step
+constexpr double kTerminalMargin = 1e-6;  // m^3, in favour of ending (spec)
+}  // namespace
+
+Plant::Plant(const FaultScenario& scenario, std::uint64_t seed, const PlantParams& nominal,
+             const IntegratorOptions& options)
+    : scenario_(scenario), nominal_(nominal), integrator_(options), rng_(seed) {
+  if (scenario_.steps_per_interval <= 0)
+    throw std::invalid_argument("Plant: steps_per_interval must be > 0");
+  if (!(scenario_.noise_std >= 0)) throw std::invalid_argument("Plant: noise_std must be >= 0");
+  // Before the first Reset the plant shows full tanks; the first Step (or
+  // Reset) starts episode 0.
+  last_.level = nominal_.height;
+  last_.observed = nominal_.height;
+  last_.episode = -1;  // no episode yet
+}
+
+double Plant::current_age() const {
+  return last_.evaluation ? eval_age_ : AgeAt(scenario_, operating_steps_);
+}
+
+void Plant::Reset() { StartEpisode(false); }
+
+void Plant::ResetEvaluation() {
+  eval_age_ = last_operating_age_;
+  StartEpisode(true);
+}
+
+void Plant::StartEpisode(bool evaluation) {
+  Vec6 x = nominal_.height;
+  if (scenario_.random_start) {
+    std::uniform_real_distribution<double> fraction(0.8, 1.0);
+    for (int i = 0; i < kTanks; ++i) x[i] = fraction(rng_) * nominal_.height[i];
+  }
+  last_ = StepOutcome{};
+  last_.evaluation = evaluation;
+  last_.level = x;
+  last_.observed = Observe(x);
+  last_.episode = episodes_started_++;
+  last_.age = current_age();
+}
+
+const StepOutcome& Plant::Step(const Valves& u) {
+  if (last_.episode < 0 || episode_over()) StartEpisode(last_.evaluation);
+  const double age = current_age();
+  const PlantParams p = ParamsAt(age);
+  const StepResult r = integrator_.Step(last_.level, u, p, kControlStep);
+
+  last_.level = r.x;
+  last_.observed = Observe(r.x);
+  last_.valves = u;
+  last_.deficit = r.deficit;
+  last_.age = age;
+  ++last_.step;
+  last_.terminal = IsTerminal(r.x, p, kControlStep);
+  last_.truncated = false;
+  if (!last_.evaluation) {
+    ++operating_steps_;
+    last_operating_age_ = age;
+    last_.truncated =
+        !last_.terminal && operating_steps_ % scenario_.steps_per_interval == 0;
+  }
+  return last_;
+}
+
+bool Plant::IsTerminal(const Vec6& x, const PlantParams& p, double dt) {
+  return p.area.dot(x) < p.demand.sum() * dt + kTerminalMargin;
+}
+
+Vec6 Plant::Observe(const Vec6& x) {
+  if (scenario_.noise_std <= 0) return x;
+  std::normal_distribution<double> noise(0.0, scenario_.noise_std);
+  Vec6 y = x;
+  for (int i = 0; i < kTanks; ++i) y[i] += noise(rng_);
+  return y;
+}
+
+}  // namespace ftc

@@ -1,0 +1,143 @@
+// Vector field of plant-model.md on hand-worked cases: flows at one state,
+// and the mode decisions (ties, members leaving, pinned empty tanks).
+#include <gtest/gtest.h>
+
+#include "plant/dynamics.h"
+
+namespace ftc {
+namespace {
+
+// The field is a handful of additions and divisions; 1e-12 leaves room for
+// rounding only.
+constexpr double kExact = 1e-12;
+
+Valves MakeValves(std::initializer_list<int> v) {
+  Valves u;
+  int k = 0;
+  for (int e : v) u[k++] = e;
+  return u;
+}
+
+Vec6 MakeLevels(std::initializer_list<double> v) {
+  Vec6 x;
+  int k = 0;
+  for (double e : v) x[k++] = e;
+  return x;
+}
+
+TEST(Dynamics, NothingFlowsWhenOpenTanksAreLevel) {
+  const PlantParams p;
+  const Vec6 x = MakeLevels({0.7, 0.4, 0.7, 0.9, 0.7, 0.7});
+  const Valves u = MakeValves({1, 0, 0, 0, 1, 1});  // open tanks all at 0.7
+  const Mode mode = ComputeMode(x, u, p);
+  const Flows f = ComputeFlows(x, u, p, mode);
+  EXPECT_NEAR(f.conduit.cwiseAbs().maxCoeff(), 0.0, kExact);
+  // Pumps are untouched: tank 3 feeds E1, tank 4 feeds E2 (0.05 each).
+  EXPECT_NEAR(f.supply[2], 0.05, kExact);
+  EXPECT_NEAR(f.supply[3], 0.05, kExact);
+  EXPECT_NEAR(f.supply.sum(), 0.10, kExact);
+}
+
+TEST(Dynamics, SinkInflowAndSourceSplitMatchHandWorkedCase) {
+  // Open: tank 1 and tank 5 at 0.8 (tied sources), tank 2 at 0.5, tank 6 at 0.3.
+  // Tanks 3, 4 are closed and full, so they meet both demands (0.05 each) and
+  // no open tank pumps. With g = 10, R = 100:
+  //   V = 10 * 0.8 = 8
+  //   q_in(2) = (8 - 5) / 100 = 0.03,  q_in(6) = (8 - 3) / 100 = 0.05,  Q = 0.08
+  //   group {1, 5}: rho = (0.08 + 0) / (1 + 1) = 0.04, each supplies 0.04
+  //   (equal resistances: the conductance split Q * (1/100) / (2/100) = 0.04 agrees).
+  const PlantParams p;
+  const Vec6 x = MakeLevels({0.8, 0.5, 1.0, 1.0, 0.8, 0.3});
+  const Valves u = MakeValves({1, 1, 0, 0, 1, 1});
+  const Mode mode = ComputeMode(x, u, p);
+  EXPECT_TRUE(mode.source[0] && mode.source[4]);
+  EXPECT_TRUE(mode.sink[1] && mode.sink[5]);
+  const Flows f = ComputeFlows(x, u, p, mode);
+  EXPECT_NEAR(f.conduit[1], 0.03, kExact);
+  EXPECT_NEAR(f.conduit[5], 0.05, kExact);
+  EXPECT_NEAR(f.conduit[0], -0.04, kExact);
+  EXPECT_NEAR(f.conduit[4], -0.04, kExact);
+  EXPECT_NEAR(f.conduit.sum(), 0.0, kExact);
+  const Vec6 dx = Derivative(x, u, p, mode);
+  EXPECT_NEAR(dx[0], -0.04, kExact);
+  EXPECT_NEAR(dx[1], 0.03, kExact);
+  EXPECT_NEAR(dx[2], -0.05, kExact);
+  EXPECT_NEAR(dx[3], -0.05, kExact);
+  EXPECT_NEAR(dx[5], 0.05, kExact);
+}
+
+TEST(Dynamics, TiedGroupWithOnePumpFallsTogether) {
+  // Tanks 3 and 2 open at 0.8, tank 1 open and empty. Tank 3 pumps E1's 0.05.
+  //   q_in(1) = 10 * 0.8 / 100 = 0.08 (tank 1's pump has no demand left: it fills)
+  //   rho = (0.08 + 0.05) / 2 = 0.065 >= 0.05 = s_3 / c_3, so tank 3 stays:
+  //   tank 3 supplies 0.065 - 0.05 = 0.015, tank 2 supplies 0.065.
+  const PlantParams p;
+  const Vec6 x = MakeLevels({0.0, 0.8, 0.8, 1.0, 1.0, 1.0});
+  const Valves u = MakeValves({1, 1, 1, 0, 0, 0});
+  const Mode mode = ComputeMode(x, u, p);
+  EXPECT_TRUE(mode.source[1] && mode.source[2]);
+  EXPECT_TRUE(mode.sink[0]);
+  EXPECT_FALSE(mode.pinned[0]);
+  const Flows f = ComputeFlows(x, u, p, mode);
+  EXPECT_NEAR(f.conduit[2], -0.015, kExact);
+  EXPECT_NEAR(f.conduit[1], -0.065, kExact);
+  EXPECT_NEAR(f.conduit[0], 0.08, kExact);
+  const Vec6 dx = Derivative(x, u, p, mode);
+  EXPECT_EQ(dx[1], dx[2]);  // exactly: tied members must stay tied
+  EXPECT_NEAR(dx[2], -0.065, kExact);
+  EXPECT_NEAR(dx[0], 0.08, kExact);
+}
+
+TEST(Dynamics, MemberWhosePumpOutrunsTheGroupLeavesIt) {
+  // Tanks 3 and 2 open at 0.8, nothing else open: rho = 0.05 / 2 = 0.025 < 0.05,
+  // so tank 3 leaves and becomes a sink (inflow 0 at first); tank 2 is the source.
+  const PlantParams p;
+  const Vec6 x = MakeLevels({1.0, 0.8, 0.8, 1.0, 1.0, 1.0});
+  const Valves u = MakeValves({0, 1, 1, 0, 0, 0});
+  const Mode mode = ComputeMode(x, u, p);
+  EXPECT_TRUE(mode.source[1]);
+  EXPECT_TRUE(mode.sink[2]);
+  const Vec6 dx = Derivative(x, u, p, mode);
+  EXPECT_NEAR(dx[2], -0.05, kExact);
+  EXPECT_NEAR(dx[1], 0.0, kExact);
+}
+
+TEST(Dynamics, EmptyTankWithSmallInflowIsPinnedAndPassesItOn) {
+  // Tank 3 open and empty, tank 1 open at 0.3: q_in(3) = 10 * 0.3 / 100 = 0.03 <
+  // min(p, d) = 0.05, so tank 3 stays at 0 and supplies 0.03; tank 2 (closed)
+  // supplies the remaining 0.02; tank 1 has no demand left.
+  const PlantParams p;
+  const Vec6 x = MakeLevels({0.3, 0.5, 0.0, 1.0, 1.0, 1.0});
+  const Valves u = MakeValves({1, 0, 1, 0, 0, 0});
+  const Mode mode = ComputeMode(x, u, p);
+  EXPECT_TRUE(mode.pinned[2]);
+  const Flows f = ComputeFlows(x, u, p, mode);
+  EXPECT_NEAR(f.supply[2], 0.03, kExact);
+  EXPECT_NEAR(f.supply[1], 0.02, kExact);
+  EXPECT_NEAR(f.supply[0], 0.0, kExact);
+  EXPECT_NEAR(f.deficit[0], 0.0, kExact);
+  const Vec6 dx = Derivative(x, u, p, mode);
+  EXPECT_EQ(dx[2], 0.0);
+  EXPECT_NEAR(dx[0], -0.03, kExact);
+}
+
+TEST(Dynamics, DeficitWhenTheWingIsEmpty) {
+  const PlantParams p;
+  const Vec6 x = MakeLevels({0.0, 0.0, 0.0, 0.0, 0.0, 0.02});
+  const Valves u = Valves::Zero();
+  const Flows f = ComputeFlows(x, u, p, ComputeMode(x, u, p));
+  EXPECT_NEAR(f.deficit[0], 0.05, kExact);
+  EXPECT_NEAR(f.deficit[1], 0.0, kExact);
+  EXPECT_NEAR(f.supply[5], 0.05, kExact);
+}
+
+TEST(Dynamics, RootFunctionsArePositiveInsideTheirMode) {
+  const PlantParams p;
+  const Vec6 x = MakeLevels({0.3, 0.5, 0.0, 0.6, 0.9, 0.2});
+  const Valves u = MakeValves({1, 0, 0, 1, 1, 1});
+  const auto r = RootFunctions(x, u, p, ComputeMode(x, u, p));
+  for (int k = 0; k < kNumRoots; ++k) EXPECT_GT(r[k], 0.0) << "root " << k;
+}
+
+}  // namespace
+}  // namespace ftc

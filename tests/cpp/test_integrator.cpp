@@ -1,0 +1,210 @@
+// One CVODE step against analytic solutions of hand-worked cases, and the
+// invariants of plant-model.md: fuel balance, bounds, ties, pinned tanks.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "plant/degradation.h"
+#include "plant/integrator.h"
+
+namespace ftc {
+namespace {
+
+// Within a mode the solution is smooth and the default tolerances
+// (rtol 1e-8, atol 1e-10) keep levels within ~1e-8 m of it; 1e-7 m is that
+// with a margin, far below the 1e-4 m the Python comparison asks for.
+constexpr double kLevelTol = 1e-7;
+
+Vec6 MakeLevels(std::initializer_list<double> v) {
+  Vec6 x;
+  int k = 0;
+  for (double e : v) x[k++] = e;
+  return x;
+}
+
+Valves MakeValves(std::initializer_list<int> v) {
+  Valves u;
+  int k = 0;
+  for (int e : v) u[k++] = e;
+  return u;
+}
+
+TEST(Integrator, InnermostFirstPumpsSwitchAtTheAnalyticTime) {
+  // E1 demand 0.15 with p = 0.1: tank 3 (0.03 m) draws 0.1 and tank 2 the other
+  // 0.05 until tank 3 empties at t = 0.03 / 0.1 = 0.3 s; then tank 2 draws 0.1
+  // and tank 1 0.05. Over 1 s:
+  //   x2 = 0.5 - 0.05 * 0.3 - 0.1 * 0.7 = 0.415,   x1 = 1 - 0.05 * 0.7 = 0.965.
+  // Piecewise linear, so only the root location limits accuracy (~1e-12).
+  PlantParams p;
+  p.demand << 0.15, 0.05;
+  StepIntegrator integrator;
+  const StepResult r =
+      integrator.Step(MakeLevels({1.0, 0.5, 0.03, 1.0, 1.0, 1.0}), Valves::Zero(), p);
+  EXPECT_EQ(r.x[2], 0.0);
+  EXPECT_NEAR(r.x[1], 0.415, 1e-9);
+  EXPECT_NEAR(r.x[0], 0.965, 1e-9);
+  EXPECT_NEAR(r.supplied[2], 0.03, 1e-9);
+  EXPECT_NEAR(r.x[3], 0.95, 1e-9);
+  EXPECT_GE(r.events, 1);
+}
+
+TEST(Integrator, TiedTanksWithOnePumpFallTogether) {
+  // test_dynamics.cpp's case over 1 s. With gap = x_G - x_1 and g/R = 0.1:
+  //   gap' = -rho - Q = -1.5 * 0.1 gap - 0.025  =>  gap(t) = (0.8 + a) e^{-0.15 t} - a,
+  //   a = 0.025 / 0.15; rho = (0.1 gap + 0.05) / 2 stays >= 0.05 (gap >= 0.5) all
+  //   step, so x_G(1) = 0.8 - (0.1 * int_0^1 gap + 0.05) / 2.
+  const PlantParams p;
+  const double a = 0.025 / 0.15;
+  const double gap_integral = (0.8 + a) * (1 - std::exp(-0.15)) / 0.15 - a;
+  const double x_group = 0.8 - (0.1 * gap_integral + 0.05) / 2;
+  StepIntegrator integrator;
+  const StepResult r = integrator.Step(MakeLevels({0.0, 0.8, 0.8, 1.0, 1.0, 1.0}),
+                                       MakeValves({1, 1, 1, 0, 0, 0}), p);
+  EXPECT_NEAR(r.x[1] - r.x[2], 0.0, 1e-12);  // tied members move identically
+  EXPECT_NEAR(r.x[2], x_group, kLevelTol);
+  EXPECT_NEAR(r.x[0], 1.6 - 0.05 - 2 * x_group, kLevelTol);  // fuel balance
+}
+
+TEST(Integrator, PumpingMemberLeavesAndTheGapFollowsTheAnalyticLaw) {
+  // Tanks 2, 3 open at 0.8: tank 3 (pumping 0.05) leaves the group. With
+  // gap = x2 - x3: gap' = 0.05 - 2 * 0.1 gap  =>  gap(t) = 0.25 (1 - e^{-0.2 t}),
+  // x2(t) = 0.8 - 0.1 int gap = 0.8 - 0.025 (t - (1 - e^{-0.2 t}) / 0.2).
+  const PlantParams p;
+  StepIntegrator integrator;
+  const StepResult r = integrator.Step(MakeLevels({1.0, 0.8, 0.8, 1.0, 1.0, 1.0}),
+                                       MakeValves({0, 1, 1, 0, 0, 0}), p);
+  const double x2 = 0.8 - 0.025 * (1 - (1 - std::exp(-0.2)) / 0.2);
+  EXPECT_NEAR(r.x[1], x2, kLevelTol);
+  EXPECT_NEAR(r.x[1] - r.x[2], 0.25 * (1 - std::exp(-0.2)), kLevelTol);
+}
+
+TEST(Integrator, SinkReachingTheConduitLevelSwapsRoles) {
+  // Tank 3 open at 0.5 pumping 0.05, tank 2 open at 0.4 (sink). gap = x3 - x2:
+  //   gap' = -0.05 - 0.2 gap  => gap(t) = 0.35 e^{-0.2 t} - 0.25 = 0 at t1 = ln(1.4) / 0.2.
+  // Then tank 2 is the source and tank 3 the sink: x2 - x3 = 0.25 (1 - e^{-0.2 (t - t1)}).
+  // Throughout, x2 + x3 = 0.9 - 0.05 t. Over a 2 s step:
+  const PlantParams p;
+  const double t1 = std::log(1.4) / 0.2;
+  const double sum = 0.9 - 0.05 * 2.0;
+  const double gap = 0.25 * (1 - std::exp(-0.2 * (2.0 - t1)));
+  StepIntegrator integrator;
+  const StepResult r = integrator.Step(MakeLevels({1.0, 0.4, 0.5, 1.0, 1.0, 1.0}),
+                                       MakeValves({0, 1, 1, 0, 0, 0}), p, 2.0);
+  EXPECT_NEAR(r.x[1], (sum + gap) / 2, kLevelTol);
+  EXPECT_NEAR(r.x[2], (sum - gap) / 2, kLevelTol);
+  EXPECT_GE(r.events, 1);
+}
+
+TEST(Integrator, EmptyTankWithSmallInflowStaysAtZero) {
+  // Tank 3 empty and open, tank 1 open at 0.3, tank 2 closed at 0.5. Tank 1
+  // drains into tank 3 at q = 0.1 x1 (< 0.05 all step), so x1(t) = 0.3 e^{-0.1 t};
+  // tank 3 stays at 0 passing q to its pump, tank 2 supplies 0.05 - q.
+  const PlantParams p;
+  StepIntegrator integrator;
+  const StepResult r = integrator.Step(MakeLevels({0.3, 0.5, 0.0, 1.0, 1.0, 1.0}),
+                                       MakeValves({1, 0, 1, 0, 0, 0}), p);
+  const double passed = 0.3 * (1 - std::exp(-0.1));
+  EXPECT_EQ(r.x[2], 0.0);
+  EXPECT_NEAR(r.x[0], 0.3 * std::exp(-0.1), kLevelTol);
+  EXPECT_NEAR(r.supplied[2], passed, kLevelTol);
+  EXPECT_NEAR(r.x[1], 0.5 - (0.05 - passed), kLevelTol);
+  EXPECT_NEAR(r.deficit[0], 0.0, 1e-12);
+}
+
+TEST(Integrator, EmptyTankFilledFasterThanDrawnRisesThenIsPinned) {
+  // Tank 3 empty and open, tank 1 open at 0.8: q = 0.08 > 0.05, so tank 3 rises;
+  // levels must stay within [0, h] and fuel must balance.
+  const PlantParams p;
+  StepIntegrator integrator;
+  Vec6 x = MakeLevels({0.8, 0.0, 0.0, 1.0, 1.0, 1.0});
+  const Valves u = MakeValves({1, 0, 1, 0, 0, 0});
+  for (int k = 0; k < 30; ++k) {
+    const double before = x.sum();
+    const StepResult r = integrator.Step(x, u, p);
+    EXPECT_NEAR(x.sum() - r.x.sum(), r.supplied.sum(), 1e-9);
+    x = r.x;
+    EXPECT_GE(x.minCoeff(), 0.0);
+    EXPECT_LE(x.maxCoeff(), 1.0);
+    (void)before;
+  }
+  EXPECT_GT(x[2], -1e-15);
+}
+
+// Random plants, states and valves: the fuel balance, the per-engine balance
+// supplied + deficit = demand * dt, and the bounds hold on every step.
+TEST(Integrator, FuelIsConservedAndLevelsStayInBoundsOverRandomSteps) {
+  std::mt19937_64 rng(7);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  StepIntegrator integrator;
+  FaultScenario s;
+  s.tank_factor << 10, 30, 15, 20, 12, 25;
+  s.engine_factor << 10, 25;
+  double worst_balance = 0, worst_engine = 0;
+  Vec6 x = Vec6::Ones();
+  for (int k = 0; k < 3000; ++k) {
+    const PlantParams p = DegradedParams(PlantParams{}, s, 12.0 * unit(rng));
+    if (k % 40 == 0 || x.sum() < 0.2)
+      for (int i = 0; i < kTanks; ++i) x[i] = unit(rng) < 0.15 ? 0.0 : unit(rng);
+    Valves u;
+    for (int i = 0; i < kTanks; ++i) u[i] = unit(rng) < 0.5 ? 1 : 0;
+    const StepResult r = integrator.Step(x, u, p);
+    // Volume change vs pumped fuel: both are integrated by the same linear
+    // multistep method, which preserves this linear invariant up to rounding;
+    // clamping at 0 and h after events adds at most ~1e-15 m^3 each.
+    const double balance = p.area.dot(x - r.x) - r.supplied.sum();
+    worst_balance = std::max(worst_balance, std::abs(balance));
+    ASSERT_NEAR(balance, 0.0, 1e-10) << "step " << k;
+    for (int j = 0; j < kEngines; ++j) {
+      double wing = r.deficit[j];
+      for (const int i : kPumpOrder[j]) wing += r.supplied[i];
+      worst_engine = std::max(worst_engine, std::abs(wing - p.demand[j]));
+      ASSERT_NEAR(wing, p.demand[j], 1e-10) << "step " << k;
+    }
+    ASSERT_GE(r.x.minCoeff(), 0.0);
+    ASSERT_TRUE((r.x.array() <= p.height.array()).all());
+    x = r.x;
+  }
+  RecordProperty("worst_balance", std::to_string(worst_balance));
+  RecordProperty("worst_engine", std::to_string(worst_engine));
+}
+
+// The default tolerances against a much tighter integration of the same steps.
+TEST(Integrator, DefaultTolerancesAgreeWithATightReference) {
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  StepIntegrator fast;
+  IntegratorOptions tight_options;
+  tight_options.rtol = 1e-12;
+  tight_options.atol = 1e-14;
+  StepIntegrator tight(tight_options);
+  FaultScenario s;
+  s.tank_factor << 20, 20, 20, 20, 20, 20;
+  s.engine_factor << 20, 20;
+  double worst = 0;
+  for (int k = 0; k < 500; ++k) {
+    const PlantParams p = DegradedParams(PlantParams{}, s, 10.0 * unit(rng));
+    Vec6 x;
+    for (int i = 0; i < kTanks; ++i) x[i] = unit(rng);
+    Valves u;
+    for (int i = 0; i < kTanks; ++i) u[i] = unit(rng) < 0.5 ? 1 : 0;
+    const Vec6 a = fast.Step(x, u, p).x;
+    const Vec6 b = tight.Step(x, u, p).x;
+    worst = std::max(worst, (a - b).cwiseAbs().maxCoeff());
+  }
+  RecordProperty("worst_level_error", std::to_string(worst));
+  EXPECT_LT(worst, 1e-7);  // see kLevelTol
+}
+
+TEST(Integrator, ChatteringIsReportedNotHidden) {
+  IntegratorOptions o;
+  o.max_events = 0;
+  StepIntegrator integrator(o);
+  PlantParams p;
+  p.demand << 0.15, 0.05;
+  EXPECT_THROW(integrator.Step(MakeLevels({1.0, 0.5, 0.03, 1.0, 1.0, 1.0}), Valves::Zero(), p),
+               std::runtime_error);
+}
+
+}  // namespace
+}  // namespace ftc
