@@ -77,6 +77,14 @@ def core_step(x: np.ndarray, u: np.ndarray, params: dict, dt: float = 1.0) -> np
     return np.asarray(out, dtype=float)
 
 
+def run_core_plant(scenario, seed: int, valves: np.ndarray) -> dict[str, np.ndarray]:
+    plant = _core.Plant(scenario, seed)
+    plant.reset()
+    rows = [plant.step(list(map(int, u))) for u in valves]
+    return {key: np.array([r[key] for r in rows]) for key in
+            ("level", "age", "step", "episode", "terminal", "truncated", "deficit")}
+
+
 # --------------------------------------------------------------------------- parameters
 
 
@@ -182,15 +190,39 @@ def test_core_step_conserves_fuel() -> None:
         np.testing.assert_allclose(np.add(wing, out["deficit"]), cp["demand"], atol=1e-9)
 
 
+@needs_core
+def test_empty_tank_whose_inflow_exactly_equals_its_draw_is_pinned() -> None:
+    """Tank 3 empty (exactly 0) and open, tank 1 full and open, E1 demand 0.1 = pump capacity:
+    the inflow g x1 / R = 0.1 equals tank 3's draw at t = 0 and then falls below it, so tank 3
+    stays pinned at 0 (plant-model.md: it stays at 0 while the inflow is smaller). By hand:
+    x1 = exp(-0.1 t), tank 2 supplies 0.1 - 0.1 x1, so after 1 s x1 = e^-0.1 and
+    x2 = 0.9 - (0.1 - (1 - e^-0.1)). The plant reaches this state itself (engine factor 2 at
+    age 2, valves closed until both inner tanks are empty), see the second half."""
+    params = core_params([INF] * 6, [2.0, 2.0], 2)
+    assert list(params["demand"]) == [0.1, 0.1]
+    x0 = np.array([1.0, 0.9, 0.0, 0.0, 0.9, 1.0])
+    u = np.array([1, 0, 1, 0, 0, 0])
+    x1 = math.exp(-0.1)
+    expected = [x1, 0.9 - (0.1 - (1 - x1)), 0.0, 0.0, 0.8, 1.0]
+    r = ref.integrate_step(x0, u, ref.degraded_params([INF] * 6, [2.0, 2.0], 2))
+    np.testing.assert_allclose(r.x, expected, atol=1e-9)
+    c = _core.integrate_step(x0, u, params, 1.0)
+    assert x0.sum() - c["x"].sum() == pytest.approx(c["supplied"].sum(), abs=1e-9), (
+        f"fuel not conserved: volume drop {x0.sum() - c['x'].sum()}, supplied "
+        f"{c['supplied'].sum()}; core {c['x'].tolist()}")
+    np.testing.assert_allclose(c["x"], expected, atol=ONE_STEP_TOL)
+
+    # The same state reached by the plant: 30-step intervals, episode at age 2 from step 60.
+    valves = np.zeros((73, 6), dtype=int)
+    valves[71:, [0, 2]] = 1
+    core = run_core_plant(make_scenario([INF] * 6, [2.0, 2.0], 30), 0, valves)
+    traj = ref.simulate({"engine_factor": [2.0, 2.0]}, valves, steps_per_interval=30)
+    np.testing.assert_allclose(core["level"][70], x0, atol=1e-12)
+    np.testing.assert_allclose(traj.levels[71], expected, atol=1e-9)
+    np.testing.assert_allclose(core["level"], traj.levels, atol=LEVEL_TOL)
+
+
 # --------------------------------------------------------------------------- whole plant runs
-
-
-def run_core_plant(scenario, seed: int, valves: np.ndarray) -> dict[str, np.ndarray]:
-    plant = _core.Plant(scenario, seed)
-    plant.reset()
-    rows = [plant.step(list(map(int, u))) for u in valves]
-    return {key: np.array([r[key] for r in rows]) for key in
-            ("level", "age", "step", "episode", "terminal", "truncated", "deficit")}
 
 
 @needs_core
