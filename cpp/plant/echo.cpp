@@ -65,7 +65,7 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
   while (!g_stop && !echo.shutdown()) {
-    if (lcm.handleTimeout(100) < 0) return 1;
+    if (lcm.handleTimeout(100) < 0 && !g_stop) return 1;
   }
   return 0;
 }

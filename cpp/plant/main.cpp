@@ -234,7 +234,8 @@ int Run(const Options& options) {
       timeout_ms = static_cast<int>(
           std::chrono::duration_cast<std::chrono::milliseconds>(next_tick - now).count());
     }
-    if (lcm.handleTimeout(timeout_ms) < 0) {
+    // A signal interrupts the wait (EINTR): that is a shutdown, not a failure.
+    if (lcm.handleTimeout(timeout_ms) < 0 && !g_stop) {
       std::cerr << "plant: error: LCM receive failed\n";
       return kExitRuntime;
     }
@@ -265,7 +266,7 @@ int main(int argc, char** argv) {
                                        {"realtime", RunMode::kRealtime}};
   app.add_option("--mode", options.mode,
                  "lockstep: one step per valve command; realtime: free-running at --rate")
-      ->transform(CLI::CheckedTransformer(modes, CLI::ignore_case))
+      ->transform(CLI::CheckedTransformer(modes, CLI::ignore_case).description("{lockstep,realtime}"))
       ->default_str("lockstep");
   app.add_option("--rate", options.rate_hz, "Real-time mode: control steps per second")
       ->check(CLI::PositiveNumber)
@@ -278,7 +279,7 @@ int main(int argc, char** argv) {
                                         {"closed", SafeState::kClosed}};
   app.add_option("--safe-state", options.safe_state,
                  "Real-time mode: valves while the watchdog is tripped (hold last or all closed)")
-      ->transform(CLI::CheckedTransformer(safe, CLI::ignore_case))
+      ->transform(CLI::CheckedTransformer(safe, CLI::ignore_case).description("{hold,closed}"))
       ->default_str("closed");
   app.add_option("--steps-per-interval", options.steps_per_interval,
                  "Override the scenario's control steps per degradation interval")

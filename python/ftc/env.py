@@ -45,7 +45,7 @@ class FuelTransferEnv(gym.Env):
         terms = reward_terms(o.level, valves)
         return {"cg": float(terms.cg), "spread": float(terms.spread),
                 "activity": float(terms.activity), "deficit": o.deficit.copy(),
-                "age": o.age, "episode": o.episode, "step": o.step,
+                "age": o.age, "step": o.step,
                 "true_level": o.true_level.copy()}
 
     def reset(self, *, seed: int | None = None,
