@@ -1,0 +1,135 @@
+#!/usr/bin/env python3
+"""The controller's quality bar (issue 3): every method x seed on one scenario,
+the per-interval mean reward per step experienced on the plant, and the checks.
+
+    .venv/bin/python scripts/quality_controller.py --seeds 5 --jobs 2
+
+Each run is ``python -m ftc.controller`` in its own process (and its own plant
+process over LCM unless --link core), two at a time on the two cores. Results
+are read back from each run's metrics.csv (plots and tables never recompute).
+
+Checks (single fault, averaged over seeds, experienced metric):
+  (a) PPO online+offline with --pretrain earns >= 97% of all-closed in interval 0;
+  (b) ... and beats all-closed in every later interval;
+  (c) ... and beats PPO online-only (--pretrain) averaged over intervals 1-9;
+  (d) from scratch (the paper's setting) it beats random valves by interval 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import csv
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+METHODS: dict[str, list[str]] = {
+    "closed": ["--method", "closed"],
+    "open": ["--method", "open"],
+    "random": ["--method", "random"],
+    "ppo-scratch": ["--method", "ppo", "--offline"],
+    "ppo-online": ["--method", "ppo", "--no-offline", "--pretrain"],
+    "ppo-offline": ["--method", "ppo", "--offline", "--pretrain"],
+}
+
+
+def run_one(method: str, seed: int, args: argparse.Namespace) -> tuple[str, int, list[dict], float]:
+    out = Path(args.out) / method / f"seed{seed}"
+    cmd = [sys.executable, "-m", "ftc.controller", *METHODS[method], "--seed", str(seed),
+           "--out", str(out), "--intervals", str(args.intervals), "--scenario", args.scenario,
+           "--link", args.link, "--quiet", *args.extra]
+    start = time.perf_counter()
+    done = out / "done.json"
+    if not (args.reuse and done.exists()):
+        proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    with open(out / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    return method, seed, rows, time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 per method")
+    p.add_argument("--intervals", type=int, default=10)
+    p.add_argument("--jobs", type=int, default=2, help="runs in parallel")
+    p.add_argument("--scenario", default="scenarios/single.toml")
+    p.add_argument("--link", default="lcm", choices=["lcm", "core"],
+                   help="lcm: the real plant process per run; core: in-process physics")
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    p.add_argument("--out", default="runs/quality", help="run directories go here")
+    p.add_argument("--reuse", action="store_true", help="read finished runs instead of rerunning")
+    p.add_argument("extra", nargs="*", help="extra controller options (after --)")
+    args = p.parse_args(argv)
+
+    results: dict[str, dict[int, list[dict]]] = {m: {} for m in args.methods}
+    seconds: dict[str, list[float]] = {m: [] for m in args.methods}
+    jobs = [(m, s) for s in range(args.seeds) for m in args.methods]
+    with concurrent.futures.ThreadPoolExecutor(args.jobs) as pool:
+        futures = [pool.submit(run_one, m, s, args) for m, s in jobs]
+        for fut in concurrent.futures.as_completed(futures):
+            m, s, rows, sec = fut.result()
+            results[m][s] = rows
+            seconds[m].append(sec)
+            print(f"  done {m} seed {s} in {sec:.1f}s", file=sys.stderr, flush=True)
+
+    def table(key: str) -> dict[str, np.ndarray]:
+        out = {}
+        for m, by_seed in results.items():
+            vals = [[float(r[key]) if r[key] != "" else np.nan for r in rows]
+                    for rows in by_seed.values()]
+            out[m] = np.array(vals)  # (seeds, intervals)
+        return out
+
+    exp, ev = table("reward_per_step"), table("eval_reward_per_step")
+    n = args.intervals
+    head = f"{'method':14s}" + "".join(f"{k:>7d}" for k in range(n)) + "   mean1-9  s/run"
+    print(f"\nmean reward per step experienced, {args.seeds} seeds ({args.scenario})")
+    print(head)
+    for m in args.methods:
+        mean = exp[m].mean(0)
+        print(f"{m:14s}" + "".join(f"{v:7.3f}" for v in mean)
+              + f"   {mean[1:].mean():7.3f}  {np.mean(seconds[m]):5.1f}")
+    print("\nstd over seeds")
+    for m in args.methods:
+        print(f"{m:14s}" + "".join(f"{v:7.3f}" for v in exp[m].std(0)))
+    print("\ndeterministic evaluation (open iff p > 0.5)")
+    for m in args.methods:
+        if m.startswith("ppo"):
+            print(f"{m:14s}" + "".join(f"{v:7.3f}" for v in ev[m].mean(0)))
+
+    ok = True
+    if {"closed", "ppo-offline"} <= set(args.methods):
+        c, o = exp["closed"].mean(0), exp["ppo-offline"].mean(0)
+        a = o[0] >= 0.97 * c[0]
+        b = bool(np.all(o[1:] > c[1:]))
+        print(f"\n(a) interval 0: {o[0]:.3f} >= 0.97 x {c[0]:.3f} = {0.97 * c[0]:.3f}: "
+              f"{'PASS' if a else 'FAIL'}")
+        worst = int(np.argmin(o[1:] - c[1:])) + 1 if n > 1 else 0
+        print(f"(b) beats all-closed in every interval 1-{n - 1}: {'PASS' if b else 'FAIL'}"
+              f" (smallest margin {o[worst] - c[worst]:+.3f} in interval {worst})")
+        ok &= a and b
+    if {"ppo-online", "ppo-offline"} <= set(args.methods):
+        on, off = exp["ppo-online"].mean(0)[1:].mean(), exp["ppo-offline"].mean(0)[1:].mean()
+        cc = off > on
+        print(f"(c) offline {off:.3f} > online-only {on:.3f} over intervals 1-9: "
+              f"{'PASS' if cc else 'FAIL'}")
+        ok &= cc
+    if {"random", "ppo-scratch"} <= set(args.methods) and n > 3:
+        r, s = exp["random"].mean(0), exp["ppo-scratch"].mean(0)
+        d = s[3] > r[3]
+        print(f"(d) from scratch {s[3]:.3f} > random {r[3]:.3f} in interval 3: "
+              f"{'PASS' if d else 'FAIL'}")
+        ok &= d
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
