@@ -37,6 +37,7 @@ import dataclasses
 import json
 import math
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -120,7 +121,7 @@ class ExperimentConfig:
     scenario_seed: seed of the aggregate trials' random faults
     intervals: degradation intervals per run (paper: 10)
     steps_per_interval: real control steps per interval, t_online (paper: 512)
-    controller_args: extra arguments given to every PPO method (e.g. --pretrain)
+    controller_args: extra arguments given to every method's controller (e.g. --pretrain)
     run_timeout: seconds after which a run is killed and counted as failed (0: none)
     """
 
@@ -370,6 +371,11 @@ class RunFailed(RuntimeError):
     pass
 
 
+class IncompleteLog(RunFailed):
+    """The recorder missed messages; the run is redone (its results would not
+    be reproducible from its log)."""
+
+
 @dataclass
 class RunHandle:
     """A run in progress: its processes, so the orchestrator can stop them."""
@@ -405,9 +411,13 @@ class LcmLogger:
         self.url, self.prefix, self.path, self.timeout = url, prefix, path, timeout
         self._lc = lcm.LCM(url)
         self._stderr = open(stderr_path, "wb")
+        # A large receive buffer: in lockstep the plant and controller exchange
+        # thousands of messages a second, and a logger descheduled for a few
+        # tens of ms on a busy machine would otherwise lose some (measured: 5 of
+        # 400 with the default 208 KiB, two runs on two cores).
         self.process = subprocess.Popen(
             [str(lcm_logger_binary()), "--quiet", "--force", "--flush-interval", "20",
-             "--channel", f"{prefix}.*", "--lcm-url", url, str(path)],
+             "--channel", f"{prefix}.*", "--lcm-url", _with_recv_buffer(url), str(path)],
             stdin=subprocess.DEVNULL, stdout=self._stderr, stderr=self._stderr,
             start_new_session=True)
         self._wait_for(f"{prefix}LOGGER_START")
@@ -448,6 +458,28 @@ class LcmLogger:
             self._stderr.close()
 
 
+def _with_recv_buffer(url: str) -> str:
+    """url with the largest UDP receive buffer the kernel allows (up to 8 MiB)."""
+    if not url.startswith("udpm://") or "recv_buf_size" in url:
+        return url
+    try:
+        limit = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    except (OSError, ValueError):
+        limit = 1 << 21
+    size = max(1 << 18, min(limit, 1 << 23))
+    return url + ("&" if "?" in url else "?") + f"recv_buf_size={size}"
+
+
+def check_log(path: Path) -> dict:
+    """Read a run's log back: it must hold every state the plant published."""
+    from ftc import replay
+
+    traj = replay.read_log(path)
+    if traj.missing:
+        raise IncompleteLog(f"{path}: {traj.missing} plant states missing from the log")
+    return {"log_events": traj.events, "log_steps": len(traj), "log_repeats": traj.repeats}
+
+
 def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: Path,
                        out_dir: Path, url: str, prefix: str) -> list[str]:
     method = METHODS[spec.method]
@@ -456,9 +488,7 @@ def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: P
            "--intervals", str(config.intervals),
            "--steps-per-interval", str(config.steps_per_interval),
            "--lcm-url", url, "--prefix", prefix]
-    if method.learns:
-        cmd += list(config.controller_args)
-    return cmd
+    return cmd + list(config.controller_args)
 
 
 def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunHandle) -> dict:
@@ -505,6 +535,7 @@ def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunH
     metrics_path = run_dir / "controller" / "metrics.csv"
     if not metrics_path.is_file():
         raise RunFailed(f"controller wrote no {metrics_path}")
+    record.update(check_log(run_dir / "plant.lcmlog"))
     rows = read_metrics_csv(metrics_path)
     if len(rows) != config.intervals:
         raise RunFailed(f"{metrics_path} has {len(rows)} intervals, expected {config.intervals}")
@@ -654,7 +685,13 @@ class Orchestrator:
                     raise RunFailed("cancelled")
                 self.handles[spec.key] = handle
             try:
-                return execute_run(spec, config, out, handle)
+                for attempt in range(1, 4):
+                    try:
+                        return execute_run(spec, config, out, handle)
+                    except IncompleteLog as e:
+                        if attempt == 3 or self.stopping:
+                            raise
+                        progress.stream.write(f"\n{spec.key}: {e}; running it again\n")
             finally:
                 with self._lock:
                     self.handles.pop(spec.key, None)
@@ -966,8 +1003,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
                         help=f"methods to compare (registered: {', '.join(METHODS)})")
     parser.add_argument("--pretrain", action="store_true",
-                        help="pass --pretrain to the PPO methods (nominal pretraining in "
+                        help="pass --pretrain to the controller (PPO methods: nominal pretraining in "
                              "simulation; default: from scratch as in the paper)")
+    parser.add_argument("--controller-args", default="",
+                        help="extra arguments for every run's controller, one string "
+                             "(e.g. \"--model-episodes 10 --offline-steps 512\")")
     parser.add_argument("--run-timeout", type=float, default=0.0,
                         help="kill a run after this many seconds and count it failed (0: never)")
     parser.add_argument("--model-search", action="store_true",
@@ -1012,7 +1052,8 @@ def main(argv: list[str] | None = None) -> int:
         scenario_seed=args.scenario_seed,
         intervals=args.intervals or preset["intervals"],
         steps_per_interval=args.steps_per_interval or preset["steps_per_interval"],
-        controller_args=("--pretrain",) if args.pretrain else (),
+        controller_args=(("--pretrain",) if args.pretrain else ())
+        + tuple(shlex.split(args.controller_args)),
         run_timeout=args.run_timeout)
     for name in ("trials", "intervals", "steps_per_interval"):
         if getattr(config, name) <= 0:

@@ -68,6 +68,7 @@ class Trajectory:
     channel: str = ""
     events: int = 0
     repeats: int = 0
+    missing: int = 0
 
     def __len__(self) -> int:
         return len(self.step)
@@ -81,7 +82,7 @@ class Trajectory:
         """The rows where mask (n,) is true."""
         arrays = {k: getattr(self, k)[mask] for k in _ARRAY_FIELDS}
         return Trajectory(**arrays, initial_level=self.initial_level, channel=self.channel,
-                          events=self.events, repeats=self.repeats)
+                          events=self.events, repeats=self.repeats, missing=self.missing)
 
     def episode_rows(self, episode: int) -> "Trajectory":
         rows = self.select(self.episode == episode)
@@ -180,6 +181,10 @@ def _trajectory(msgs: list, channel: str, events: int) -> Trajectory:
     rows = []
     initial: dict[int, np.ndarray] = {}
     repeats = 0
+    # The plant numbers every state it publishes 1, 2, ...; a gap is a message
+    # the recorder did not receive (or a log that starts late).
+    seqs = np.array(sorted({int(m.seq) for m in msgs}), dtype=np.int64)
+    missing = int(seqs[-1] - seqs[0] + 1 - len(seqs)) + int(seqs[0] - 1) if len(seqs) else 0
     for m in msgs:
         key = (m.episode, m.step)
         if key in seen:
@@ -207,7 +212,7 @@ def _trajectory(msgs: list, channel: str, events: int) -> Trajectory:
         evaluation=np.array([m.evaluation for m in rows], dtype=bool),
         utime=np.array([m.utime for m in rows], dtype=np.int64),
         reward=np.array([float(reward(level[i], valves[i])) for i in range(n)], dtype=np.float64),
-        initial_level=initial, channel=channel, events=events, repeats=repeats)
+        initial_level=initial, channel=channel, events=events, repeats=repeats, missing=missing)
 
 
 def control_episode(traj: Trajectory) -> int:
@@ -265,6 +270,8 @@ def summary(traj: Trajectory) -> str:
     evaluation = traj.episodes(evaluation=True)
     lines = [f"channel {traj.channel}: {traj.events} log events, {len(traj)} plant steps "
              f"({traj.repeats} repeated states dropped)",
+             *([f"WARNING: {traj.missing} plant states are missing from the log (sequence "
+                "gaps): rewards below cover only what was recorded"] if traj.missing else []),
              f"episodes: {len(operating)} operating, {len(evaluation)} evaluation; "
              f"terminal {int(traj.terminal.sum())}, truncated {int(traj.truncated.sum())}",
              f"mean reward per step over all operating steps: "
