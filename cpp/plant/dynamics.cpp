@@ -55,22 +55,25 @@ Evaluation Evaluate(const Vec6& x, const PlantParams& p, const Mode& mode) {
   }
 
   // Pumps, innermost first; min(p, remaining) is evaluated at x so that a
-  // pinned tank's varying supply passes its remainder on continuously.
+  // pinned tank's varying supply passes its remainder on continuously. No
+  // clamping here: inside the mode the values are in range by construction,
+  // and where CVODE probes past a root a clamp would put a kink in the field
+  // (and fuel out of balance) just before the root it is locating.
   for (int j = 0; j < kEngines; ++j) {
     double remaining = p.demand[j];
     for (const int i : kPumpOrder[j]) {
-      const double want = std::max(0.0, std::min(p.pump[i], remaining));
+      const double want = std::min(p.pump[i], remaining);
       e.want[i] = want;
       double s = 0;
       if (mode.pinned[i]) {
-        s = std::clamp(e.flows.conduit[i], 0.0, want);
+        s = e.flows.conduit[i];  // all of the inflow (< want inside the mode)
       } else if (mode.pumping[i]) {
         s = want;
       }
       e.flows.supply[i] = s;
       remaining -= s;
     }
-    e.flows.deficit[j] = std::max(0.0, remaining);
+    e.flows.deficit[j] = remaining;
   }
 
   // The source group falls together and pays for the sinks' inflow.
@@ -91,8 +94,6 @@ Evaluation Evaluate(const Vec6& x, const PlantParams& p, const Mode& mode) {
   for (int i = 0; i < kTanks; ++i) {
     if (mode.source[i]) {
       e.derivative[i] = -e.rho;  // exactly equal, so tied members stay tied
-    } else if (mode.pinned[i]) {
-      e.derivative[i] = 0.0;
     } else {
       e.derivative[i] = (e.flows.conduit[i] - e.flows.supply[i]) / p.area[i];
     }
@@ -207,7 +208,8 @@ std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
   for (int i = 0; i < kTanks; ++i) {
     // Slot i: a draining tank reaching the bottom (a live pump, or a source
     // member paying for sinks).
-    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink))) r[i] = x[i];
+    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink && e.rho > 0)))
+      r[i] = x[i];
     // Slot kTanks + i: the tank's place in the conduit changes.
     double& b = r[kTanks + i];
     if (mode.pinned[i]) {

@@ -11,10 +11,10 @@
 namespace ftc {
 namespace {
 
-// Within a mode the solution is smooth and the default tolerances
-// (rtol 1e-8, atol 1e-10) keep levels within ~1e-8 m of it; 1e-7 m is that
-// with a margin, far below the 1e-4 m the Python comparison asks for.
-constexpr double kLevelTol = 1e-7;
+// The default tolerances (rtol 1e-7, atol 1e-9) keep levels within ~3e-7 m of
+// the exact solution over a step (measured below against rtol 1e-12); 1e-6 m
+// is that with a margin, far below the 1e-4 m the Python comparison asks for.
+constexpr double kLevelTol = 1e-6;
 
 Vec6 MakeLevels(std::initializer_list<double> v) {
   Vec6 x;
@@ -165,8 +165,8 @@ TEST(Integrator, FuelIsConservedAndLevelsStayInBoundsOverRandomSteps) {
     ASSERT_TRUE((r.x.array() <= p.height.array()).all());
     x = r.x;
   }
-  RecordProperty("worst_balance", std::to_string(worst_balance));
-  RecordProperty("worst_engine", std::to_string(worst_engine));
+  RecordProperty("worst_balance", std::to_string(worst_balance * 1e12) + "e-12");
+  RecordProperty("worst_engine", std::to_string(worst_engine * 1e12) + "e-12");
 }
 
 // The default tolerances against a much tighter integration of the same steps.
@@ -192,8 +192,31 @@ TEST(Integrator, DefaultTolerancesAgreeWithATightReference) {
     const Vec6 b = tight.Step(x, u, p).x;
     worst = std::max(worst, (a - b).cwiseAbs().maxCoeff());
   }
-  RecordProperty("worst_level_error", std::to_string(worst));
-  EXPECT_LT(worst, 1e-7);  // see kLevelTol
+  RecordProperty("worst_level_error", std::to_string(worst * 1e9) + "e-9");
+  EXPECT_LT(worst, kLevelTol);
+}
+
+// Consecutive steps with the same valves continue CVODE's integration
+// (integrator.cpp, "Warm continuation"); they must agree with cold restarts
+// to the tolerance over a whole episode, and still balance the fuel.
+TEST(Integrator, WarmContinuationAgreesWithColdRestarts) {
+  const PlantParams p;
+  StepIntegrator warm;
+  Vec6 xw = Vec6::Ones(), xc = Vec6::Ones();
+  xw[0] = xc[0] = 0.2;
+  const Valves u = MakeValves({1, 0, 1, 0, 1, 1});
+  double worst = 0;
+  for (int k = 0; k < 40; ++k) {
+    StepIntegrator cold;
+    const StepResult rw = warm.Step(xw, u, p);
+    const StepResult rc = cold.Step(xc, u, p);
+    EXPECT_NEAR(xw.sum() - rw.x.sum(), rw.supplied.sum(), 1e-10);
+    xw = rw.x;
+    xc = rc.x;
+    worst = std::max(worst, (xw - xc).cwiseAbs().maxCoeff());
+  }
+  // Errors of both runs accumulate over 40 steps; each stays ~kLevelTol.
+  EXPECT_LT(worst, 10 * kLevelTol);
 }
 
 TEST(Integrator, ChatteringIsReportedNotHidden) {
