@@ -26,8 +26,11 @@ Which R^2. ``r2`` is the held-out coefficient of determination of the NEXT
 LEVEL, pooled over the six tanks: ``1 - sum((x'_pred - x')^2) / sum((x' -
 mean(x'))^2)`` with the mean taken per tank. That is the metric the paper's
 0.996 can only be: on our nominal data set the "persistence" model x' = x,
-which knows no dynamics at all, already scores 0.994 on it, while no model we
-trained on 50 episodes comes near 0.99 on the change. Because it is so
+which knows no dynamics at all, already scores 0.994 on it, while no 2x64 MLP
+we trained on the 50 episodes comes near 0.99 on the change (3-fold
+cross-validated, by episode: next-level R^2 0.998, change R^2 0.62-0.65
+whatever the batch size, patience, weight decay or activation; one-step RMSE
+0.0136 m against 0.0271 m for persistence). Because the next-level R^2 is so
 lenient, every report also carries ``r2_change``, the same statistic for the
 change of level x' - x (strict: persistence scores 0), and ``evaluate_model``
 gives RMSEs in metres; judge a model by those, and compare it with
