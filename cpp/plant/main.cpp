@@ -61,7 +61,12 @@ bool UrlIsLoopbackOnly(const std::string& url) {
 class PlantNode final {
  public:
   PlantNode(lcm::LCM* lcm, ftc::Plant* plant, const Options& options)
-      : lcm_(lcm), plant_(plant), options_(options), channels_(options.prefix) {
+      : lcm_(lcm),
+        plant_(plant),
+        options_(options),
+        channels_(options.prefix),
+        // In real-time mode the valves are in the safe state until a first command.
+        watchdog_tripped_(options.mode == RunMode::kRealtime) {
     lcm_->subscribe(channels_.command, &PlantNode::OnCommand, this);
     lcm_->subscribe(channels_.control, &PlantNode::OnControl, this);
   }
@@ -182,7 +187,7 @@ class PlantNode final {
   bool shutdown_ = false;
   ftc::Valves held_ = ftc::Valves::Zero();
   std::optional<std::chrono::steady_clock::time_point> last_valid_command_time_;
-  bool watchdog_tripped_ = false;
+  bool watchdog_tripped_;
 };
 
 int Run(const Options& options) {

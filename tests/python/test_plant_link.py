@@ -217,6 +217,10 @@ def test_realtime_mode_free_runs_and_watchdog_closes_valves():
         lc = _raw_lcm(url)
         states = []
         lc.subscribe(prefix + "STATE", lambda c, d: states.append(plant_state_t.decode(d)))
+        deadline = time.monotonic() + 5.0  # the plant is up once it publishes
+        while not states and time.monotonic() < deadline:
+            lc.handle_timeout(20)
+        assert states and states[-1].watchdog_tripped  # no command yet: safe state
         msg = valve_command_t()
         msg.seq, msg.num_valves, msg.valve = time.time_ns() // 1000, 6, [1] * 6
         lc.publish(prefix + "COMMAND", msg.encode())
