@@ -222,6 +222,28 @@ def test_empty_tank_whose_inflow_exactly_equals_its_draw_is_pinned() -> None:
     np.testing.assert_allclose(core["level"], traj.levels, atol=LEVEL_TOL)
 
 
+@needs_core
+def test_group_member_whose_pump_equals_the_group_rate_stays() -> None:
+    """Tanks 1 and 6 full and open (a tie), tank 3 at 0.75 open, tank 2 empty; E1 demand 0.125
+    (engine factor 4 at age 6): tank 3 pumps 0.1, tank 1 the other 0.025. Tank 3's inflow
+    q = 0.1 (1 - 0.75) = 0.025, so the group falls at rho = (q + 0.025) / 2 = 0.025: tank 1's
+    own rate equals rho and it stays (plant-model.md: leaves only if s_i/c_i > rho). Then the
+    gap G = x_group - x3 obeys G' = 0.0875 - 0.15 G, G = 7/12 - (1/3) exp(-0.15 t), grows, so
+    rho grows and the tie holds: 2 x_group + x3 = 2.75 - 0.125 t."""
+    tf, ef, age = [INF] * 6, [4.0, INF], 6
+    x0 = np.array([1.0, 0.0, 0.75, 0.75, 0.1, 1.0])
+    u = np.array([1, 0, 1, 0, 0, 1])
+    dt = 3.0
+    gap = 7 / 12 - math.exp(-0.15 * dt) / 3
+    xg = (2.75 - 0.125 * dt + gap) / 3
+    expected = [xg, 0.0, xg - gap, 0.75 - 0.05 * dt, 0.1, xg]
+    r = ref.integrate_step(x0, u, ref.degraded_params(tf, ef, age), dt)
+    np.testing.assert_allclose(r.x, expected, atol=1e-9)
+    c = _core.integrate_step(x0, u, core_params(tf, ef, age), dt)
+    np.testing.assert_allclose(c["x"], expected, atol=ONE_STEP_TOL,
+                               err_msg="tanks 1 and 6 must stay tied")
+
+
 # --------------------------------------------------------------------------- whole plant runs
 
 
