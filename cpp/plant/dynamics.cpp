@@ -17,10 +17,17 @@
 namespace ftc {
 namespace {
 
-// A member whose pump makes it fall faster than the group, up to this relative
-// margin, leaves it. The margin keeps a member whose draw exactly equals the
-// group rate (symmetric plants) from leaving on a rounding error.
+// A member leaves the group when its own draw exceeds its share of the group
+// rate by more than this fraction of the draw (plant-model.md: strictly
+// faster). The margin keeps a member whose draw equals the group rate from
+// leaving on a rounding error; its root function is offset by twice the
+// margin, so a located crossing always makes the member leave.
 constexpr double kLeaveMargin = 1e-12;
+
+// Offset (m, m^3/s) on the level and pinned root functions, so that they are
+// never exactly 0 when CVODE (re)starts: CVODE deactivates a root function
+// that is 0 at the initial point and would miss its crossing.
+constexpr double kRootOffset = 1e-15;
 
 // Everything the field, the flows and the root functions need at x under a mode.
 struct Evaluation {
@@ -137,7 +144,9 @@ Mode ComputeMode(const Vec6& x, const Valves& u, const PlantParams& p) {
         m.pumping[i] = true;
         s = want;
       } else if (m.sink[i] && inflow[i] > 0) {
-        if (inflow[i] < want) {  // stays at 0, passing its inflow to the pump
+        // Equality counts as pinned: the inflow can only fall within a step
+        // (the group level never rises), so the tank cannot rise.
+        if (inflow[i] <= want) {  // stays at 0, passing its inflow to the pump
           m.pinned[i] = true;
           s = inflow[i];
         } else {  // fills faster than it is drawn: rises off the bottom
@@ -153,27 +162,26 @@ Mode ComputeMode(const Vec6& x, const Valves& u, const PlantParams& p) {
 
   // A group member whose own pump outruns the group leaves it and becomes a
   // sink. Leaving only lowers the group rate, so dropping every offender per
-  // pass converges; the member with the smallest draw per area never leaves.
+  // pass converges; the member with the smallest draw per area (<= rho) never
+  // leaves, so the group never empties.
   if (conduit) {
     for (;;) {
       double xref = -std::numeric_limits<double>::infinity();
       for (int i = 0; i < kTanks; ++i)
         if (m.source[i]) xref = std::max(xref, x[i]);
       double inflow_total = 0, draw = 0, area = 0;
-      double min_ratio = std::numeric_limits<double>::infinity();
       for (int i = 0; i < kTanks; ++i) {
         if (m.sink[i]) inflow_total += p.g * (xref - x[i]) / p.resistance[i];
         if (m.source[i]) {
           draw += m.pump_draw[i];
           area += p.area[i];
-          min_ratio = std::min(min_ratio, m.pump_draw[i] / p.area[i]);
         }
       }
       const double rho = (inflow_total + draw) / area;
-      const double threshold = std::max(rho * (1.0 - kLeaveMargin), min_ratio);
       bool changed = false;
       for (int i = 0; i < kTanks; ++i) {
-        if (m.source[i] && m.pump_draw[i] / p.area[i] > threshold) {
+        const double s = m.pump_draw[i];
+        if (m.source[i] && s - p.area[i] * rho > kLeaveMargin * s) {
           m.source[i] = false;
           m.sink[i] = true;
           changed = true;
@@ -209,15 +217,16 @@ std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
     // Slot i: a draining tank reaching the bottom (a live pump, or a source
     // member paying for sinks).
     if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink && e.rho > 0)))
-      r[i] = x[i];
+      r[i] = x[i] + kRootOffset;
     // Slot kTanks + i: the tank's place in the conduit changes.
     double& b = r[kTanks + i];
     if (mode.pinned[i]) {
-      b = e.want[i] - e.flows.conduit[i];  // inflow rises to the pump draw
+      b = e.want[i] - e.flows.conduit[i] + kRootOffset;  // inflow exceeds the pump draw
     } else if (mode.sink[i]) {
       b = e.xref - x[i];  // rises to the conduit level: joins the group
     } else if (mode.source[i] && e.any_sink && e.flows.supply[i] > 0) {
-      b = p.area[i] * e.rho - e.flows.supply[i];  // own pump outruns the group
+      const double s = e.flows.supply[i];  // own pump outruns the group:
+      b = p.area[i] * e.rho - s + 2 * kLeaveMargin * s;
     }
   }
   return r;

@@ -9,8 +9,8 @@
 namespace ftc {
 
 struct IntegratorOptions {
-  double rtol = 1e-7;  // relative tolerance (justified in integrator.cpp)
-  double atol = 1e-9;  // absolute tolerance, m
+  double rtol = 1e-8;   // relative tolerance (justified in integrator.cpp)
+  double atol = 1e-10;  // absolute tolerance, m
   int max_events = 1000;  // per step; exceeded => std::runtime_error (chattering)
 };
 
