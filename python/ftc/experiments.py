@@ -123,6 +123,8 @@ class ExperimentConfig:
     steps_per_interval: real control steps per interval, t_online (paper: 512)
     controller_args: extra arguments given to every method's controller (e.g. --pretrain)
     run_timeout: seconds after which a run is killed and counted as failed (0: none)
+    nice: niceness added to each controller and its plant (the recorder keeps the
+        normal priority, so that it keeps up on a loaded machine)
     """
 
     experiments: tuple[str, ...] = EXPERIMENTS
@@ -134,6 +136,7 @@ class ExperimentConfig:
     steps_per_interval: int = 512
     controller_args: tuple[str, ...] = ()
     run_timeout: float = 0.0
+    nice: int = 5
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -416,7 +419,7 @@ class LcmLogger:
         # tens of ms on a busy machine would otherwise lose some (measured: 5 of
         # 400 with the default 208 KiB, two runs on two cores).
         self.process = subprocess.Popen(
-            [str(lcm_logger_binary()), "--quiet", "--force", "--flush-interval", "20",
+            [str(lcm_logger_binary()), "--quiet", "--force", "--flush-interval", "100",
              "--channel", f"{prefix}.*", "--lcm-url", _with_recv_buffer(url), str(path)],
             stdin=subprocess.DEVNULL, stdout=self._stderr, stderr=self._stderr,
             start_new_session=True)
@@ -513,7 +516,12 @@ def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunH
     returncode = None
     try:
         with open(run_dir / "controller.log", "wb") as log:
-            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log,
+            # The controller (and the plant it starts) run at a lower priority
+            # than the recorder, so a busy machine slows the run down instead of
+            # making the recorder drop messages (lcm-logger's subscription queue
+            # is bounded and it missed states under load at equal priority).
+            proc = subprocess.Popen(["nice", "-n", str(config.nice), *cmd],
+                                    stdin=subprocess.DEVNULL, stdout=log,
                                     stderr=subprocess.STDOUT, start_new_session=True)
             handle.processes.append(proc)
             _record_process(run_dir, "controller", proc)
@@ -691,7 +699,13 @@ class Orchestrator:
                     except IncompleteLog as e:
                         if attempt == 3 or self.stopping:
                             raise
-                        progress.stream.write(f"\n{spec.key}: {e}; running it again\n")
+                        # Kept for diagnosis, outside the results tree.
+                        keep = out / "failed_attempts" / f"{spec.key.replace('/', '_')}-{attempt}"
+                        keep.parent.mkdir(parents=True, exist_ok=True)
+                        shutil.rmtree(keep, ignore_errors=True)
+                        handle.directory.rename(keep)
+                        progress.stream.write(f"\n{spec.key}: {e}; running it again "
+                                              f"(attempt kept in {keep})\n")
             finally:
                 with self._lock:
                     self.handles.pop(spec.key, None)
@@ -897,8 +911,8 @@ class ModelSearchConfig:
                 for n in self.layers for a in self.activations for lr in self.lrs]
 
 
-QUICK_MODEL_SEARCH = ModelSearchConfig(widths=(32, 64), layers=(2,), activations=("relu", "tanh"),
-                                       lrs=(1e-3,), episodes=8, folds=3)
+QUICK_MODEL_SEARCH = ModelSearchConfig(widths=(32,), layers=(2,), activations=("relu", "tanh"),
+                                       lrs=(1e-2,), episodes=6, folds=3)
 
 
 def _model_search_point(data, point: dict, folds: int, seed: int) -> dict:
@@ -912,9 +926,7 @@ def _model_search_point(data, point: dict, folds: int, seed: int) -> dict:
     cfg = _world_model_config(wm, point, seed)
     r2 = wm.cross_validated_r2(data, cfg, folds=folds)
     scores = np.atleast_1d(np.asarray(r2, dtype=np.float64))
-    return {**point, "r2_mean": float(scores.mean()),
-            "r2_std": float(scores.std()) if scores.size > 1 else 0.0,
-            "fit_seconds": time.time() - start}
+    return {**point, "r2_mean": float(scores.mean()), "fit_seconds": time.time() - start}
 
 
 def _world_model_config(wm, point: dict, seed: int):
@@ -948,21 +960,28 @@ def model_search(out: Path, config: ModelSearchConfig, jobs: int, stream=sys.std
     results = []
     import multiprocessing
 
-    with ProcessPoolExecutor(max_workers=jobs,
-                             mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_model_search_point, data, p, config.folds, config.seed)
-                   for p in grid]
-        for i, f in enumerate(futures):
-            results.append(f.result())
-            el = time.time() - start
-            print(f"  [{i + 1}/{len(grid)}] {results[-1]['width']}x{results[-1]['layers']} "
-                  f"{results[-1]['activation']} lr {results[-1]['lr']:g}: "
-                  f"R^2 {results[-1]['r2_mean']:.4f}  (elapsed {_fmt_time(el)}, ETA "
-                  f"{_fmt_time(el / (i + 1) * (len(grid) - i - 1))})", file=stream)
+    def report_point(i: int) -> None:
+        r, el = results[-1], time.time() - start
+        print(f"  [{i + 1}/{len(grid)}] {r['layers']}x{r['width']} {r['activation']} "
+              f"lr {r['lr']:g}: R^2 {r['r2_mean']:.4f}  (elapsed {_fmt_time(el)}, ETA "
+              f"{_fmt_time(el / (i + 1) * (len(grid) - i - 1))})", file=stream)
+
+    if jobs <= 1:
+        for i, p in enumerate(grid):
+            results.append(_model_search_point(data, p, config.folds, config.seed))
+            report_point(i)
+    else:
+        with ProcessPoolExecutor(max_workers=jobs,
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_model_search_point, data, p, config.folds, config.seed)
+                       for p in grid]
+            for i, f in enumerate(futures):
+                results.append(f.result())
+                report_point(i)
     results.sort(key=lambda r: -r["r2_mean"])
     for rank, r in enumerate(results, 1):
         r["rank"] = rank
-    header = ["rank", "width", "layers", "activation", "lr", "r2_mean", "r2_std", "fit_seconds"]
+    header = ["rank", "width", "layers", "activation", "lr", "r2_mean", "fit_seconds"]
     atomic_write_rows(out / "model_search.csv", header, [[r[h] for h in header] for r in results])
     atomic_write_json(out / "model_search.json", {"config": dataclasses.asdict(config),
                                                   "wall_time_s": time.time() - start,
@@ -1013,7 +1032,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model-search", action="store_true",
                         help="with 'all': also run the world-model grid")
     parser.add_argument("--quick", action="store_true",
-                        help="model-search: a 4-model subset on a small data set (for tests)")
+                        help="model-search: a 2-model subset on a small data set (for tests)")
     return parser
 
 

@@ -312,3 +312,13 @@ def test_replay_summary_and_truncated_log_error(tmp_path):
     garbage.write_bytes(data[:second_event] + b"\xff" * 4 + data[second_event + 4:])
     with pytest.raises(replay.LogError, match="byte offset"):
         replay.read_log(garbage)
+
+
+def test_model_search_quick_ranks_the_grid_into_the_report(fixture_run):
+    results = ex.model_search(fixture_run, ex.QUICK_MODEL_SEARCH, jobs=1)
+    assert [r["rank"] for r in results] == [1, 2]
+    assert results[0]["r2_mean"] >= results[1]["r2_mean"] > 0.9
+    assert len(ex.ModelSearchConfig().grid()) == 5 * 2 * 2 * 3  # the paper's grid
+    report.write_report(fixture_run)
+    text = (fixture_run / "report.md").read_text()
+    assert "World-model search" in text and "| 1 | 2 x 32 |" in text
