@@ -48,8 +48,10 @@ def run_one(method: str, seed: int, args: argparse.Namespace) -> tuple[str, int,
     done = out / "done.json"
     if not (args.reuse and done.exists()):
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+        if proc.returncode != 0:  # reported, and left out of the means
+            print(f"FAILED {method} seed {seed}: {' '.join(cmd)}\n{proc.stderr[-1500:]}",
+                  file=sys.stderr, flush=True)
+            return method, seed, [], time.perf_counter() - start
     with open(out / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     return method, seed, rows, time.perf_counter() - start
@@ -71,11 +73,15 @@ def main(argv: list[str] | None = None) -> int:
 
     results: dict[str, dict[int, list[dict]]] = {m: {} for m in args.methods}
     seconds: dict[str, list[float]] = {m: [] for m in args.methods}
+    failed: list[str] = []
     jobs = [(m, s) for s in range(args.seeds) for m in args.methods]
     with concurrent.futures.ThreadPoolExecutor(args.jobs) as pool:
         futures = [pool.submit(run_one, m, s, args) for m, s in jobs]
         for fut in concurrent.futures.as_completed(futures):
             m, s, rows, sec = fut.result()
+            if not rows:
+                failed.append(f"{m}/seed{s}")
+                continue
             results[m][s] = rows
             seconds[m].append(sec)
             print(f"  done {m} seed {s} in {sec:.1f}s", file=sys.stderr, flush=True)
@@ -105,7 +111,9 @@ def main(argv: list[str] | None = None) -> int:
         if m.startswith("ppo"):
             print(f"{m:14s}" + "".join(f"{v:7.3f}" for v in ev[m].mean(0)))
 
-    ok = True
+    if failed:
+        print(f"\nFAILED runs (left out of the means): {', '.join(failed)}")
+    ok = not failed
     if {"closed", "ppo-offline"} <= set(args.methods):
         c, o = exp["closed"].mean(0), exp["ppo-offline"].mean(0)
         a = o[0] >= 0.97 * c[0]

@@ -95,8 +95,11 @@ class ControllerConfig:
         "before interval 0, stopped while it still explores (see --pretrain-open-fraction)")})
     pretrain_open_fraction: float = field(default=0.05, metadata={"help": (
         "pretraining stops once the mean valve-open probability over the last rollout "
-        "falls to this and the deterministic policy keeps every valve closed "
-        "(controller-notes item 1: ~5% keeps enough exploration to adapt)")})
+        "falls to this (controller-notes item 1: ~5% keeps enough exploration to adapt)")})
+    pretrain_deterministic_closed: bool = field(default=False, metadata={"help": (
+        "also require the deterministic policy to keep every valve closed on every "
+        "state of the last rollout before stopping (measured: that comes only at ~1.7% "
+        "open, too little exploration left to adapt)")})
     pretrain_max_steps: int = field(default=200_000, metadata={"help": (
         "upper bound on pretraining simulation steps")})
     pretrain_sim: str = field(default="core", metadata={"help": (
@@ -185,20 +188,33 @@ class VecCorePlant:
 
         self.plants = [CorePlant(scenario, seed + i) for i in range(num_envs)]
         self.num_envs = num_envs
+        self.levels = [np.ones(NUM_TANKS)] * num_envs
+        self.errors = 0  # steps the core refused (see step)
 
     def reset(self) -> torch.Tensor:
-        return torch.tensor(np.stack([p.reset().level for p in self.plants]), dtype=torch.float32)
+        self.levels = [p.reset().level for p in self.plants]
+        return torch.tensor(np.stack(self.levels), dtype=torch.float32)
 
     def step(self, actions: torch.Tensor) -> "StepBatch":
+        """A step the core refuses (it raises, e.g. on chattering) is counted in
+        ``errors`` and ends that episode as a truncation at the last good state
+        (reward 0): one bad simulated step must not end a pretraining run, and
+        the count is reported so it cannot go unnoticed."""
         u = actions.numpy().astype(np.int8)
         obs, final, rew, term, trunc = [], [], [], [], []
-        for plant, a in zip(self.plants, u):
-            o = plant.step(a)
-            final.append(o.level)
-            rew.append(float(reward(o.level, a)))
-            term.append(o.terminal)
-            trunc.append(o.truncated and not o.terminal)
-            obs.append(plant.reset().level if o.done else o.level)
+        for i, (plant, a) in enumerate(zip(self.plants, u)):
+            try:
+                o = plant.step(a)
+                level, r, t, tr = o.level, float(reward(o.level, a)), o.terminal, o.truncated
+            except RuntimeError:
+                self.errors += 1
+                level, r, t, tr = self.levels[i], 0.0, False, True
+            final.append(level)
+            rew.append(r)
+            term.append(t)
+            trunc.append(tr and not t)
+            self.levels[i] = plant.reset().level if (t or tr) else level
+            obs.append(self.levels[i])
         f = lambda x: torch.tensor(np.stack(x), dtype=torch.float32)  # noqa: E731
         return StepBatch(f(obs), torch.tensor(rew), torch.tensor(term), torch.tensor(trunc),
                          f(final))
@@ -270,12 +286,14 @@ def pretrain_policy(ppo: PPO, cfg: ControllerConfig, model: Any = None,
     probe: dict[str, float] = {}
 
     def stop(s: UpdateStats, obs: torch.Tensor) -> bool:
-        probe.update(open_fraction=s.open_fraction, entropy=s.entropy)
-        if s.open_fraction > cfg.pretrain_open_fraction:
-            return False
         with torch.no_grad():
             logits, _ = ppo.policy(obs.reshape(-1, 6))
-        return bool((logits <= 0).all())
+        det_open = float((logits > 0).float().mean())
+        probe.update(open_fraction=s.open_fraction, entropy=s.entropy,
+                     deterministic_open_fraction=det_open)
+        if s.open_fraction > cfg.pretrain_open_fraction:
+            return False
+        return det_open == 0.0 or not cfg.pretrain_deterministic_closed
 
     start = time.perf_counter()
     online_config = ppo.config
@@ -286,9 +304,11 @@ def pretrain_policy(ppo: PPO, cfg: ControllerConfig, model: Any = None,
                                          stop)
     finally:
         ppo.config = online_config
-    return {"pretrain_steps": steps, "pretrain_updates": len(stats),
+    return {"pretrain_steps": steps, "pretrain_plant_errors": getattr(env, "errors", 0), "pretrain_updates": len(stats),
             "pretrain_reward_per_step": rew, "pretrain_open_fraction": probe["open_fraction"],
-            "pretrain_entropy": probe["entropy"], "pretrain_seconds": time.perf_counter() - start}
+            "pretrain_entropy": probe["entropy"],
+            "pretrain_deterministic_open_fraction": probe["deterministic_open_fraction"],
+            "pretrain_seconds": time.perf_counter() - start}
 
 
 class OfflineResult(NamedTuple):
