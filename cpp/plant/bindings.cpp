@@ -128,6 +128,8 @@ py::dict OutcomeDict(const ftc::StepOutcome& o) {
   return d;
 }
 
+std::string Repr(const py::handle& h) { return py::repr(h).cast<std::string>(); }
+
 std::string ModeName(ftc::DegradationMode m) {
   return m == ftc::DegradationMode::kContinuous ? "continuous" : "stepwise";
 }
@@ -181,14 +183,12 @@ PYBIND11_MODULE(_core, m) {
           },
           "control steps per degradation interval (t_online)")
       .def("__repr__", [](const ftc::FaultScenario& s) {
-        std::string r = "Scenario(name='" + s.name + "', tank_factor=[";
-        for (int i = 0; i < kTanks; ++i) r += (i ? ", " : "") + py::repr(py::float_(s.tank_factor[i])).cast<std::string>();
-        r += "], engine_factor=[";
-        for (int j = 0; j < kEngines; ++j) r += (j ? ", " : "") + py::repr(py::float_(s.engine_factor[j])).cast<std::string>();
-        r += "], mode='" + ModeName(s.mode) + "', noise_std=" + std::to_string(s.noise_std) +
-             ", random_start=" + (s.random_start ? "True" : "False") +
-             ", steps_per_interval=" + std::to_string(s.steps_per_interval) + ")";
-        return r;
+        return "Scenario(name=" + Repr(py::str(s.name)) +
+               ", tank_factor=" + Repr(py::cast(ToList(s.tank_factor))) +
+               ", engine_factor=" + Repr(py::cast(ToList(s.engine_factor))) + ", mode='" +
+               ModeName(s.mode) + "', noise_std=" + Repr(py::float_(s.noise_std)) +
+               ", random_start=" + (s.random_start ? "True" : "False") +
+               ", steps_per_interval=" + std::to_string(s.steps_per_interval) + ")";
       });
 
   m.def("load_scenario", &ftc::LoadScenario, py::arg("path"),
@@ -232,7 +232,8 @@ PYBIND11_MODULE(_core, m) {
       [](const py::object& x0, const py::object& valves, const py::dict& params, double dt) {
         const ftc::PlantParams p = ParamsFromDict(params);
         ftc::StepIntegrator integrator;
-        const ftc::StepResult r = integrator.Step(ToVec<kTanks>(x0, "x0"), ToValves(valves), p, dt);
+        const ftc::StepResult r =
+            integrator.Step(ToVec<kTanks>(x0, "x0"), ToValves(valves), p, dt);
         py::dict d;
         d["x"] = ToNumpy(r.x);
         d["supplied"] = ToNumpy(r.supplied);
@@ -246,8 +247,8 @@ PYBIND11_MODULE(_core, m) {
   m.def(
       "reward",
       [](const py::object& x_next, const py::object& valves) {
-        const ftc::RewardTerms t =
-            ftc::ComputeReward(ToVec<kTanks>(x_next, "x_next"), ToValves(valves), ftc::PlantParams{});
+        const ftc::RewardTerms t = ftc::ComputeReward(ToVec<kTanks>(x_next, "x_next"),
+                                                      ToValves(valves), ftc::PlantParams{});
         py::dict d;
         d["reward"] = t.reward;
         d["cg"] = t.cg;
@@ -255,7 +256,8 @@ PYBIND11_MODULE(_core, m) {
         d["activity"] = t.activity;
         return d;
       },
-      py::arg("x_next"), py::arg("valves"), "Reward terms at the levels after a step (nominal areas).");
+      py::arg("x_next"), py::arg("valves"),
+      "Reward terms at the levels after a step (nominal areas).");
 
   m.def(
       "compute_flows",

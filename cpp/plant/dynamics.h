@@ -28,7 +28,7 @@ struct Mode {
   // Open tanks below the conduit potential (receive inflow).
   std::array<bool, kTanks> sink{};
   // Empty tanks pinned at 0 whose pump passes on their conduit inflow
-  // (inflow smaller than what the pump would draw).
+  // (inflow not larger than what the pump would draw).
   std::array<bool, kTanks> pinned{};
 };
 
