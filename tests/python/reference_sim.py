@@ -93,7 +93,8 @@ class Params:
 
 def degraded_params(tank_factor: Sequence[float], engine_factor: Sequence[float], age: float,
                     nominal: Params | None = None) -> Params:
-    """Parameters at `age` intervals: p0 max(0, 1-a/D_T), R0 (1+a/D_T), d0 (1+a/D_E); D = inf healthy."""
+    """Parameters at `age` intervals: p0 max(0, 1 - a/D_T), R0 (1 + a/D_T), d0 (1 + a/D_E);
+    a factor D = inf is healthy."""
     nominal = nominal or Params()
     ft = np.array([age / float(d) for d in tank_factor])  # a / inf = 0
     fe = np.array([age / float(d) for d in engine_factor])

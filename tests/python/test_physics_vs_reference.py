@@ -378,5 +378,6 @@ def test_reward_torch_equals_reward() -> None:
     np.testing.assert_allclose(got.numpy(), expected, atol=1e-12)
     got32 = ftc_reward.reward_torch(torch.tensor(x, dtype=torch.float32), torch.tensor(u))
     np.testing.assert_allclose(got32.numpy(), expected, atol=1e-5)
-    batch = ftc_reward.reward_torch(torch.tensor(x.reshape(8, 8, 6)), torch.tensor(u.reshape(8, 8, 6)))
+    batch = ftc_reward.reward_torch(torch.tensor(x.reshape(8, 8, 6)),
+                                    torch.tensor(u.reshape(8, 8, 6)))
     np.testing.assert_allclose(batch.numpy(), expected.reshape(8, 8), atol=1e-12)
