@@ -15,6 +15,7 @@
 #include "plant/integrator.h"
 #include "plant/plant.h"
 #include "plant/reward.h"
+#include "plant/rollout.h"
 #include "plant/scenario.h"
 
 namespace py = pybind11;
@@ -132,6 +133,74 @@ std::string Repr(const py::handle& h) { return py::repr(h).cast<std::string>(); 
 
 std::string ModeName(ftc::DegradationMode m) {
   return m == ftc::DegradationMode::kContinuous ? "continuous" : "stepwise";
+}
+
+// (K, L, 6) array of 0/1 valves -> K*L Valves, candidate-major.
+std::vector<ftc::Valves> ToSequences(const py::handle& obj, int* k, int* l) {
+  const auto a = py::array_t<long long, py::array::c_style | py::array::forcecast>::ensure(obj);
+  if (!a || a.ndim() != 3 || a.shape(2) != kTanks)
+    throw py::value_error("sequences must be an array of shape (K, L, 6)");
+  *k = static_cast<int>(a.shape(0));
+  *l = static_cast<int>(a.shape(1));
+  const long long* data = a.data();
+  std::vector<ftc::Valves> out(static_cast<std::size_t>(a.shape(0) * a.shape(1)));
+  for (std::size_t n = 0; n < out.size(); ++n) {
+    for (int i = 0; i < kTanks; ++i) {
+      const long long v = data[n * kTanks + i];
+      if (v != 0 && v != 1) throw py::value_error("sequences: valves must be 0 or 1");
+      out[n][i] = static_cast<int>(v);
+    }
+  }
+  return out;
+}
+
+// One params dict for every step, or a list of L dicts (one per step).
+std::vector<ftc::PlantParams> ToParamsList(const py::handle& obj) {
+  std::vector<ftc::PlantParams> out;
+  if (py::isinstance<py::dict>(obj)) {
+    out.push_back(ParamsFromDict(obj.cast<py::dict>()));
+  } else {
+    for (const auto& item : obj.cast<py::list>()) out.push_back(ParamsFromDict(item.cast<py::dict>()));
+  }
+  return out;
+}
+
+py::object RolloutToPython(const ftc::RolloutResult& r, int k, int l, bool details) {
+  py::array_t<double> total(k);
+  std::copy(r.total.begin(), r.total.end(), total.mutable_data());
+  if (!details) return std::move(total);
+  py::array_t<double> rewards({k, l});
+  std::copy(r.rewards.begin(), r.rewards.end(), rewards.mutable_data());
+  py::array_t<double> levels({k, l, static_cast<int>(kTanks)});
+  double* lv = levels.mutable_data();
+  for (std::size_t n = 0; n < r.levels.size(); ++n)
+    for (int i = 0; i < kTanks; ++i) lv[n * kTanks + i] = r.levels[n][i];
+  py::array_t<bool> terminal({k, l});
+  std::copy(r.terminal.begin(), r.terminal.end(), terminal.mutable_data());
+  py::dict d;
+  d["total"] = total;
+  d["rewards"] = rewards;
+  d["levels"] = levels;
+  d["terminal"] = terminal;
+  d["integrated_steps"] = r.integrated_steps;
+  d["exact_steps"] = r.exact_steps;
+  d["shared_steps"] = r.shared_steps;
+  return std::move(d);
+}
+
+py::object RunRollout(ftc::BatchRollout* rollout, const py::object& x0,
+                      const py::object& sequences, const py::object& params, double dt,
+                      bool details) {
+  int k = 0, l = 0;
+  const std::vector<ftc::Valves> seqs = ToSequences(sequences, &k, &l);
+  const std::vector<ftc::PlantParams> plist = ToParamsList(params);
+  const ftc::Vec6 x = ToVec<kTanks>(x0, "x0");
+  ftc::RolloutResult r;
+  {
+    py::gil_scoped_release release;
+    r = rollout->Run(x, seqs, k, l, plist, dt);
+  }
+  return RolloutToPython(r, k, l, details);
 }
 
 }  // namespace
@@ -274,4 +343,38 @@ PYBIND11_MODULE(_core, m) {
       },
       py::arg("x"), py::arg("valves"), py::arg("params"),
       "Flows (m^3/s) at x with the mode computed at x.");
+
+  const char* rollout_doc =
+      "Summed rewards (K,) of K candidate valve sequences (K, L, 6) of 0/1 from levels x0 "
+      "(6,) m, under params (one dict, or a list of L dicts: step t under params[t]); dt s "
+      "per step. A terminal step (Plant::IsTerminal) resets to full tanks, as the plant "
+      "does. details=True returns a dict: total (K,), rewards (K, L), levels (K, L, 6) "
+      "after each step before any reset, terminal (K, L), and step counts.";
+  py::class_<ftc::BatchRollout>(m, "BatchRollout",
+                                "Reusable batch rollouts (one CVODE integrator, kept warm).")
+      .def(py::init([](bool exact_idle_conduit, bool share_prefixes) {
+             ftc::RolloutOptions o;
+             o.exact_idle_conduit = exact_idle_conduit;
+             o.share_prefixes = share_prefixes;
+             return std::make_unique<ftc::BatchRollout>(ftc::IntegratorOptions{}, o);
+           }),
+           py::arg("exact_idle_conduit") = true, py::arg("share_prefixes") = true)
+      .def("run", &RunRollout, py::arg("x0"), py::arg("sequences"), py::arg("params"),
+           py::arg("dt") = 1.0, py::arg("details") = false, rollout_doc);
+  m.def(
+      "batch_rollout",
+      [](const py::object& x0, const py::object& sequences, const py::object& params, double dt,
+         bool details) {
+        ftc::BatchRollout rollout;
+        return RunRollout(&rollout, x0, sequences, params, dt, details);
+      },
+      py::arg("x0"), py::arg("sequences"), py::arg("params"), py::arg("dt") = 1.0,
+      py::arg("details") = false, rollout_doc);
+  m.def(
+      "age_at",
+      [](const ftc::FaultScenario& s, std::int64_t operating_steps) {
+        return ftc::AgeAt(s, operating_steps);
+      },
+      py::arg("scenario"), py::arg("operating_steps"),
+      "Age (intervals) in force during the step after `operating_steps` counted steps.");
 }

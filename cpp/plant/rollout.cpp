@@ -1,0 +1,164 @@
+// Batch rollouts for planners (see rollout.h).
+//
+// Cost model (Debian's SUNDIALS is built -O0): a CVODE step that restarts
+// (new valves or state) costs ~30 us, a warm continuation with valves held
+// ~7 us. A planner's candidates are mostly "an action held for H steps, then
+// all valves closed", so two things make a batch cheap:
+//  * closed (or single-open) valves leave the conduit idle, and the field is
+//    then piecewise constant: each live pump draws a fixed rate until a tank
+//    runs dry. Those steps are solved exactly (IdleConduitStep), no CVODE;
+//  * candidates are simulated in lexicographic order of their valve codes,
+//    so a prefix shared with the previous candidate (the longest shared with
+//    any earlier one) is taken from a stack of states instead of recomputed.
+// Within a candidate, held valves continue CVODE warm (StepIntegrator).
+#include "plant/rollout.h"
+
+#include <algorithm>
+#include <cstdint>
+#include <numeric>
+#include <stdexcept>
+#include <string>
+
+#include "plant/plant.h"
+#include "plant/reward.h"
+
+namespace ftc {
+namespace {
+
+// Levels below this (m) count as empty, as in the integrator's snap.
+constexpr double kEmptySnap = 1e-12;
+
+int OpenCount(const Valves& u) { return static_cast<int>((u.array() != 0).count()); }
+
+std::uint8_t Code(const Valves& u) {
+  std::uint8_t c = 0;
+  for (int i = 0; i < kTanks; ++i)
+    if (u[i] != 0) c = static_cast<std::uint8_t>(c | (1u << i));
+  return c;
+}
+
+}  // namespace
+
+StepResult IdleConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p, double dt) {
+  if (OpenCount(u) >= 2)
+    throw std::invalid_argument("IdleConduitStep: two or more valves open (conduit active)");
+  StepResult r;
+  Vec6 x = x0.cwiseMax(0.0).cwiseMin(p.height);
+  for (int i = 0; i < kTanks; ++i)
+    if (x[i] < kEmptySnap) x[i] = 0.0;
+  double t = 0;
+  // Each segment ends when a pumping tank runs dry (at most one per tank) or at dt.
+  for (int segment = 0; segment <= kTanks; ++segment) {
+    const Mode mode = ComputeMode(x, u, p);
+    Vec6 dx;
+    Flows flows;
+    EvaluateField(x, p, mode, &dx, &flows);
+    double tau = dt - t;
+    int dry = -1;
+    for (int i = 0; i < kTanks; ++i) {
+      if (dx[i] < 0 && x[i] / -dx[i] < tau) {
+        tau = x[i] / -dx[i];
+        dry = i;
+      }
+    }
+    x += dx * tau;
+    r.supplied += flows.supply * tau;
+    r.deficit += flows.deficit * tau;
+    t += tau;
+    if (dry < 0) break;
+    x[dry] = 0.0;  // exactly empty, as the integrator sets a located root
+    for (int i = 0; i < kTanks; ++i)
+      if (x[i] < kEmptySnap) x[i] = 0.0;
+    ++r.events;
+  }
+  r.x = x.cwiseMax(0.0);
+  return r;
+}
+
+BatchRollout::BatchRollout(const IntegratorOptions& integrator, const RolloutOptions& options)
+    : integrator_(integrator), options_(options) {}
+
+StepResult BatchRollout::StepOnce(const Vec6& x, const Valves& u, const PlantParams& p,
+                                  double dt, RolloutResult* result) {
+  if (options_.exact_idle_conduit && OpenCount(u) < 2) {
+    ++result->exact_steps;
+    return IdleConduitStep(x, u, p, dt);
+  }
+  ++result->integrated_steps;
+  return integrator_.Step(x, u, p, dt);
+}
+
+RolloutResult BatchRollout::Run(const Vec6& x0, const std::vector<Valves>& sequences,
+                                int num_candidates, int horizon,
+                                const std::vector<PlantParams>& params, double dt) {
+  if (num_candidates < 0 || horizon < 0)
+    throw std::invalid_argument("BatchRollout::Run: negative number of candidates or steps");
+  const std::size_t k_count = static_cast<std::size_t>(num_candidates);
+  const std::size_t l_count = static_cast<std::size_t>(horizon);
+  if (sequences.size() != k_count * l_count) {
+    throw std::invalid_argument("BatchRollout::Run: " + std::to_string(sequences.size()) +
+                                " valve settings for " + std::to_string(num_candidates) +
+                                " x " + std::to_string(horizon));
+  }
+  if (params.size() != 1 && params.size() != l_count)
+    throw std::invalid_argument("BatchRollout::Run: params must hold 1 or horizon sets");
+  for (const Valves& u : sequences)
+    if (((u.array() != 0) && (u.array() != 1)).any())
+      throw std::invalid_argument("BatchRollout::Run: valves must be 0 or 1");
+
+  RolloutResult out;
+  out.total.assign(k_count, 0.0);
+  out.rewards.assign(k_count * l_count, 0.0);
+  out.levels.assign(k_count * l_count, Vec6::Zero());
+  out.terminal.assign(k_count * l_count, 0);
+
+  std::vector<std::uint8_t> codes(sequences.size());
+  std::transform(sequences.begin(), sequences.end(), codes.begin(), Code);
+  std::vector<std::size_t> order(k_count);
+  std::iota(order.begin(), order.end(), 0);
+  if (options_.share_prefixes) {
+    std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
+      return std::lexicographical_compare(codes.begin() + a * l_count,
+                                          codes.begin() + (a + 1) * l_count,
+                                          codes.begin() + b * l_count,
+                                          codes.begin() + (b + 1) * l_count);
+    });
+  }
+
+  // state[d]: the level d steps in (after any reset); valid up to the previous
+  // candidate's depth. reward/level/terminal[d]: its step d.
+  std::vector<Vec6> state(l_count + 1, x0);
+  std::vector<double> cum(l_count + 1, 0.0);
+  std::size_t previous = k_count;  // none yet
+  for (const std::size_t k : order) {
+    std::size_t shared = 0;
+    if (options_.share_prefixes && previous != k_count) {
+      while (shared < l_count &&
+             codes[k * l_count + shared] == codes[previous * l_count + shared])
+        ++shared;
+      for (std::size_t d = 0; d < shared; ++d) {
+        out.rewards[k * l_count + d] = out.rewards[previous * l_count + d];
+        out.levels[k * l_count + d] = out.levels[previous * l_count + d];
+        out.terminal[k * l_count + d] = out.terminal[previous * l_count + d];
+      }
+      out.shared_steps += static_cast<long>(shared);
+    }
+    for (std::size_t d = shared; d < l_count; ++d) {
+      const PlantParams& p = params.size() == 1 ? params[0] : params[d];
+      const Valves& u = sequences[k * l_count + d];
+      const StepResult r = StepOnce(state[d], u, p, dt, &out);
+      const double rew = ComputeReward(r.x, u, p).reward;
+      const bool terminal = Plant::IsTerminal(r.x, p, dt);
+      out.rewards[k * l_count + d] = rew;
+      out.levels[k * l_count + d] = r.x;
+      out.terminal[k * l_count + d] = terminal ? 1 : 0;
+      cum[d + 1] = cum[d] + rew;
+      state[d + 1] = terminal ? Vec6(p.height) : r.x;
+    }
+    out.total[k] = cum[l_count];
+    previous = k;
+  }
+  return out;
+}
+
+}  // namespace ftc

@@ -1,0 +1,62 @@
+// Batch rollouts for planners: many candidate valve sequences simulated from
+// one state with the true physics and the plant's episode rule, returning the
+// summed rewards. The inner loop of the oracle MPC (python/ftc/mpc.py); no
+// LCM and no Python here (bindings.cpp exposes it as _core.batch_rollout).
+#pragma once
+
+#include <vector>
+
+#include "plant/integrator.h"
+
+namespace ftc {
+
+struct RolloutOptions {
+  // Steps with fewer than two valves open leave the conduit idle; the field
+  // is then piecewise constant (pumps only) and integrated in closed form
+  // instead of by CVODE (exact; CVODE is within its 1e-8 tolerance of it).
+  bool exact_idle_conduit = true;
+  // Candidates sharing a prefix of valve settings simulate it once.
+  bool share_prefixes = true;
+};
+
+// The rollouts of one batch, candidate-major: entry (k, t) at k * horizon + t.
+struct RolloutResult {
+  std::vector<double> total;             // K summed rewards
+  std::vector<double> rewards;           // K x L reward of each step
+  std::vector<Vec6> levels;              // K x L levels after each step (before any reset), m
+  std::vector<unsigned char> terminal;   // K x L: the episode ended at this step (then full tanks)
+  long integrated_steps = 0;             // steps integrated by CVODE
+  long exact_steps = 0;                  // steps in closed form (idle conduit)
+  long shared_steps = 0;                 // steps reused from another candidate's prefix
+};
+
+// One step with fewer than two valves open, exactly: the field is constant
+// between pump switches (a tank running dry), located in closed form.
+// Throws std::invalid_argument if two or more valves are open.
+StepResult IdleConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p, double dt);
+
+class BatchRollout final {
+ public:
+  explicit BatchRollout(const IntegratorOptions& integrator = {},
+                        const RolloutOptions& options = {});
+  BatchRollout(const BatchRollout&) = delete;
+  BatchRollout& operator=(const BatchRollout&) = delete;
+
+  // Simulates each candidate from x0 for `horizon` steps of dt seconds.
+  // sequences: num_candidates x horizon valve settings, candidate-major.
+  // params: one set for every step, or `horizon` sets (step t under params[t],
+  // e.g. degraded at the age in force at that step). As the plant does, a
+  // step after which Plant::IsTerminal holds ends the episode and the next
+  // step starts from full tanks (params' heights). Rewards: ComputeReward.
+  RolloutResult Run(const Vec6& x0, const std::vector<Valves>& sequences, int num_candidates,
+                    int horizon, const std::vector<PlantParams>& params, double dt = 1.0);
+
+ private:
+  StepResult StepOnce(const Vec6& x, const Valves& u, const PlantParams& p, double dt,
+                      RolloutResult* result);
+
+  StepIntegrator integrator_;
+  RolloutOptions options_;
+};
+
+}  // namespace ftc
