@@ -32,9 +32,13 @@ stamp=.venv/.requirements.sha
 want="$(cat requirements.txt pyproject.toml | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setup: installing Python dependencies into .venv"
-  .venv/bin/pip install -q --upgrade pip
-  .venv/bin/pip install -q -r requirements.txt
-  .venv/bin/pip install -q --no-deps --no-build-isolation -e .
+  quiet_pip() {  # this machine's pip config names local mirrors that may be absent: not errors
+    .venv/bin/pip "$@" 2>&1 | { grep -v "^WARNING: Location .* is ignored" || true; }
+    return "${PIPESTATUS[0]}"
+  }
+  quiet_pip install -q --upgrade pip
+  quiet_pip install -q -r requirements.txt
+  quiet_pip install -q --no-deps --no-build-isolation -e .
   echo "$want" > "$stamp"
 fi
 
