@@ -352,13 +352,19 @@ PYBIND11_MODULE(_core, m) {
       "after each step before any reset, terminal (K, L), and step counts.";
   py::class_<ftc::BatchRollout>(m, "BatchRollout",
                                 "Reusable batch rollouts (one CVODE integrator, kept warm).")
-      .def(py::init([](bool exact_idle_conduit, bool share_prefixes) {
+      .def(py::init([](bool exact_idle_conduit, bool share_prefixes, double rtol, double atol) {
              ftc::RolloutOptions o;
              o.exact_idle_conduit = exact_idle_conduit;
              o.share_prefixes = share_prefixes;
-             return std::make_unique<ftc::BatchRollout>(ftc::IntegratorOptions{}, o);
+             ftc::IntegratorOptions io;
+             io.rtol = rtol;
+             io.atol = atol;
+             return std::make_unique<ftc::BatchRollout>(io, o);
            }),
-           py::arg("exact_idle_conduit") = true, py::arg("share_prefixes") = true)
+           py::arg("exact_idle_conduit") = true, py::arg("share_prefixes") = true,
+           py::arg("rtol") = ftc::IntegratorOptions{}.rtol,
+           py::arg("atol") = ftc::IntegratorOptions{}.atol,
+           "rtol/atol: CVODE tolerances of the rollouts (default: the plant's)")
       .def("run", &RunRollout, py::arg("x0"), py::arg("sequences"), py::arg("params"),
            py::arg("dt") = 1.0, py::arg("details") = false, rollout_doc);
   m.def(
