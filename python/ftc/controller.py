@@ -535,11 +535,11 @@ class Controller:
         self.rows[interval].update(result.metrics)
 
     def offline(self, interval: int) -> None:
-        inputs = self._offline_inputs(interval)
         if self.cfg.offline_mode == "sequential":
-            self._apply(offline_phase(*inputs), interval, swap=True)
+            self._apply(offline_phase(*self._offline_inputs(interval)), interval, swap=True)
             return
-        self._wait_pending()
+        self._wait_pending()  # the previous phase's model is the next refit's start
+        inputs = self._offline_inputs(interval)
         if self.executor is None:
             import concurrent.futures
             import multiprocessing

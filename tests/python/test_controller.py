@@ -94,3 +94,15 @@ def test_cli_parses_every_option_and_help_explains_them(capsys):
                            "--ppo-trunk-sizes", "32", "32"])
     assert cfg.offline is False and cfg.method == "random"
     assert ppo.learning_rate == 0.01 and ppo.trunk_sizes == (32, 32)
+
+
+def test_background_offline_swaps_in_improved_policies(tmp_path, scenarios):
+    cfg = _short(tmp_path, intervals=3, link="core", offline_mode="background",
+                 scenario=str(scenarios / "single.toml"))
+    rows = Controller(cfg, PPOConfig()).run()
+    assert len(rows) == 3
+    # every offline phase finished and was swapped in (at the latest at the end)
+    assert all(r.get("model_r2") is not None for r in rows)
+    table = _rows(tmp_path)
+    assert all(t["model_r2"] != "" for t in table)
+    assert (tmp_path / "done.json").exists()
