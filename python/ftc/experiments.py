@@ -399,6 +399,18 @@ class RunHandle:
                     pass
 
 
+def _raise_priority() -> None:
+    """Run the recorder ahead of the runs it records: lcm-logger dispatches from
+    a bounded subscription queue, so a recorder starved of CPU on a busy machine
+    drops messages (measured: 2-49 plant states per run at load 8 on 2 cores).
+    Raising priority needs privileges; without them the niceness of the runs
+    (RunnerConfig.nice) still favours the recorder."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, -10)
+    except OSError:
+        pass
+
+
 class LcmLogger:
     """lcm-logger recording one run's channels on its private URL.
 
@@ -422,7 +434,7 @@ class LcmLogger:
             [str(lcm_logger_binary()), "--quiet", "--force", "--flush-interval", "100",
              "--channel", f"{prefix}.*", "--lcm-url", _with_recv_buffer(url), str(path)],
             stdin=subprocess.DEVNULL, stdout=self._stderr, stderr=self._stderr,
-            start_new_session=True)
+            start_new_session=True, preexec_fn=_raise_priority)
         self._wait_for(f"{prefix}LOGGER_START")
 
     def _wait_for(self, channel: str) -> None:
