@@ -103,7 +103,12 @@ register_method(MethodSpec("ppo-online", "PPO online", ("--method", "ppo", "--no
                            cost=3.0, learns=True))
 register_method(MethodSpec("ppo-offline", "PPO online + offline",
                            ("--method", "ppo", "--offline"), cost=8.0, learns=True))
-DEFAULT_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
+register_method(MethodSpec("oracle-mpc", "MPC, faults known (oracle)", ("--method", "oracle"),
+                           module="ftc.mpc", cost=1.5))
+register_method(MethodSpec("model-mpc", "MPC on the learned model", ("--method", "model"),
+                           module="ftc.mpc", cost=3.0, learns=True))
+PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
+DEFAULT_METHODS = (*PAPER_METHODS, "oracle-mpc", "model-mpc")
 
 
 # ---------------------------------------------------------------------------

@@ -84,6 +84,37 @@ def interval_table(metrics: list[dict], experiment: str, column: str, methods: S
     return Block("table", header=["method", *[str(k) for k in range(intervals)], "mean"], rows=rows)
 
 
+ORACLE = "oracle-mpc"
+
+
+def oracle_fraction_table(metrics: list[dict], experiment: str, methods: Sequence[str],
+                          labels: dict[str, str], intervals: int) -> Block | None:
+    """Every method's experienced reward per step as a fraction of the oracle
+    MPC's in the same interval (means over trials and seeds first)."""
+    per: dict = defaultdict(lambda: defaultdict(list))
+    for r in metrics:
+        v = _num(r.get("reward_per_step"))
+        if r["experiment"] == experiment and v is not None and math.isfinite(v):
+            per[r["method"]][int(r["interval"])].append(v)
+    if ORACLE not in per:
+        return None
+    oracle = {k: float(np.mean(v)) for k, v in per[ORACLE].items()}
+    rows = []
+    for m in methods:
+        if m not in per or m == ORACLE:
+            continue
+        cells, fractions = [], []
+        for k in range(intervals):
+            if k in per[m] and oracle.get(k):
+                f = float(np.mean(per[m][k])) / oracle[k]
+                fractions.append(f)
+                cells.append(f"{f:.3f}")
+            else:
+                cells.append("")
+        rows.append([labels.get(m, m), *cells, f"{np.mean(fractions):.3f}" if fractions else ""])
+    return Block("table", header=["method", *[str(k) for k in range(intervals)], "mean"], rows=rows)
+
+
 def build_blocks(run_dir: Path) -> list[Block]:
     run_dir = Path(run_dir)
     meta = json.loads((run_dir / "experiment.json").read_text())
@@ -149,6 +180,11 @@ def build_blocks(run_dir: Path) -> list[Block]:
                           else "mean ± std over seeds" if len(config["seeds"]) > 1 else "")
                 blocks.append(Block("p", f"{what}, per interval{'; ' + spread if spread else ''}."))
                 blocks.append(table)
+        table = oracle_fraction_table(metrics, exp, methods, labels, n_int)
+        if table:
+            blocks.append(Block("p", "Experienced reward per step as a fraction of the oracle "
+                                     "MPC's (which knows the faults), per interval."))
+            blocks.append(table)
         table = interval_table(metrics, exp, "model_r2", methods, labels, n_int)
         if table:
             table.rows = [r for r in table.rows if any(c for c in r[1:-1])]
