@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <exception>
 #include <string>
 
 #include "ftc/plant_control_t.hpp"
@@ -38,10 +39,18 @@ plant_state_t ToStateMessage(const StepOutcome& outcome, std::int64_t seq, std::
 // writes the reason and returns false.
 bool ValvesFromCommand(const valve_command_t& command, Valves* valves, std::string* reason);
 
-// Decodes a raw LCM buffer into T; false on a wrong fingerprint or truncation.
+// Decodes a raw LCM buffer into T; false on a wrong fingerprint, truncation or
+// a bad array count. lcm-gen's decoders resize an array to the count read from
+// the wire before checking it, so a negative int8 count (e.g. num_valves = -1)
+// throws std::length_error: caught here, or one crafted datagram would end the
+// plant (found by tests/fuzz/fuzz_messages.cpp).
 template <typename T>
 bool DecodeMessage(const void* data, int size, T* out) {
-  return out->decode(data, 0, size) == size;
+  try {
+    return out->decode(data, 0, size) == size;
+  } catch (const std::exception&) {
+    return false;
+  }
 }
 
 }  // namespace ftc
