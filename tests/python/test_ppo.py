@@ -11,6 +11,8 @@ import torch
 from ftc.ppo import (PPO, ActorCritic, PPOConfig, RolloutBuffer, clipped_surrogate_loss,
                      ppo_update)
 
+torch.set_num_threads(1)  # tiny networks: threads only add contention (and nondeterminism)
+
 
 def _fill(buffer: RolloutBuffer, rewards, values, terminals, truncations, trunc_values):
     for t in range(len(rewards)):
@@ -163,12 +165,15 @@ class ValvePuzzle:
         return cost + bonus, terminal
 
 
+ITERATIONS = 60
+
+
 def test_ppo_learns_two_step_valve_puzzle():
     cfg = PPOConfig(learning_rate=3e-3, minibatch_size=64, reward_scale=1.0, ent_coef=0.003)
     ppo = PPO(cfg, seed=0)
     env = ValvePuzzle(16)
     buf = RolloutBuffer(16, 16)
-    for _ in range(120):
+    for _ in range(ITERATIONS):
         for _t in range(16):
             obs = env.obs
             a, lp, v = ppo.act(obs)
