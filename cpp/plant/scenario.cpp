@@ -12,6 +12,8 @@
 namespace ftc {
 namespace {
 
+constexpr double kMinFactor = 1e-3;  // smallest degradation factor D, intervals
+
 class Reader {
  public:
   explicit Reader(std::string source) : source_(std::move(source)) {}
@@ -57,9 +59,14 @@ class Reader {
         Fail(key, "element " + std::to_string(k) + " is a " + TypeName(e) + ", expected a number");
       }
       v[k] = *e.value<double>();
-      if (std::isnan(v[k]) || !(v[k] > 0)) {
+      // Tiny factors are accepted by "> 0" but make the wear a/D overflow (a
+      // subnormal D gives an infinite resistance) and CVODE fail an interval
+      // later, ending the plant mid-run (found by tests/fuzz/fuzz_scenario.cpp).
+      // 1e-3 intervals already wears a component out within one control step.
+      if (std::isnan(v[k]) || !(v[k] >= kMinFactor)) {
         std::ostringstream os;
-        os << "element " << k << " must be > 0 (inf = healthy), got " << v[k];
+        os << "element " << k << " must be > 0 and at least " << kMinFactor
+           << " intervals (inf = healthy), got " << v[k];
         Fail(key, os.str());
       }
     }

@@ -1,7 +1,7 @@
 // Fault scenario files (TOML). Keys:
 //   name = "single"                 optional, string
-//   tank_factor = [inf, ..., 20.0]  six D_T values, > 0, inf = healthy (default all inf)
-//   engine_factor = [20.0, inf]     two D_E values, > 0, inf = healthy (default all inf)
+//   tank_factor = [inf, ..., 20.0]  six D_T values, >= 1e-3, inf = healthy (default all inf)
+//   engine_factor = [20.0, inf]     two D_E values, >= 1e-3, inf = healthy (default all inf)
 //   degradation = "stepwise"        or "continuous"
 //   steps_per_interval = 512        > 0
 //   [noise] std = 0.0               >= 0, metres
