@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import struct
 import sys
 import tempfile
 from dataclasses import dataclass, field
@@ -118,6 +119,34 @@ def _ranges(values: list[int]) -> str:
     return f"{values[0]}..{values[-1]} ({len(values)})" if len(values) > 3 else str(values)
 
 
+class _CStderr:
+    """Captures what C code prints on file descriptor 2 (liblcm reports a bad
+    event header there), so an error stays one line; ``text`` is it joined."""
+
+    def __init__(self) -> None:
+        self.text = ""
+        self._saved: int | None = None
+
+    def __enter__(self) -> "_CStderr":
+        sys.stderr.flush()
+        self._file = tempfile.TemporaryFile()
+        self._saved = os.dup(2)
+        os.dup2(self._file.fileno(), 2)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._saved is None:
+            return
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._saved = None
+        self._file.seek(0)
+        self.text = "; ".join(line.strip() for line in
+                              self._file.read().decode(errors="replace").splitlines()
+                              if line.strip())
+        self._file.close()
+
+
 def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
     """Rebuild the trajectory from the plant states in an LCM log.
 
@@ -140,7 +169,9 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
     states: dict[str, list] = {}
     events = 0
     offset = 0
+    lcm_said = _CStderr()  # liblcm prints its own complaints; they go into our one line
     try:
+        lcm_said.__enter__()
         while True:
             offset = log.tell()
             try:
@@ -156,15 +187,21 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
             if event.channel.endswith(STATE_SUFFIX) and (channel is None or event.channel == channel):
                 try:
                     msg = plant_state_t.decode(event.data)
-                except ValueError as e:
+                except (ValueError, struct.error) as e:
                     raise LogError(f"{path}: event {event.eventnum} at byte offset {offset} on "
                                    f"{event.channel} does not decode as plant_state_t: {e}") from None
+                if len(msg.encode()) != len(event.data):  # the decoder ignores a tail
+                    raise LogError(f"{path}: event {event.eventnum} at byte offset {offset} on "
+                                   f"{event.channel} does not decode as plant_state_t: "
+                                   f"{len(event.data)} bytes, {len(msg.encode())} expected")
                 states.setdefault(event.channel, []).append(msg)
     finally:
         log.close()
+        lcm_said.__exit__()
     if offset != size:
         raise LogError(f"{path}: truncated or corrupt log: reading stopped at byte offset "
-                       f"{offset} of {size} (after {events} events)")
+                       f"{offset} of {size} (after {events} events)"
+                       + (f" (lcm: {lcm_said.text})" if lcm_said.text else ""))
     if not states:
         raise LogError(f"{path}: no plant_state_t messages"
                        + (f" on channel {channel}" if channel else " on any *STATE channel")
