@@ -111,6 +111,8 @@ class ControllerConfig:
     pretrain_ent_coef: float = field(default=0.0, metadata={"help": (
         "entropy bonus while pretraining; 0: the stop rule, not the bonus, decides how "
         "much exploration is left (with 0.01 the open fraction stalls near 0.15)")})
+    pretrain_lr: float | None = field(default=None, metadata={"help": (
+        "Adam step size while pretraining (None: the PPO learning rate)")})
     pretrain_minibatch: int = field(default=256, metadata={"help": (
         "PPO minibatch size while pretraining (large batches of cheap simulated steps)")})
     pretrain_rollout: int = field(default=64, metadata={"help": "steps per plant between updates"})
@@ -299,11 +301,16 @@ def pretrain_policy(ppo: PPO, cfg: ControllerConfig, model: Any = None,
     online_config = ppo.config
     ppo.config = dataclasses.replace(online_config, ent_coef=cfg.pretrain_ent_coef,
                                      minibatch_size=cfg.pretrain_minibatch)
+    if cfg.pretrain_lr is not None:
+        for group in ppo.optimizer.param_groups:
+            group["lr"] = cfg.pretrain_lr
     try:
         stats, rew, steps = train_on_env(ppo, env, cfg.pretrain_max_steps, cfg.pretrain_rollout,
                                          stop)
     finally:
         ppo.config = online_config
+        for group in ppo.optimizer.param_groups:
+            group["lr"] = online_config.learning_rate
     return {"pretrain_steps": steps, "pretrain_plant_errors": getattr(env, "errors", 0), "pretrain_updates": len(stats),
             "pretrain_reward_per_step": rew, "pretrain_open_fraction": probe["open_fraction"],
             "pretrain_entropy": probe["entropy"],
