@@ -396,6 +396,7 @@ class Controller:
         self.window: list[Any] = []  # real transitions of recent intervals
         self.executor = None
         self.pending = None
+        self.pending_data: tuple[int, Any] | None = None  # (interval, data) of the job in flight
         self.swaps = 0
 
     # -- setup ----------------------------------------------------------------
@@ -546,7 +547,11 @@ class Controller:
             self._apply(offline_phase(*self._offline_inputs(interval)), interval, swap=True)
             return
         self._wait_pending()  # the previous phase's model is the next refit's start
-        inputs = self._offline_inputs(interval)
+        self._submit(self._offline_inputs(interval))
+
+    def _submit(self, inputs: tuple) -> None:
+        """Start an offline phase in the background worker."""
+        interval, data = inputs[-1], inputs[4]
         if self.executor is None:
             import concurrent.futures
             import multiprocessing
@@ -555,6 +560,7 @@ class Controller:
                 1, mp_context=multiprocessing.get_context("spawn"))
         generator_state = self.ppo.generator.get_state()
         self.pending = (self.executor.submit(offline_phase, *inputs), interval)
+        self.pending_data = (interval, data)
         self.ppo.generator.set_state(generator_state)
 
     def _maybe_swap(self) -> None:
@@ -563,7 +569,7 @@ class Controller:
 
     def _take_pending(self) -> None:
         future, interval = self.pending
-        self.pending = None
+        self.pending, self.pending_data = None, None
         result = future.result()
         # the online generator keeps its own stream; only weights and Adam state swap in
         generator_state = self.ppo.generator.get_state()
@@ -582,6 +588,10 @@ class Controller:
                  "np_rng": self.rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
                  "model": self.model_state, "model_fits": self.model_fits,
                  "window": [_transitions_state(w) for w in self.window],
+                 # a background offline phase in flight: its data, to start it again on resume
+                 "pending": None if self.pending_data is None else {
+                     "interval": self.pending_data[0],
+                     "data": _transitions_state(self.pending_data[1])},
                  "ppo": self.ppo.state_dict() if self.ppo else None}
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
@@ -598,6 +608,11 @@ class Controller:
         self.window = [Transitions(**{k: v.numpy() for k, v in w.items()}) for w in state["window"]]
         if self.ppo is not None:
             self.ppo.load_state_dict(state["ppo"])
+        if state.get("pending") is not None:  # restart the phase that was in flight
+            p = state["pending"]
+            data = Transitions(**{k: v.numpy() for k, v in p["data"].items()})
+            self._submit((self.ppo.state_dict(), self.ppo_config, self.model_state,
+                          self.model_fits, data, self.cfg, p["interval"]))
 
     def write_metrics(self) -> None:
         buf = io.StringIO()
@@ -654,8 +669,7 @@ class Controller:
                 row["policy_swaps"] = self.swaps - swaps_before
                 row["wall_time"] = time.perf_counter() - start
                 self.interval += 1
-                if cfg.offline_mode == "sequential" or self.pending is None:
-                    self.checkpoint()
+                self.checkpoint()
                 self.write_metrics()
                 self._progress(row)
                 if stop_after is not None and self.interval >= stop_after:

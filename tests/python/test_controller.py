@@ -106,3 +106,15 @@ def test_background_offline_swaps_in_improved_policies(tmp_path, scenarios):
     table = _rows(tmp_path)
     assert all(t["model_r2"] != "" for t in table)
     assert (tmp_path / "done.json").exists()
+
+
+def test_background_resume_restarts_the_offline_phase_in_flight(tmp_path, scenarios):
+    cfg = _short(tmp_path, intervals=3, link="core", offline_mode="background",
+                 scenario=str(scenarios / "single.toml"))
+    Controller(cfg, PPOConfig()).run(stop_after=2)
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert state["pending"] is not None and state["pending"]["interval"] == 1
+    cfg, ppo = resume_config(str(tmp_path))
+    rows = Controller(cfg, ppo).run()
+    assert [r["interval"] for r in rows] == [0, 1, 2]
+    assert all(r.get("model_r2") is not None for r in rows)
