@@ -53,9 +53,25 @@ struct Options {
 // True when a udpm URL leaves the machine: a ttl other than 0 (LCM's default is 0
 // only when the option is absent, but we require it to be explicit and zero).
 bool UrlIsLoopbackOnly(const std::string& url) {
+  // Exactly one ttl option and it is 0: LCM takes the last of repeated options,
+  // so "ttl=0&ttl=1" must not pass (found by tests/python/test_fault_injection.py).
   if (url.rfind("udpm://", 0) != 0) return url.rfind("memq://", 0) == 0;
-  return url.find("ttl=0") != std::string::npos &&
-         url.find("ttl=0", url.find("ttl=0") + 1) == std::string::npos;
+  const auto q = url.find('?');
+  if (q == std::string::npos) return false;
+  int ttl_options = 0;
+  bool ttl_zero = false;
+  std::size_t start = q + 1;
+  while (start <= url.size()) {
+    std::size_t end = url.find('&', start);
+    if (end == std::string::npos) end = url.size();
+    const std::string opt = url.substr(start, end - start);
+    if (opt.rfind("ttl=", 0) == 0) {
+      ++ttl_options;
+      ttl_zero = opt == "ttl=0";
+    }
+    start = end + 1;
+  }
+  return ttl_options == 1 && ttl_zero;
 }
 
 class PlantNode final {

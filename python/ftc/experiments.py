@@ -1086,16 +1086,22 @@ def main(argv: list[str] | None = None) -> int:
         seeds=tuple(args.seeds) if args.seeds else preset["seeds"],
         trials=args.trials if args.trials is not None else preset["trials"],
         scenario_seed=args.scenario_seed,
-        intervals=args.intervals or preset["intervals"],
-        steps_per_interval=args.steps_per_interval or preset["steps_per_interval"],
+        # "is None", not "or": an explicit 0 must be refused below, not replaced
+        intervals=args.intervals if args.intervals is not None else preset["intervals"],
+        steps_per_interval=(args.steps_per_interval if args.steps_per_interval is not None
+                            else preset["steps_per_interval"]),
         controller_args=(("--pretrain",) if args.pretrain else ())
         + tuple(shlex.split(args.controller_args)),
         run_timeout=args.run_timeout)
     for name in ("trials", "intervals", "steps_per_interval"):
         if getattr(config, name) <= 0:
             parser.error(f"--{name.replace('_', '-')} must be positive")
-    if args.command == "all" and args.model_search:
+    try:  # an unwritable --out is an error before any run starts
         out.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=out).close()
+    except OSError as e:
+        parser.error(f"--out {out}: cannot write there: {e.strerror or e}")
+    if args.command == "all" and args.model_search:
         model_search(out, ModelSearchConfig(), max(1, args.jobs))
     failed = run_experiments(out, config, max(1, args.jobs), args.resume)
     return 1 if failed else 0

@@ -178,7 +178,11 @@ def check_loopback_url(url: str, allow_network: bool = False) -> None:
     """Refuse an LCM URL that may leave this machine unless asked for explicitly."""
     import warnings
 
-    loopback = url.startswith("memq://") or (url.startswith("udpm://") and url.count("ttl=0") == 1)
+    # exactly one ttl option and it is 0: LCM takes the last of repeated options,
+    # so "ttl=0&ttl=1" must not pass for loopback
+    query = url.partition("?")[2]
+    ttls = [opt.partition("=")[2] for opt in query.split("&") if opt.partition("=")[0] == "ttl"]
+    loopback = url.startswith("memq://") or (url.startswith("udpm://") and ttls == ["0"])
     if loopback:
         return
     if not allow_network:

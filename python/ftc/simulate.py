@@ -84,6 +84,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--steps must be positive, got {args.steps}")
     if args.scenario is not None and not args.scenario.is_file():
         parser.error(f"--scenario: no such file: {args.scenario}")
+    # An unwritable --out is an error before the plant starts; nothing is created.
+    existing = args.out.resolve().parent
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        parser.error(f"--out {args.out}: cannot write there ({existing} is not a writable "
+                     "directory)")
     extra = ([] if args.steps_per_interval is None
              else ["--steps-per-interval", str(args.steps_per_interval)])
     try:
