@@ -23,6 +23,18 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends "${missing[@]}"
 fi
 
+# lcm-logger records thousands of lockstep messages a second; a recorder
+# descheduled on a busy machine needs a large UDP receive buffer or the kernel
+# drops datagrams (counted in /proc/net/snmp RcvbufErrors). LCM's own advice.
+want_rmem=67108864
+if [ "$(cat /proc/sys/net/core/rmem_max 2>/dev/null || echo 0)" -lt "$want_rmem" ]; then
+  if [ "$(id -u)" -eq 0 ] && sysctl -qw net.core.rmem_max="$want_rmem" 2>/dev/null; then
+    echo "setup: raised net.core.rmem_max to $want_rmem for lcm-logger"
+  else
+    echo "setup: note: could not raise net.core.rmem_max (lcm-logger may drop messages under load)"
+  fi
+fi
+
 python_bin="${PYTHON:-python3}"
 if [ ! -x .venv/bin/python ]; then
   echo "setup: creating .venv"

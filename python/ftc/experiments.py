@@ -52,6 +52,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from ftc.atomic import atomic_write_text
 from ftc.plant import private_lcm_url, private_prefix
 
 EXPERIMENTS = ("single", "multiple", "aggregate")
@@ -224,21 +225,6 @@ def experiment_scenarios(config: ExperimentConfig) -> dict[str, list[Scenario]]:
 # Files
 # ---------------------------------------------------------------------------
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write text to path via a temporary file in the same directory and os.replace."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def atomic_write_json(path: Path, obj) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default)
                       + "\n")
@@ -255,7 +241,7 @@ def _json_default(o):
 
 
 def atomic_write_rows(path: Path, header: Sequence[str], rows: Iterable[Sequence]) -> None:
-    from ftc.replay import atomic_write_csv
+    from ftc.atomic import atomic_write_csv
 
     atomic_write_csv(Path(path), list(header), [list(r) for r in rows])
 
@@ -479,14 +465,15 @@ class LcmLogger:
 
 
 def _with_recv_buffer(url: str) -> str:
-    """url with the largest UDP receive buffer the kernel allows (up to 8 MiB)."""
+    """url with the largest UDP receive buffer the kernel allows (up to 64 MiB;
+    scripts/setup.sh raises net.core.rmem_max to that where it may)."""
     if not url.startswith("udpm://") or "recv_buf_size" in url:
         return url
     try:
         limit = int(Path("/proc/sys/net/core/rmem_max").read_text())
     except (OSError, ValueError):
         limit = 1 << 21
-    size = max(1 << 18, min(limit, 1 << 23))
+    size = max(1 << 18, min(limit, 1 << 26))
     return url + ("&" if "?" in url else "?") + f"recv_buf_size={size}"
 
 

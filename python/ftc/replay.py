@@ -17,7 +17,6 @@ where reading stopped (exit code 2).
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import struct
 import sys
@@ -27,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ftc.atomic import atomic_write_csv
 from ftc.reward import reward
 
 STATE_SUFFIX = "STATE"
@@ -283,22 +283,6 @@ def write_trajectory_csv(rows: Trajectory, out: Path) -> None:
                *rows.valves[i].tolist(), *[repr(float(x)) for x in rows.level[i]],
                repr(float(rows.reward[i]))] for i in range(len(rows))]
     atomic_write_csv(out, TRAJECTORY_HEADER, lines)
-
-
-def atomic_write_csv(out: Path, header: list[str], rows: list[list]) -> None:
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(header)
-            writer.writerows(rows)
-        os.replace(tmp, out)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def summary(traj: Trajectory) -> str:

@@ -15,14 +15,13 @@ simulation of ../shared/design/plant-model.md with this file.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ftc.atomic import atomic_write_csv
 from ftc.plant import NUM_TANKS, PlantError, launch
 
 POLICIES = ("closed", "open", "random")
@@ -52,17 +51,7 @@ def run(scenario: str | None, policy: str, seed: int, steps: int, out: Path,
                          *[f"{x:.12g}" for x in o.true_level]])
             if o.done:
                 plant.reset()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=out.name, suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(HEADER)
-            writer.writerows(rows)
-        os.replace(tmp, out)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    atomic_write_csv(out, HEADER, rows)
     return len(rows)
 
 
