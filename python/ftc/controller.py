@@ -24,7 +24,17 @@ through the same loop and plant.
 Outputs in --out DIR: config.json (resolved config, seed, git revision),
 metrics.csv (one row per interval, rewritten atomically after each), a
 checkpoint after every interval (checkpoint.pt, torch.load(weights_only=True)),
-done.json when the run has finished.
+done.json when the run has finished; plant.pid while a launched plant runs.
+
+Failures (one line on stderr, "ftc.controller: error: ..."; nothing written
+after the last finished interval, so metrics.csv and checkpoint.pt stay those
+of that interval and --resume continues from it):
+
+    exit 2  bad input: a flag, or a --resume directory whose config.json or
+            checkpoint.pt is corrupt, truncated or from another configuration
+    exit 3  the plant stopped answering (retried with back-off for
+            --link-give-up-timeout seconds): "plant gone at interval K, step T: ..."
+    exit 4  a non-finite number: observation, PPO loss, gradient or weights
 """
 
 from __future__ import annotations
@@ -45,7 +55,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
-from ftc.plant import NUM_TANKS, PlantLink, PlantObservation
+from ftc.plant import NUM_TANKS, PlantError, PlantGoneError, PlantLink, PlantObservation
 from ftc.ppo import PPO, PPOConfig, RolloutBuffer, UpdateStats
 from ftc.reward import reward
 
@@ -135,6 +145,13 @@ class ControllerConfig:
         "LCM channel prefix (default: a private one when launching; FTC_ with --attach)")})
     resume: str | None = field(default=None, metadata={"help": (
         "continue the stopped run in this directory from its last checkpoint")})
+    link_retry_timeout: float = field(default=0.05, metadata={"help": (
+        "seconds before an unanswered plant message is re-sent (LCM on loopback answers "
+        "in well under 1 ms; a lost message costs this much)")})
+    link_backoff: float = field(default=2.0, metadata={"help": (
+        "the re-send wait grows by this factor after each unanswered re-send of one message")})
+    link_give_up_timeout: float = field(default=5.0, metadata={"help": (
+        "seconds without an answer after which the plant counts as gone (exit 3)")})
     quiet: bool = field(default=False, metadata={"help": "no progress lines on the console"})
 
     def validate(self) -> None:
@@ -148,6 +165,46 @@ class ControllerConfig:
             raise ValueError("--link must be lcm|core")
         if self.steps_per_interval % self.update_every:
             raise ValueError("--steps-per-interval must be a multiple of --update-every")
+        if not (0 < self.link_retry_timeout <= self.link_give_up_timeout):
+            raise ValueError("--link-retry-timeout must be > 0 and <= --link-give-up-timeout")
+        if self.link_backoff < 1.0:
+            raise ValueError(f"--link-backoff must be >= 1, got {self.link_backoff}")
+
+    def link_config(self) -> "LinkConfig":
+        from ftc.plant import LinkConfig
+
+        return LinkConfig(retry_timeout=self.link_retry_timeout,
+                          give_up_timeout=self.link_give_up_timeout, backoff=self.link_backoff)
+
+
+# Fields that do not change a run's results: a checkpoint written under other values
+# of these may be resumed (everything else must match, see Controller.restore).
+RUN_LOCAL_FIELDS = ("out", "resume", "lcm_url", "prefix", "attach", "quiet", "link_retry_timeout",
+                    "link_backoff", "link_give_up_timeout", "pretrain_cache")
+
+
+class ControllerError(RuntimeError):
+    """A run stopped; ``exit_code`` is what the command line exits with."""
+
+    exit_code = 1
+
+
+class CheckpointError(ControllerError):
+    """A --resume directory's checkpoint or config is corrupt or does not match."""
+
+    exit_code = 2
+
+
+class PlantLostError(ControllerError):
+    """The plant stopped answering during the run."""
+
+    exit_code = 3
+
+
+class NonFiniteError(ControllerError):
+    """A non-finite observation, loss, gradient or weight."""
+
+    exit_code = 4
 
 
 # --------------------------------------------------------------------------
@@ -163,8 +220,8 @@ def open_plant(cfg: ControllerConfig, start_step: int) -> PlantLink:
         return plant.CorePlant(scenario, cfg.seed, steps_per_interval=cfg.steps_per_interval,
                                start_step=start_step)
     if cfg.attach:
-        link = plant.attach(cfg.lcm_url or plant.DEFAULT_LCM_URL,
-                            cfg.prefix or plant.DEFAULT_PREFIX)
+        link = plant.LcmPlant(cfg.lcm_url or plant.DEFAULT_LCM_URL,
+                              cfg.prefix or plant.DEFAULT_PREFIX, config=cfg.link_config())
         at = link.hello().operating_steps
         if at != start_step:
             link.close()
@@ -175,7 +232,7 @@ def open_plant(cfg: ControllerConfig, start_step: int) -> PlantLink:
     if start_step:
         extra += ["--start-step", str(start_step)]
     return plant.launch(scenario, cfg.seed, lcm_url=cfg.lcm_url, prefix=cfg.prefix,
-                        extra_args=extra)
+                        extra_args=extra, config=cfg.link_config())
 
 
 class VecCorePlant:
@@ -398,6 +455,7 @@ class Controller:
         self.pending = None
         self.pending_data: tuple[int, Any] | None = None  # (interval, data) of the job in flight
         self.swaps = 0
+        self.where = "before the first step"  # position in the run, for error messages
 
     # -- setup ----------------------------------------------------------------
     def prepare(self) -> None:
@@ -474,12 +532,15 @@ class Controller:
         stats: list[UpdateStats] = []
         rewards = np.zeros(cfg.steps_per_interval)
         observations: list[PlantObservation] = []
-        o = plant.reset()
+        k = self.interval
+        self.where = f"interval {k}, step 0"
+        o = _finite_observation(plant.reset(), self.where)
         observations.append(o)
         episodes = 1
         for t in range(cfg.steps_per_interval):
             u, sample = self._valves(o.level)
-            nxt = plant.step(u)
+            self.where = f"interval {k}, step {t + 1}"
+            nxt = _finite_observation(plant.step(u), self.where)
             observations.append(nxt)
             rewards[t] = reward(nxt.level, u)
             last = t == cfg.steps_per_interval - 1
@@ -496,11 +557,12 @@ class Controller:
                            torch.tensor([trunc]), tv)
             o = nxt
             if nxt.terminal and not last:
-                o = plant.reset()
+                o = _finite_observation(plant.reset(), self.where + " (reset)")
                 observations.append(o)
                 episodes += 1
             if sample is not None and buffer.full:
                 stats.append(self.ppo.update(buffer, self.ppo.value(_obs(o))))
+                _check_update(self.ppo, stats[-1], f"the PPO update at {self.where}")
                 self._maybe_swap()
         row: dict[str, Any] = {"reward_per_step": float(rewards.mean()), "episodes": episodes}
         if stats:
@@ -516,11 +578,14 @@ class Controller:
 
     def evaluate(self, plant: PlantLink) -> float:
         """Deterministic policy (open iff p > 0.5) for one evaluation episode."""
-        o = plant.evaluate()
+        k = self.interval
+        self.where = f"interval {k}, evaluation step 0"
+        o = _finite_observation(plant.evaluate(), self.where)
         total, steps = 0.0, 0
         while not o.done:
             u, _ = self._valves(o.level, deterministic=True)
-            o = plant.step(u)
+            self.where = f"interval {k}, evaluation step {steps + 1}"
+            o = _finite_observation(plant.step(u), self.where)
             total += float(reward(o.level, u))
             steps += 1
         return total / max(steps, 1)
@@ -537,6 +602,9 @@ class Controller:
                 self.cfg, interval)
 
     def _apply(self, result: OfflineResult, interval: int, swap: bool) -> None:
+        what = f"the offline phase of interval {interval}"
+        _check_finite_state(result.ppo_state["policy"], f"policy weights after {what}")
+        _check_finite_state(result.model_state, f"world-model weights after {what}")
         if swap:
             self.ppo.load_state_dict(result.ppo_state)
         self.model_state, self.model_fits = result.model_state, result.model_fits
@@ -592,22 +660,94 @@ class Controller:
                  "pending": None if self.pending_data is None else {
                      "interval": self.pending_data[0],
                      "data": _transitions_state(self.pending_data[1])},
-                 "ppo": self.ppo.state_dict() if self.ppo else None}
+                 "ppo": self.ppo.state_dict() if self.ppo else None,
+                 "format": CHECKPOINT_FORMAT, "config": self._config_stamp()}
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
         os.replace(tmp, self.out / "checkpoint.pt")
 
+    def _config_stamp(self) -> dict[str, Any]:
+        """What a checkpoint must agree with to be resumed by this configuration."""
+        ctrl = {k: v for k, v in dataclasses.asdict(self.cfg).items() if k not in RUN_LOCAL_FIELDS}
+        ppo = dataclasses.asdict(self.ppo_config)
+        ppo.update(trunk_sizes=list(ppo["trunk_sizes"]), head_sizes=list(ppo["head_sizes"]))
+        return {"controller": ctrl, "ppo": ppo}
+
+    def _load_checkpoint(self) -> dict[str, Any]:
+        """checkpoint.pt, checked against this run's configuration before anything
+        of it is used; raises CheckpointError saying why it cannot be resumed."""
+        path = self.out / "checkpoint.pt"
+        if not path.is_file():
+            raise CheckpointError(f"{path}: no checkpoint (the run stopped before its first "
+                                  "interval finished; start it again without --resume)")
+        try:
+            state = torch.load(path, weights_only=True)
+        except Exception as e:  # noqa: BLE001 - any failure to read means corrupt
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise CheckpointError(f"{path}: corrupt or truncated checkpoint "
+                                  f"({type(e).__name__}: {reason[:200]})") from None
+        if not isinstance(state, dict) or "format" not in state:
+            raise CheckpointError(f"{path}: not a controller checkpoint of this version "
+                                  "(no format record)")
+        if state["format"] != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"{path}: checkpoint format {state['format']!r}, this "
+                                  f"controller reads format {CHECKPOINT_FORMAT}")
+        missing = sorted(CHECKPOINT_KEYS - set(state))
+        if missing:
+            raise CheckpointError(f"{path}: checkpoint lacks {', '.join(missing)}")
+        if (self.ppo is None) != (state["ppo"] is None):
+            raise CheckpointError(f"{path}: checkpoint of a run "
+                                  f"{'without' if state['ppo'] is None else 'with'} a policy, "
+                                  f"this run's --method is {self.cfg.method}")
+        if self.ppo is not None:
+            ours = self.ppo.policy.state_dict()
+            theirs = state["ppo"].get("policy", {}) if isinstance(state["ppo"], dict) else {}
+            if set(ours) != set(theirs):
+                raise CheckpointError(f"{path}: network layers differ from this run's "
+                                      f"(checkpoint {len(theirs)} tensors, here {len(ours)})")
+            for name, tensor in ours.items():
+                if tuple(theirs[name].shape) != tuple(tensor.shape):
+                    raise CheckpointError(
+                        f"{path}: network sizes differ: {name} is {tuple(theirs[name].shape)} "
+                        f"in the checkpoint, {tuple(tensor.shape)} in this run's configuration")
+        mine = self._config_stamp()
+        diffs = [f"{part}.{key} {state['config'].get(part, {}).get(key)!r} in the checkpoint, "
+                 f"{value!r} here" for part in ("controller", "ppo")
+                 for key, value in mine[part].items()
+                 if state["config"].get(part, {}).get(key) != value]
+        if diffs:
+            raise CheckpointError(f"{path}: written by a run with another configuration: "
+                                  + "; ".join(diffs[:4]) + (" ..." if len(diffs) > 4 else ""))
+        interval = state["interval"]
+        if not (isinstance(interval, int) and 0 < interval <= self.cfg.intervals
+                and len(state["rows"]) == interval):
+            raise CheckpointError(f"{path}: inconsistent checkpoint (interval {interval!r}, "
+                                  f"{len(state['rows'])} metrics rows, {self.cfg.intervals} "
+                                  "intervals configured)")
+        try:
+            if state["ppo"] is not None:
+                _check_finite_state(state["ppo"]["policy"], "policy weights in the checkpoint")
+            if state["model"] is not None:
+                _check_finite_state(state["model"], "world-model weights in the checkpoint")
+        except NonFiniteError as e:
+            raise CheckpointError(f"{path}: {e}") from None
+        return state
+
     def restore(self) -> None:
         from ftc.world_model import Transitions
 
-        state = torch.load(self.out / "checkpoint.pt", weights_only=True)
+        state = self._load_checkpoint()
         self.interval, self.rows, self.info = state["interval"], state["rows"], state["info"]
         self.rng.bit_generator.state = state["np_rng"]
         torch.set_rng_state(state["torch_rng"])
         self.model_state, self.model_fits = state["model"], state["model_fits"]
         self.window = [Transitions(**{k: v.numpy() for k, v in w.items()}) for w in state["window"]]
         if self.ppo is not None:
-            self.ppo.load_state_dict(state["ppo"])
+            try:
+                self.ppo.load_state_dict(state["ppo"])
+            except (KeyError, RuntimeError, ValueError) as e:
+                raise CheckpointError(f"{self.out / 'checkpoint.pt'}: policy or optimiser state "
+                                      f"does not load: {str(e).splitlines()[0]}") from None
         if state.get("pending") is not None:  # restart the phase that was in flight
             p = state["pending"]
             data = Transitions(**{k: v.numpy() for k, v in p["data"].items()})
@@ -635,11 +775,15 @@ class Controller:
         _atomic_write(self.out / "config.json", json.dumps(doc, indent=2, default=str) + "\n")
 
     # -- main loop ---------------------------------------------------------------
-    def run(self, stop_after: int | None = None) -> list[dict[str, Any]]:
+    def run(self, stop_after: int | None = None, plant: PlantLink | None = None
+            ) -> list[dict[str, Any]]:
         """Run (or continue) the intervals; returns the metrics rows.
 
         stop_after: return after this many intervals of this call, as if the run
         had been stopped there (its checkpoint written; for tests of --resume).
+        plant: drive this link instead of opening one from the config (tests).
+        Raises a :class:`ControllerError` (PlantLostError, NonFiniteError,
+        CheckpointError) with nothing written after the last finished interval.
         """
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
@@ -654,7 +798,20 @@ class Controller:
             self.write_config()
             self.prepare()
         start = time.perf_counter()
-        plant = open_plant(cfg, self.interval * cfg.steps_per_interval)
+        if plant is None:
+            try:
+                plant = open_plant(cfg, self.interval * cfg.steps_per_interval)
+            except PlantGoneError as e:
+                raise PlantLostError(f"plant gone at interval {self.interval}, before the first "
+                                     f"step: {e}") from None
+            except PlantError as e:  # refused to start; its exit code 2 means bad input
+                error = ControllerError(str(e))
+                error.exit_code = 2 if e.exit_code == 2 else 1
+                raise error from None
+        pid_file = self.out / "plant.pid"
+        process = getattr(plant, "process", None)
+        if process is not None:  # for tools (and tests) that need the plant's process
+            _atomic_write(pid_file, f"{process.pid}\n")
         try:
             while self.interval < cfg.intervals:
                 k = self.interval
@@ -677,8 +834,14 @@ class Controller:
             self._wait_pending()
             self.checkpoint()
             self.write_metrics()
+        except PlantGoneError as e:
+            raise PlantLostError(f"plant gone at {self.where}: {e}; results of the "
+                                 f"{self.interval} finished intervals are in {self.out}, "
+                                 "--resume continues from them") from None
         finally:
             plant.close()
+            if process is not None:
+                pid_file.unlink(missing_ok=True)
             if self.executor is not None:
                 self.executor.shutdown(cancel_futures=True)
         _atomic_write(self.out / "done.json", json.dumps(
@@ -701,6 +864,41 @@ class Controller:
     def _say(self, text: str) -> None:
         if not self.cfg.quiet and text:
             print(text, flush=True)
+
+
+CHECKPOINT_FORMAT = 2
+CHECKPOINT_KEYS = frozenset({"interval", "rows", "info", "np_rng", "torch_rng", "model",
+                             "model_fits", "window", "ppo", "config"})
+
+
+def _finite_observation(o: PlantObservation, where: str) -> PlantObservation:
+    if not np.all(np.isfinite(o.level)):
+        raise NonFiniteError(f"non-finite observation at {where}: levels {o.level.tolist()}")
+    return o
+
+
+def _check_finite_state(state: dict[str, Any], what: str) -> None:
+    for name, value in state.items():
+        if isinstance(value, dict):
+            _check_finite_state(value, what)
+        elif torch.is_tensor(value) and value.is_floating_point() \
+                and not bool(torch.isfinite(value).all()):
+            raise NonFiniteError(f"non-finite {what} ({name})")
+
+
+def _check_update(ppo: PPO, stats: UpdateStats, what: str) -> None:
+    """After an update: losses, then the last gradients, then the weights finite
+    (a non-finite gradient of an earlier minibatch shows in the weights)."""
+    for name in ("policy_loss", "value_loss", "entropy", "approx_kl"):
+        if not math.isfinite(getattr(stats, name)):
+            raise NonFiniteError(f"non-finite loss in {what}: {name} = {getattr(stats, name)}")
+    for name, param in ppo.policy.named_parameters():
+        if param.grad is not None and not bool(torch.isfinite(param.grad).all()):
+            raise NonFiniteError(f"non-finite gradient in {what} ({name})")
+    for name, param in ppo.policy.named_parameters():
+        if not bool(torch.isfinite(param).all()):
+            raise NonFiniteError(f"non-finite weights after {what} ({name}): a non-finite "
+                                 "gradient reached them")
 
 
 def _obs(o: PlantObservation) -> torch.Tensor:
@@ -767,10 +965,18 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPO
 
 
 def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
-    """The configuration a stopped run was started with (from its config.json)."""
-    doc = json.loads((Path(out) / "config.json").read_text())
-    cfg = ControllerConfig(**doc["controller"])
-    ppo = PPOConfig(**doc["ppo"])
+    """The configuration a stopped run was started with (from its config.json);
+    raises CheckpointError when it is missing or malformed."""
+    path = Path(out) / "config.json"
+    try:
+        doc = json.loads(path.read_text())
+        cfg = ControllerConfig(**doc["controller"])
+        ppo = PPOConfig(**doc["ppo"])
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: missing (is {out} a controller run directory?)") from None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"{path}: malformed run configuration "
+                              f"({type(e).__name__}: {e})") from None
     ppo.trunk_sizes, ppo.head_sizes = tuple(ppo.trunk_sizes), tuple(ppo.head_sizes)
     cfg.resume, cfg.out = out, out
     return cfg, ppo
@@ -779,12 +985,23 @@ def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
 def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
     cfg, ppo = parse_args(argv)
-    if cfg.resume:
-        overrides = {k: getattr(cfg, k) for k in ("lcm_url", "prefix", "attach", "quiet")}
-        cfg, ppo = resume_config(cfg.resume)
-        for k, v in overrides.items():
-            setattr(cfg, k, v)
-    Controller(cfg, ppo).run()
+    try:
+        cfg.validate()
+    except ValueError as e:
+        print(f"ftc.controller: error: {e}", file=sys.stderr, flush=True)
+        return 2
+    try:
+        if cfg.resume:
+            overrides = {k: getattr(cfg, k) for k in ("lcm_url", "prefix", "attach", "quiet",
+                                                      "link_retry_timeout", "link_backoff",
+                                                      "link_give_up_timeout")}
+            cfg, ppo = resume_config(cfg.resume)
+            for k, v in overrides.items():
+                setattr(cfg, k, v)
+        Controller(cfg, ppo).run()
+    except ControllerError as e:
+        print(f"ftc.controller: error: {e}", file=sys.stderr, flush=True)
+        return e.exit_code
     return 0
 
 

@@ -151,11 +151,15 @@ class LinkConfig:
         message (the plant re-sends its answer to a repeated seq without stepping)
     give_up_timeout: seconds without any answer after which the plant counts as gone
     startup_timeout: seconds to wait for a newly started plant's first answer
+    backoff: factor by which the wait grows after each unanswered re-send of one
+        message (1: a fixed retry_timeout; 2: exponential back-off, so a plant that
+        is merely slow is not flooded while the give-up time runs out)
     """
 
     retry_timeout: float = 0.25
     give_up_timeout: float = 5.0
     startup_timeout: float = 10.0
+    backoff: float = 1.0
 
 
 def private_lcm_url(port: int | None = None) -> str:
@@ -258,16 +262,17 @@ class LcmPlant:
         self._lc.publish(channel, data)
         start = time.monotonic()
         last_send = start
+        interval = self.config.retry_timeout  # grows by config.backoff per re-send
+        resent = 0
         while True:
             now = time.monotonic()
             if now - start > timeout:
                 exited = self._plant_exit_message()
                 raise PlantGoneError(
                     f"plant on {self.url} prefix '{self.prefix}' did not answer {what} "
-                    f"(seq {seq}) within {timeout:.1f} s after {self.retries} retries"
+                    f"(seq {seq}) within {timeout:.1f} s after {resent} re-sends"
                     + (f"; {exited}" if exited else ""))
-            wait = max(0.0, min(self.config.retry_timeout - (now - last_send),
-                                timeout - (now - start)))
+            wait = max(0.0, min(interval - (now - last_send), timeout - (now - start)))
             self._lc.handle_timeout(max(1, int(wait * 1000)))
             for state in self._answers:
                 if state.command_seq == seq:
@@ -275,13 +280,15 @@ class LcmPlant:
                     self.last_state = state
                     return state
             self._answers.clear()
-            if time.monotonic() - last_send >= self.config.retry_timeout:
+            if time.monotonic() - last_send >= interval:
                 exited = self._plant_exit_message()
                 if exited:
                     raise PlantGoneError(f"plant gone while waiting for {what} (seq {seq}): {exited}")
                 self.retries += 1
+                resent += 1
                 self._lc.publish(channel, data)
                 last_send = time.monotonic()
+                interval *= self.config.backoff
 
     def _control(self, command: int, what: str, timeout: float | None = None):
         msg = self._types[2]()
