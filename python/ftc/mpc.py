@@ -24,6 +24,11 @@ Both drive the plant through the same :class:`ftc.plant.PlantLink` (LCM) as
 every controller, and write the controller's outputs into --out: config.json,
 metrics.csv (the controller's columns, one row per interval, rewritten
 atomically), done.json.
+
+Bad input is refused before anything is written (exit 2, one line naming the
+option, or the scenario file and key); the options ftc.experiments passes to
+every method's controller that only mean something to PPO are accepted and
+ignored, with a note.
 """
 
 from __future__ import annotations
@@ -44,11 +49,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from ftc.plant import NUM_TANKS, PlantLink, PlantObservation
+from ftc.plant import (DEFAULT_LCM_URL, DEFAULT_PREFIX, NUM_TANKS, PlantError, PlantLink,
+                       PlantObservation, check_loopback_url)
 from ftc.reward import reward, reward_torch
 
 METHODS = ("oracle", "model")
 PLANNERS = ("hold", "cem")
+LINKS = ("lcm", "core")
 
 # Summed rewards (K,) of candidate valve sequences (K, L, 6) from levels (6,).
 Evaluator = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -101,21 +108,57 @@ class MPCConfig:
         "lcm: the real plant process over LCM; core: the same physics in process")})
     attach: bool = field(default=False, metadata={"help": (
         "drive a plant already running on --lcm-url/--prefix instead of launching one")})
-    lcm_url: str | None = field(default=None, metadata={"help": "LCM URL of the plant"})
-    prefix: str | None = field(default=None, metadata={"help": "LCM channel prefix"})
+    lcm_url: str | None = field(default=None, metadata={"help": (
+        "LCM URL of the plant; must stay on this machine (memq://, or udpm:// with ttl=0) "
+        "unless --allow-network (None: a private loopback port, or with --attach "
+        f"{DEFAULT_LCM_URL})")})
+    allow_network: bool = field(default=False, metadata={"help": (
+        "accept an --lcm-url whose traffic may leave this machine (ttl != 0, tcpq://); "
+        "with --attach only, as launched plants are kept on loopback")})
+    prefix: str | None = field(default=None, metadata={"help": (
+        f"LCM channel prefix (None: a private one, or with --attach {DEFAULT_PREFIX})")})
     quiet: bool = field(default=False, metadata={"help": "no progress lines on the console"})
 
     def validate(self) -> None:
+        """Raise ValueError naming the offending option (as its --flag) for a bad value."""
         if self.method not in METHODS:
             raise ValueError(f"--method must be one of {METHODS}, got {self.method!r}")
         if self.planner not in PLANNERS:
             raise ValueError(f"--planner must be one of {PLANNERS}, got {self.planner!r}")
-        if not 1 <= self.hold <= self.horizon:
-            raise ValueError("need 1 <= --hold <= --horizon")
-        if self.link not in ("lcm", "core"):
-            raise ValueError("--link must be lcm|core")
+        if self.link not in LINKS:
+            raise ValueError(f"--link must be one of {LINKS}, got {self.link!r}")
+        for name in ("intervals", "steps_per_interval", "horizon", "hold", "cem_samples",
+                     "cem_iterations", "cem_elites", "model_window", "model_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{_flag(name)} must be at least 1, got {getattr(self, name)}")
+        if self.hold > self.horizon:
+            raise ValueError(f"--hold ({self.hold}) must not exceed --horizon ({self.horizon})")
         if self.cem_elites > self.cem_samples:
-            raise ValueError("--cem-elites must not exceed --cem-samples")
+            raise ValueError(f"--cem-elites ({self.cem_elites}) must not exceed --cem-samples "
+                             f"({self.cem_samples})")
+        if self.seed < 0:
+            raise ValueError(f"--seed must be >= 0, got {self.seed}")
+        if not 0.0 <= self.cem_smoothing <= 1.0:  # also refuses nan
+            raise ValueError(f"--cem-smoothing must be in [0, 1], got {self.cem_smoothing}")
+        for name in ("rollout_rtol", "rollout_atol"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{_flag(name)} must be a finite number > 0, got {value}")
+        if self.lcm_url is not None and self.link == "lcm":
+            try:
+                check_loopback_url(self.lcm_url)
+            except ValueError as e:
+                if not self.allow_network:
+                    raise ValueError(f"--lcm-url: {e}") from None
+                if not self.attach:
+                    # ftc.plant.launch keeps the plants it starts on loopback
+                    raise ValueError(f"--lcm-url {self.lcm_url}: --allow-network works with "
+                                     "--attach only (launched plants stay on ttl=0)") from None
+
+
+def _flag(name: str) -> str:
+    """The command-line option of config field ``name``."""
+    return "--" + name.replace("_", "-")
 
 
 # --------------------------------------------------------------------------
@@ -442,9 +485,30 @@ class MPCController:
             writer.writerow({k: _fmt(row.get(k)) for k in columns})
         _atomic_write(self.out / "metrics.csv", buf.getvalue())
 
-    def run(self) -> list[dict[str, Any]]:
-        from ftc.controller import open_plant
+    def open_plant(self) -> PlantLink:
+        """The plant this run drives, from operating step 0.
 
+        Opened here from ftc.plant rather than through ftc.controller.open_plant,
+        which reads ControllerConfig-only fields (link settings) off its config."""
+        from ftc import plant
+
+        cfg = self.cfg
+        scenario = cfg.scenario or None
+        if cfg.link == "core":
+            return plant.CorePlant(scenario, cfg.seed, steps_per_interval=cfg.steps_per_interval)
+        if not cfg.attach:
+            return plant.launch(scenario, cfg.seed, lcm_url=cfg.lcm_url, prefix=cfg.prefix,
+                                extra_args=["--steps-per-interval", str(cfg.steps_per_interval)])
+        link = plant.attach(cfg.lcm_url or DEFAULT_LCM_URL, cfg.prefix or DEFAULT_PREFIX,
+                            allow_network=cfg.allow_network)
+        at = link.hello().operating_steps
+        if at != 0:
+            link.close()
+            raise PlantError(f"attached plant is at operating step {at}, an MPC run starts "
+                             "at 0: restart the plant", exit_code=2)
+        return link
+
+    def run(self) -> list[dict[str, Any]]:
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
         torch.set_num_threads(1)  # tiny networks; one core per run
@@ -454,7 +518,7 @@ class MPCController:
         self.prepare()
         if self.info:
             self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
-        plant = open_plant(cfg, 0)
+        plant = self.open_plant()
         try:
             for k in range(cfg.intervals):
                 t0 = time.perf_counter()
@@ -494,31 +558,97 @@ class MPCController:
 # Command line
 # --------------------------------------------------------------------------
 
-def parse_args(argv: Sequence[str] | None = None) -> MPCConfig:
-    parser = argparse.ArgumentParser(prog="python -m ftc.mpc", allow_abbrev=False,
-                                     description=__doc__.split("\n\n")[0])
+# Options ftc.experiments passes to every method's controller that configure
+# PPO only (ftc.controller): accepted and ignored here, so that one experiment
+# can compare PPO and MPC. Only the documented ones; anything else is an error.
+#   --pretrain       ftc.experiments --pretrain
+#   --offline-steps  the example in ftc.experiments --controller-args --help
+#   --update-every   scripts/bench_experiments.py --reduced (with --offline-steps)
+IGNORED_CONTROLLER_OPTIONS: dict[str, dict[str, Any]] = {
+    "--pretrain": {"action": "store_const", "const": True},
+    "--offline-steps": {"type": int, "metavar": "N"},
+    "--update-every": {"type": int, "metavar": "N"},
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: one option per MPCConfig field, plus the ignored PPO options."""
+    parser = argparse.ArgumentParser(
+        prog="python -m ftc.mpc", allow_abbrev=False,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1])
     for f in fields(MPCConfig):
-        name = "--" + f.name.replace("_", "-")
         help_text = f.metadata.get("help", "").replace("%", "%%") + " (default: %(default)s)"
         if f.type in ("bool", bool):
-            parser.add_argument(name, default=f.default, action=argparse.BooleanOptionalAction,
-                                help=help_text)
+            parser.add_argument(_flag(f.name), default=f.default,
+                                action=argparse.BooleanOptionalAction, help=help_text)
         else:
             kind = {"int": int, "float": float}.get(str(f.type), str)
-            choices = {"method": METHODS, "planner": PLANNERS}.get(f.name)
-            parser.add_argument(name, default=f.default, type=kind, help=help_text,
+            choices = {"method": METHODS, "planner": PLANNERS, "link": LINKS}.get(f.name)
+            parser.add_argument(_flag(f.name), default=f.default, type=kind, help=help_text,
                                 choices=choices)
-    ns, unknown = parser.parse_known_args(argv)
-    if unknown:
-        # the experiments runner passes its controller arguments to every method
-        # (e.g. --pretrain); they mean nothing here, so say so rather than fail
-        print(f"ftc.mpc: ignoring controller arguments {unknown}", file=sys.stderr)
-    return MPCConfig(**vars(ns))
+    ignored = parser.add_argument_group(
+        "accepted and ignored",
+        "PPO options of ftc.controller that ftc.experiments passes to every method\n"
+        "(its --pretrain, --controller-args); they do not apply to MPC: a note, no effect")
+    for flag, spec in IGNORED_CONTROLLER_OPTIONS.items():
+        ignored.add_argument(flag, dest="ignored_" + flag[2:].replace("-", "_"), default=None,
+                             help="ignored (ftc.controller: see its --help)", **spec)
+    return parser
+
+
+def _check_out(out: str) -> str | None:
+    """Why --out cannot be written, or None; creates nothing."""
+    path = Path(out).resolve()
+    if path.exists() and not path.is_dir():
+        return f"{path} exists and is not a directory"
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        return f"{existing} is not a writable directory"
+    return None
+
+
+def parse_args(argv: Sequence[str] | None = None) -> MPCConfig:
+    """The run's config from the command line; bad input exits 2 before anything is written."""
+    parser = build_parser()
+    ns = vars(parser.parse_args(argv))  # unknown options: exit 2 naming them
+    given = {}
+    for flag in IGNORED_CONTROLLER_OPTIONS:
+        value = ns.pop("ignored_" + flag[2:].replace("-", "_"))
+        if value is not None:
+            given[flag] = value
+    cfg = MPCConfig(**ns)
+    try:
+        cfg.validate()
+    except ValueError as e:
+        parser.error(str(e))
+    if cfg.scenario:  # the plant would refuse it too, but only after --out exists
+        from ftc import _core
+
+        try:
+            _core.load_scenario(cfg.scenario)
+        except _core.ScenarioError as e:  # names the file and the key: one line
+            parser.exit(2, f"{parser.prog}: error: --scenario: {e}\n")
+    problem = _check_out(cfg.out)
+    if problem:
+        parser.error(f"--out {cfg.out}: cannot write there ({problem})")
+    if given:
+        shown = " ".join(k if v is True else f"{k} {v}" for k, v in given.items())
+        print(f"{parser.prog}: note: ignoring {shown} (ftc.controller's PPO options)",
+              file=sys.stderr)
+    return cfg
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    cfg = parse_args(argv)
     torch.set_num_threads(1)
-    MPCController(parse_args(argv)).run()
+    try:
+        MPCController(cfg).run()
+    except PlantError as e:  # e.g. the plant refused to start, or died: no traceback
+        print(f"python -m ftc.mpc: error: {e}", file=sys.stderr)
+        return 2 if e.exit_code == 2 else 1
     return 0
 
 

@@ -426,13 +426,6 @@ def test_malformed_scenario_to_plant_simulate_and_mpc_exits_2_writes_nothing(tmp
     tally("malformed scenario files (plant, ftc.simulate)", 2)
 
 
-MPC_XFAIL = pytest.mark.xfail(strict=True, reason=(
-    "ftc.mpc (not owned by the reliability work) lets ScenarioError/ValueError escape as a "
-    "traceback (exit 1), creates --out before validating, and ignores unknown flags; "
-    "requested in /tmp/mpc_needs.md"))
-
-
-@MPC_XFAIL
 @pytest.mark.parametrize("bad", BAD_SCENARIOS, ids=lambda p: p.name)
 def test_malformed_scenario_to_mpc_exits_2_writes_nothing(tmp_path, bad):
     mpc_out = tmp_path / "mpc"
@@ -500,9 +493,7 @@ BAD_FLAGS = {
                   (["--client-prefix", "A_"], "--plant-prefix", []),
                   (["--client-prefix", "A_", "--plant-prefix", "A_"], "prefix", [])],
 }
-_MPC_OK = {"--method", "--planner", "--cem-samples"}  # argparse choices/types: already exit 2
 _CASES = [pytest.param(tool, base, flag, args,
-                       marks=[MPC_XFAIL] if tool == "ftc.mpc" and flag not in _MPC_OK else [],
                        id=f"{tool}{' '.join(args) or '-missing-' + flag}")
           for tool, cases in BAD_FLAGS.items() for base, flag, args in cases]
 
