@@ -30,6 +30,7 @@ volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
 constexpr int kExitUsage = 2;
+constexpr int kQueueCapacity = 10000;  // messages per subscription
 constexpr int kExitRuntime = 1;
 
 enum class RunMode { kLockstep, kRealtime };
@@ -83,8 +84,13 @@ class PlantNode final {
         channels_(options.prefix),
         // In real-time mode the valves are in the safe state until a first command.
         watchdog_tripped_(options.mode == RunMode::kRealtime) {
-    lcm_->subscribe(channels_.command, &PlantNode::OnCommand, this);
-    lcm_->subscribe(channels_.control, &PlantNode::OnControl, this);
+    // LCM keeps at most 30 undispatched messages per subscription by default;
+    // a burst beyond that (retries, a flood of garbage) would be dropped
+    // silently instead of answered or counted. Bounded, so a flood cannot
+    // exhaust memory.
+    for (auto* sub : {lcm_->subscribe(channels_.command, &PlantNode::OnCommand, this),
+                      lcm_->subscribe(channels_.control, &PlantNode::OnControl, this)})
+      sub->setQueueCapacity(kQueueCapacity);
   }
 
   bool shutdown_requested() const { return shutdown_; }
