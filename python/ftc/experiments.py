@@ -871,13 +871,15 @@ def collect(out: Path) -> None:
                       [["" if r.get(c) is None else r.get(c) for c in columns] for r in rows])
     atomic_write_json(out / "results.json", {"runs": runs, "metrics": rows})
 
-    # Figure (c): one episode at the highest degradation, from the best
-    # learning method's log (the last in the configured order), seed first.
+    # Figure (c): one episode at the highest degradation, from the paper's
+    # controller (PPO online + offline) when it ran, else another learner.
     learners = [m for m in config.methods if METHODS[m].learns] or list(config.methods)
+    preferred = [m for m in ("ppo-offline", "ppo-online") if m in learners]
+    candidates = preferred + [m for m in reversed(learners) if m not in preferred]
     for exp in ("single", "multiple"):
         if exp not in config.experiments:
             continue
-        for method in reversed(learners):
+        for method in candidates:
             spec = RunSpec(exp, 0, method, int(config.seeds[0]), exp)
             log = spec.directory(out) / "plant.lcmlog"
             if not (is_finished(spec.directory(out)) and log.is_file()):

@@ -250,9 +250,9 @@ def tank_control(episodes: Sequence[tuple[str, Path]], stem: Path,
                 ax.set_ylabel(f"tank {i + 1}\nlevel (m)")
                 if i == 0:
                     rew = np.array([_float(r.get("reward")) for r in rows])
-                    extra = (f", mean reward per step {np.nanmean(rew):.2f}"
+                    extra = (f"; {np.nanmean(rew):.2f} per step"
                              if np.isfinite(rew).any() else "")
-                    ax.set_title(title + extra)
+                    ax.set_title(title + extra, fontsize=7)
             axes[5][c].set_xlabel("time step in episode (s)")
         handles = [matplotlib.patches.Patch(color="0.75", alpha=0.6, label="valve open")]
         handles += [matplotlib.lines.Line2D([], [], color=TANK_COLORS[i], label=f"tank {i + 1}")
