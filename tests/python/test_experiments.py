@@ -56,7 +56,8 @@ def test_shortened_all_run_writes_every_file_and_figure(all_run):
     for name in ("single", "multiple", "aggregate-00", "aggregate-01"):
         assert (all_run / "scenarios" / f"{name}.toml").is_file()
     runs = ex.plan_runs(ex.ExperimentConfig.from_json(meta["config"]))
-    assert len(runs) == 4 * 4
+    n_methods = len(ex.DEFAULT_METHODS)  # the paper's four and the two MPC references
+    assert n_methods == 6 and len(runs) == 4 * n_methods  # single, multiple, 2 aggregate
     for spec in runs:
         d = spec.directory(all_run)
         for f in ("result.json", "metrics.csv", "metrics.json", "plant.lcmlog", "controller.log",
@@ -71,11 +72,12 @@ def test_shortened_all_run_writes_every_file_and_figure(all_run):
     for heading in ("Single fault", "Multiple faults", "Aggregate", "Scenarios", "Wall times"):
         assert heading in md
     assert "PPO online + offline" in md and "aggregate-01" in md
+    assert "fraction of the oracle" in md
     page = (all_run / "report.html").read_text()
     assert page.count("data:image/png;base64,") == 4
     with open(all_run / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 16 * 2
+    assert len(rows) == 4 * n_methods * 2  # two intervals per run
     assert {r["method"] for r in rows} == set(ex.DEFAULT_METHODS)
 
 
