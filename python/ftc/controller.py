@@ -55,6 +55,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
+from ftc.cli import add_dataclass_options
 from ftc.plant import NUM_TANKS, PlantError, PlantGoneError, PlantLink, PlantObservation
 from ftc.ppo import PPO, PPOConfig, RolloutBuffer, UpdateStats
 from ftc.reward import reward
@@ -930,23 +931,7 @@ def _atomic_write(path: Path, text: str) -> None:
 # --------------------------------------------------------------------------
 
 def _add_fields(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
-    for f in fields(cls):
-        name = "--" + prefix + f.name.replace("_", "-")
-        help_text = f.metadata.get("help", "").replace("%", "%%") + " (default: %(default)s)"
-        default = f.default
-        if f.type in ("bool", bool):
-            parser.add_argument(name, dest=prefix.replace("-", "_") + f.name, default=default,
-                                action=argparse.BooleanOptionalAction, help=help_text)
-        elif f.name in ("trunk_sizes", "head_sizes"):
-            parser.add_argument(name, dest=prefix.replace("-", "_") + f.name, default=default,
-                                type=int, nargs="+", help=help_text)
-        else:
-            kind = {"int": int, "float": float}.get(str(f.type), None)
-            if kind is None and "float" in str(f.type):
-                kind = float
-            parser.add_argument(name, dest=prefix.replace("-", "_") + f.name, default=default,
-                                type=kind or str, help=help_text,
-                                choices=METHODS if f.name == "method" else None)
+    add_dataclass_options(parser, cls, prefix, choices={"method": METHODS})
 
 
 def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPOConfig]:

@@ -42,13 +42,14 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
+from ftc.cli import add_dataclass_options
 from ftc.plant import (DEFAULT_LCM_URL, DEFAULT_PREFIX, NUM_TANKS, PlantError, PlantLink,
                        PlantObservation, check_loopback_url)
 from ftc.reward import reward, reward_torch
@@ -577,16 +578,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m ftc.mpc", allow_abbrev=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1])
-    for f in fields(MPCConfig):
-        help_text = f.metadata.get("help", "").replace("%", "%%") + " (default: %(default)s)"
-        if f.type in ("bool", bool):
-            parser.add_argument(_flag(f.name), default=f.default,
-                                action=argparse.BooleanOptionalAction, help=help_text)
-        else:
-            kind = {"int": int, "float": float}.get(str(f.type), str)
-            choices = {"method": METHODS, "planner": PLANNERS, "link": LINKS}.get(f.name)
-            parser.add_argument(_flag(f.name), default=f.default, type=kind, help=help_text,
-                                choices=choices)
+    add_dataclass_options(parser, MPCConfig,
+                          choices={"method": METHODS, "planner": PLANNERS, "link": LINKS})
     ignored = parser.add_argument_group(
         "accepted and ignored",
         "PPO options of ftc.controller that ftc.experiments passes to every method\n"
