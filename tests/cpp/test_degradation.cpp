@@ -3,7 +3,7 @@
 
 #include <limits>
 
-#include "plant/degradation.h"
+#include "plant/core/degradation.h"
 
 namespace ftc {
 namespace {

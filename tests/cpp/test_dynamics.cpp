@@ -2,7 +2,7 @@
 // and the mode decisions (ties, members leaving, pinned empty tanks).
 #include <gtest/gtest.h>
 
-#include "plant/dynamics.h"
+#include "plant/core/dynamics.h"
 
 namespace ftc {
 namespace {

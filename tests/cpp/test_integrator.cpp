@@ -5,8 +5,8 @@
 #include <cmath>
 #include <random>
 
-#include "plant/degradation.h"
-#include "plant/integrator.h"
+#include "plant/core/degradation.h"
+#include "plant/core/integrator.h"
 
 namespace ftc {
 namespace {

@@ -4,8 +4,8 @@
 
 #include <cmath>
 
-#include "plant/plant.h"
-#include "plant/reward.h"
+#include "plant/core/plant.h"
+#include "plant/core/reward.h"
 
 namespace ftc {
 namespace {

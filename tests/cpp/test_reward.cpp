@@ -3,7 +3,7 @@
 
 #include <cmath>
 
-#include "plant/reward.h"
+#include "plant/core/reward.h"
 
 namespace ftc {
 namespace {

@@ -6,9 +6,9 @@
 #include <random>
 #include <vector>
 
-#include "plant/plant.h"
-#include "plant/reward.h"
-#include "plant/rollout.h"
+#include "plant/core/plant.h"
+#include "plant/core/reward.h"
+#include "plant/core/rollout.h"
 
 namespace ftc {
 namespace {

@@ -5,7 +5,7 @@
 #include <cmath>
 #include <string>
 
-#include "plant/scenario.h"
+#include "plant/core/scenario.h"
 
 namespace ftc {
 namespace {

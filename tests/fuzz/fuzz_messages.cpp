@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "plant/lcm_bridge.h"
+#include "plant/lcm/lcm_bridge.h"
 
 namespace {
 

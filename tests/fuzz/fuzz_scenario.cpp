@@ -13,9 +13,9 @@
 #include <cstdlib>
 #include <string>
 
-#include "plant/degradation.h"
-#include "plant/plant.h"
-#include "plant/scenario.h"
+#include "plant/core/degradation.h"
+#include "plant/core/plant.h"
+#include "plant/core/scenario.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   if (size > 4096) return 0;  // scenario files are a few lines

@@ -1,5 +1,5 @@
 // Linear degradation by operating age (plant-model.md, "Degradation").
-#include "plant/degradation.h"
+#include "plant/core/degradation.h"
 
 #include <algorithm>
 

@@ -1,5 +1,5 @@
 // Reward of plant-model.md, "Reward"; mirrors python/ftc/reward.py.
-#include "plant/reward.h"
+#include "plant/core/reward.h"
 
 #include <algorithm>
 #include <cmath>

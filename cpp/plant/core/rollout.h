@@ -6,7 +6,7 @@
 
 #include <vector>
 
-#include "plant/integrator.h"
+#include "plant/core/integrator.h"
 
 namespace ftc {
 

@@ -6,8 +6,8 @@
 #include <cstdint>
 #include <random>
 
-#include "plant/degradation.h"
-#include "plant/integrator.h"
+#include "plant/core/degradation.h"
+#include "plant/core/integrator.h"
 
 namespace ftc {
 

@@ -21,8 +21,8 @@
 #include <optional>
 #include <string>
 
-#include "plant/lcm_bridge.h"
-#include "plant/scenario.h"
+#include "plant/core/scenario.h"
+#include "plant/lcm/lcm_bridge.h"
 
 namespace {
 

@@ -4,7 +4,7 @@
 
 #include <memory>
 
-#include "plant/dynamics.h"
+#include "plant/core/dynamics.h"
 
 namespace ftc {
 

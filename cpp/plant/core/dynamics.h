@@ -8,7 +8,7 @@
 
 #include <array>
 
-#include "plant/params.h"
+#include "plant/core/params.h"
 
 namespace ftc {
 

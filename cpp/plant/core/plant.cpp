@@ -1,7 +1,7 @@
 // The plant as a discrete-time system (plant-model.md, "Episodes" and
 // "Degradation"): episodes, termination, interval truncation, operating age
 // and sensor noise around the CVODE step.
-#include "plant/plant.h"
+#include "plant/core/plant.h"
 
 namespace ftc {
 

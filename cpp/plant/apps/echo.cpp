@@ -7,7 +7,7 @@
 #include <csignal>
 #include <iostream>
 
-#include "plant/lcm_bridge.h"
+#include "plant/lcm/lcm_bridge.h"
 
 namespace {
 

@@ -13,7 +13,7 @@
 #include <stdexcept>
 #include <string>
 
-#include "plant/degradation.h"
+#include "plant/core/degradation.h"
 
 namespace ftc {
 

@@ -9,7 +9,7 @@
 #include "ftc/plant_control_t.hpp"
 #include "ftc/plant_state_t.hpp"
 #include "ftc/valve_command_t.hpp"
-#include "plant/plant.h"
+#include "plant/core/plant.h"
 
 namespace ftc {
 

@@ -1,5 +1,5 @@
 // Message <-> Eigen translation for the plant process (see lcm_bridge.h).
-#include "plant/lcm_bridge.h"
+#include "plant/lcm/lcm_bridge.h"
 
 #include <chrono>
 #include <cmath>

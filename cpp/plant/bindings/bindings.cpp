@@ -10,13 +10,13 @@
 #include <string>
 #include <vector>
 
-#include "plant/degradation.h"
-#include "plant/dynamics.h"
-#include "plant/integrator.h"
-#include "plant/plant.h"
-#include "plant/reward.h"
-#include "plant/rollout.h"
-#include "plant/scenario.h"
+#include "plant/core/degradation.h"
+#include "plant/core/dynamics.h"
+#include "plant/core/integrator.h"
+#include "plant/core/plant.h"
+#include "plant/core/reward.h"
+#include "plant/core/rollout.h"
+#include "plant/core/scenario.h"
 
 namespace py = pybind11;
 

@@ -11,7 +11,7 @@
 //    so a prefix shared with the previous candidate (the longest shared with
 //    any earlier one) is taken from a stack of states instead of recomputed.
 // Within a candidate, held valves continue CVODE warm (StepIntegrator).
-#include "plant/rollout.h"
+#include "plant/core/rollout.h"
 
 #include <algorithm>
 #include <cstdint>
@@ -19,8 +19,8 @@
 #include <stdexcept>
 #include <string>
 
-#include "plant/plant.h"
-#include "plant/reward.h"
+#include "plant/core/plant.h"
+#include "plant/core/reward.h"
 
 namespace ftc {
 namespace {

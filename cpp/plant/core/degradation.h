@@ -6,7 +6,7 @@
 #include <limits>
 #include <string>
 
-#include "plant/params.h"
+#include "plant/core/params.h"
 
 namespace ftc {
 

@@ -2,7 +2,7 @@
 // the reference; tests check that both agree.
 #pragma once
 
-#include "plant/params.h"
+#include "plant/core/params.h"
 
 namespace ftc {
 

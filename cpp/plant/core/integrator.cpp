@@ -35,7 +35,7 @@
 // Performance note: Debian's libsundials 6.4.1 is compiled without
 // optimisation (-O0; see the disassembly of N_VWSqrSumLocal_Serial), so
 // ~85% of a step is spent inside CVODE and its serial vector.
-#include "plant/integrator.h"
+#include "plant/core/integrator.h"
 
 #include <cvode/cvode.h>
 #include <nvector/nvector_serial.h>

@@ -1,7 +1,7 @@
 // Fault scenario files (TOML, keys in scenario.h). Strict: anything not
 // understood is an error naming the file and the key, never silently ignored,
 // because a typo in a fault file would otherwise run a healthy plant.
-#include "plant/scenario.h"
+#include "plant/core/scenario.h"
 
 #include <cmath>
 #include <filesystem>

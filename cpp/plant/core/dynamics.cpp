@@ -9,7 +9,7 @@
 // mode must be recomputed; ComputeMode applies the matching test with the
 // boundary itself on the side the crossing leads to, so a located root always
 // yields the new mode.
-#include "plant/dynamics.h"
+#include "plant/core/dynamics.h"
 
 #include <algorithm>
 #include <limits>

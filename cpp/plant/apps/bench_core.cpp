@@ -8,8 +8,8 @@
 #include <random>
 #include <vector>
 
-#include "plant/degradation.h"
-#include "plant/integrator.h"
+#include "plant/core/degradation.h"
+#include "plant/core/integrator.h"
 
 namespace {
 
