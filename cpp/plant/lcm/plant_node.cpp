@@ -1,0 +1,168 @@
+// The plant's LCM protocol node (see plant_node.h).
+#include "plant/lcm/plant_node.h"
+
+#include <iostream>
+#include <utility>
+
+namespace ftc {
+namespace {
+
+// LCM keeps at most 30 undispatched messages per subscription by default; a
+// burst beyond that (retries, a flood of garbage) would be dropped silently
+// instead of answered or counted. Bounded, so a flood cannot exhaust memory.
+constexpr int kQueueCapacity = 10000;  // messages per subscription
+// Longest wait for a message in lockstep mode: bounds the reaction time to a
+// stop request (a signal).
+constexpr int kMaxWaitMs = 100;
+
+}  // namespace
+
+PlantNode::PlantNode(lcm::LCM* lcm, Plant* plant, const NodeOptions& options, NowFn now)
+    : lcm_(lcm),
+      plant_(plant),
+      options_(options),
+      now_(std::move(now)),
+      channels_(options.prefix),
+      period_(std::chrono::duration_cast<Clock::duration>(
+          std::chrono::duration<double>(1.0 / options.rate_hz))),
+      // In real-time mode the valves are in the safe state until a first command.
+      watchdog_tripped_(options.mode == RunMode::kRealtime) {
+  command_sub_ = lcm_->subscribe(channels_.command, &PlantNode::OnCommand, this);
+  control_sub_ = lcm_->subscribe(channels_.control, &PlantNode::OnControl, this);
+  for (auto* sub : {command_sub_, control_sub_}) sub->setQueueCapacity(kQueueCapacity);
+}
+
+PlantNode::~PlantNode() {
+  lcm_->unsubscribe(control_sub_);
+  lcm_->unsubscribe(command_sub_);
+}
+
+void PlantNode::PublishState() { PublishState(answered_seq_); }
+
+void PlantNode::PublishState(std::int64_t command_seq) {
+  auto msg = ToStateMessage(plant_->last(), ++state_seq_, command_seq, plant_->operating_steps(),
+                            counters_);
+  msg.watchdog_tripped = watchdog_tripped_;
+  lcm_->publish(channels_.state, &msg);
+}
+
+void PlantNode::Tick(Clock::time_point now) {
+  const bool stale = !last_valid_command_time_ ||
+                     now - *last_valid_command_time_ >
+                         std::chrono::duration<double>(options_.watchdog_s);
+  if (stale && !watchdog_tripped_ && options_.verbose)
+    std::cerr << "plant: watchdog: no valid command for " << options_.watchdog_s
+              << " s, valves to safe state\n";
+  watchdog_tripped_ = stale;
+  Valves u = held_;
+  if (watchdog_tripped_ && options_.safe_state == SafeState::kClosed) u.setZero();
+  plant_->Step(u);
+  PublishState();
+}
+
+bool PlantNode::RunOnce() {
+  int timeout_ms = kMaxWaitMs;
+  if (options_.mode == RunMode::kRealtime) {
+    const auto now = now_();
+    if (!next_tick_) next_tick_ = now + period_;
+    if (now >= *next_tick_) {
+      Tick(now);
+      *next_tick_ += period_;
+      if (*next_tick_ < now) next_tick_ = now + period_;  // fell behind: do not burst
+      return true;
+    }
+    timeout_ms = static_cast<int>(
+        std::chrono::duration_cast<std::chrono::milliseconds>(*next_tick_ - now).count());
+  }
+  return lcm_->handleTimeout(timeout_ms) >= 0;
+}
+
+bool PlantNode::Run(const std::function<bool()>& stop) {
+  while (!stop() && !shutdown_) {
+    // A signal interrupts the wait (EINTR): that is a stop, not a failure.
+    if (!RunOnce() && !stop()) return false;
+  }
+  return true;
+}
+
+// Sequence rules shared by commands and control messages. Returns true if the
+// message is new and should be acted upon.
+bool PlantNode::Admit(std::int64_t seq) {
+  if (seq == answered_seq_ && answered_seq_ != 0) {
+    ++counters_.duplicate_commands;
+    if (options_.mode == RunMode::kLockstep) PublishState();  // lost answer: re-send
+    return false;
+  }
+  if (seq < answered_seq_) {
+    ++counters_.stale_commands;
+    return false;
+  }
+  return true;
+}
+
+void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+  valve_command_t cmd{};
+  if (!DecodeMessage(rbuf->data, static_cast<int>(rbuf->data_size), &cmd)) {
+    ReportDecodeError(channel, rbuf->data_size);
+    return;
+  }
+  if (!Admit(cmd.seq)) return;
+  Valves u;
+  std::string reason;
+  if (!ValvesFromCommand(cmd, &u, &reason)) {
+    ++counters_.rejected_commands;
+    std::cerr << "plant: rejected command seq " << cmd.seq << " on " << channel << ": " << reason
+              << "\n";
+    return;
+  }
+  answered_seq_ = cmd.seq;
+  if (options_.mode == RunMode::kLockstep) {
+    plant_->Step(u);
+    PublishState();
+  } else {
+    held_ = u;
+    last_valid_command_time_ = now_();
+  }
+}
+
+void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+  plant_control_t msg{};  // zeroed: GCC cannot see that decode fills it
+  if (!DecodeMessage(rbuf->data, static_cast<int>(rbuf->data_size), &msg)) {
+    ReportDecodeError(channel, rbuf->data_size);
+    return;
+  }
+  if (msg.command == plant_control_t::HELLO) {
+    // A handshake is answered whatever its seq (so a new client can attach)
+    // and changes nothing, so a repeated HELLO is harmless.
+    PublishState(msg.seq);
+    return;
+  }
+  if (!Admit(msg.seq)) return;
+  switch (msg.command) {
+    case plant_control_t::RESET:
+      plant_->Reset();
+      break;
+    case plant_control_t::EVALUATE:
+      plant_->ResetEvaluation();
+      break;
+    case plant_control_t::SHUTDOWN:
+      shutdown_ = true;
+      break;
+    default:
+      ++counters_.rejected_commands;
+      std::cerr << "plant: rejected control seq " << msg.seq << ": unknown command "
+                << static_cast<int>(msg.command) << "\n";
+      return;
+  }
+  answered_seq_ = msg.seq;
+  PublishState();
+}
+
+void PlantNode::ReportDecodeError(const std::string& channel, std::uint32_t size) {
+  ++counters_.decode_errors;
+  std::cerr << "plant: undecodable message on " << channel << " (" << size
+            << " bytes): wrong type or corrupt; counted (" << counters_.decode_errors
+            << " so far)\n";
+}
+
+}  // namespace ftc

@@ -1,0 +1,101 @@
+// PlantNode: serves one Plant over LCM with the lockstep / real-time protocol.
+//
+//   controller --valve_command_t--> <prefix>COMMAND --+
+//   controller --plant_control_t--> <prefix>CONTROL --+--> PlantNode --> Plant (CVODE core)
+//   controllers, recorders   <-- <prefix>STATE <-- plant_state_t <--+
+//
+// Lockstep mode: every new valve command advances the plant by one 1 s control
+// step and is answered by one state carrying the command's seq. A command with
+// the seq already applied is a retry: the last state is sent again without
+// stepping. Older seqs are stale and ignored. Both are counted in the state.
+// Real-time mode: the plant steps at rate_hz with zero-order hold on the last
+// valid command; a watchdog puts the valves into the safe state when no valid
+// command arrives for watchdog_s seconds.
+//
+// The node owns no process concerns: options parsing and signals stay in the
+// app (apps/main.cpp), which hands in the stop predicate. The clock is
+// injected so tests can drive the watchdog without sleeping.
+#pragma once
+
+#include <lcm/lcm-cpp.hpp>
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+
+#include "plant/core/plant.h"
+#include "plant/lcm/lcm_bridge.h"
+
+namespace ftc {
+
+enum class RunMode { kLockstep, kRealtime };
+enum class SafeState { kHold, kClosed };
+
+struct NodeOptions {
+  std::string prefix = "FTC_";  // channels <prefix>STATE, <prefix>COMMAND, <prefix>CONTROL
+  RunMode mode = RunMode::kLockstep;
+  double rate_hz = 10.0;     // real-time mode: control steps per second
+  double watchdog_s = 1.0;   // real-time mode: s without a valid command before the safe state
+  SafeState safe_state = SafeState::kClosed;  // real-time mode: valves while tripped
+  bool verbose = false;      // log watchdog events to stderr
+};
+
+class PlantNode final {
+ public:
+  using Clock = std::chrono::steady_clock;
+  using NowFn = std::function<Clock::time_point()>;
+
+  // Subscribes to the command and control channels of `lcm`; both `lcm` and
+  // `plant` must outlive the node. `now` is the node's only clock.
+  PlantNode(lcm::LCM* lcm, Plant* plant, const NodeOptions& options, NowFn now = &Clock::now);
+  ~PlantNode();  // unsubscribes, so the LCM instance never calls into a dead node
+  PlantNode(const PlantNode&) = delete;
+  PlantNode& operator=(const PlantNode&) = delete;
+
+  bool shutdown_requested() const { return shutdown_; }
+  const LinkCounters& counters() const { return counters_; }
+
+  // Publishes the current state answering the last applied seq (or `command_seq`).
+  void PublishState();
+  void PublishState(std::int64_t command_seq);
+
+  // Real-time tick: step with the held valves (or the safe state) and publish.
+  void Tick(Clock::time_point now);
+
+  // One pass of the serve loop: in real-time mode a tick if one is due,
+  // otherwise waits for at most one message (until the next tick, or 100 ms
+  // in lockstep mode so a stop request is seen) and dispatches it. Returns
+  // false if LCM's receive failed (a signal interrupting the wait also does).
+  bool RunOnce();
+
+  // Calls RunOnce until `stop()` or a SHUTDOWN message. Returns false on an
+  // LCM receive failure that was not caused by a stop request.
+  bool Run(const std::function<bool()>& stop);
+
+ private:
+  bool Admit(std::int64_t seq);
+  void OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
+  void OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
+  void ReportDecodeError(const std::string& channel, std::uint32_t size);
+
+  lcm::LCM* lcm_;
+  Plant* plant_;
+  NodeOptions options_;
+  NowFn now_;
+  Channels channels_;
+  Clock::duration period_;  // real-time mode: between ticks
+  lcm::Subscription* command_sub_ = nullptr;
+  lcm::Subscription* control_sub_ = nullptr;
+  LinkCounters counters_;
+  std::int64_t state_seq_ = 0;
+  std::int64_t answered_seq_ = 0;
+  bool shutdown_ = false;
+  Valves held_ = Valves::Zero();
+  std::optional<Clock::time_point> last_valid_command_time_;
+  std::optional<Clock::time_point> next_tick_;  // set by the first RunOnce
+  bool watchdog_tripped_;
+};
+
+}  // namespace ftc
