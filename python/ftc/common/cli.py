@@ -1,23 +1,91 @@
-"""Command-line options generated from typed config dataclasses: one option
-per field, its help text from the field's ``metadata["help"]``, its type from
-the annotation. Shared by ``ftc.controller`` and ``ftc.mpc``."""
+"""Command lines generated from typed config dataclasses, with the
+constraints declared next to the help text.
+
+A field is an option: ``--<prefix><field-name>``, its help text from
+``metadata["help"]``, its type from the annotation, its allowed values from
+``metadata["choices"]`` and its constraint from ``metadata["check"]`` (a
+:class:`Check`). :func:`check_config` checks every field of a parsed config in
+one place, so each entry point refuses bad input with one line naming the
+flag (exit 2) before it starts or writes anything.
+"""
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import fields
+import math
+import os
+from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any, Sequence
 
 
+def flag(name: str, prefix: str = "") -> str:
+    """The command-line option of config field ``name``."""
+    return "--" + prefix + name.replace("_", "-")
+
+
+@dataclass(frozen=True)
+class Check:
+    """A numeric constraint: finite, and within [low, high] (None: unbounded);
+    ``integer`` also requires an int. ``None`` values pass (optional fields)."""
+
+    low: float | None = None
+    high: float | None = None
+    integer: bool = False
+    low_open: bool = False  # low itself excluded
+
+    def problem(self, value: Any) -> str | None:
+        """Why ``value`` breaks the constraint, or None."""
+        if value is None:
+            return None
+        values = value if isinstance(value, (tuple, list)) else (value,)
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                return f"must be a number, got {v!r}"
+            if self.integer and not isinstance(v, int):
+                return f"must be an integer, got {v!r}"
+            if not math.isfinite(v):
+                return f"must be a finite number, got {v}"
+            if self.low is not None and (v < self.low or (self.low_open and v == self.low)):
+                return f"must be {'>' if self.low_open else '>='} {self.low:g}, got {v}"
+            if self.high is not None and v > self.high:
+                return f"must be <= {self.high:g}, got {v}"
+        return None
+
+
+def at_least(n: int, high: float | None = None) -> Check:
+    """An integer >= n (and <= high)."""
+    return Check(low=n, high=high, integer=True)
+
+
+def positive(high: float | None = None) -> Check:
+    """A finite number > 0."""
+    return Check(low=0.0, high=high, low_open=True)
+
+
+def between(low: float, high: float) -> Check:
+    """A finite number in [low, high]."""
+    return Check(low=low, high=high)
+
+
+FINITE = Check()
+
+
 def add_dataclass_options(parser: Any, cls: type, prefix: str = "",
-                          choices: dict[str, Sequence[str]] | None = None) -> None:
+                          choices: dict[str, Sequence[str]] | None = None,
+                          skip: Sequence[str] = (), order: Sequence[str] = ()) -> None:
     """Add ``--<prefix><field-name>`` for every field of ``cls`` to ``parser``
     (an ArgumentParser or argument group); dest is ``<prefix>_<field_name>``
     with dashes as underscores. bool fields get --x/--no-x, ``tuple[int, ...]``
     fields take one or more ints, int and float (also optional float) fields
-    are parsed as such, everything else as a string."""
+    are parsed as such, everything else as a string. ``order``: field names to
+    add first, in that order (the rest follow in declaration order)."""
     choices = choices or {}
-    for f in fields(cls):
+    by_name = {f.name: f for f in fields(cls)}
+    ordered = [by_name[n] for n in order] + [f for f in fields(cls) if f.name not in order]
+    for f in ordered:
+        if f.name in skip:
+            continue
         kwargs: dict[str, Any] = {
             "dest": prefix.replace("-", "_") + f.name,
             "default": f.default,
@@ -30,5 +98,43 @@ def add_dataclass_options(parser: Any, cls: type, prefix: str = "",
             kwargs.update(type=int, nargs="+")
         else:
             kwargs["type"] = int if kind == "int" else float if "float" in kind else str
-            kwargs["choices"] = choices.get(f.name)
-        parser.add_argument("--" + prefix + f.name.replace("_", "-"), **kwargs)
+            kwargs["choices"] = choices.get(f.name, f.metadata.get("choices"))
+        parser.add_argument(flag(f.name, prefix), **kwargs)
+
+
+def config_from_namespace(cls: type, ns: dict[str, Any], prefix: str = "") -> Any:
+    """An instance of ``cls`` from the parsed options of :func:`add_dataclass_options`."""
+    values = {}
+    for f in fields(cls):
+        key = prefix.replace("-", "_") + f.name
+        if key in ns:
+            v = ns[key]
+            values[f.name] = tuple(v) if isinstance(v, list) else v
+    return cls(**values)
+
+
+def check_config(cfg: Any, prefix: str = "") -> None:
+    """Every declared constraint of ``cfg``'s fields; raises ValueError naming the flag."""
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        allowed = f.metadata.get("choices")
+        if allowed is not None and value not in allowed:
+            raise ValueError(f"{flag(f.name, prefix)} must be one of {', '.join(allowed)}, "
+                             f"got {value!r}")
+        check = f.metadata.get("check")
+        problem = check.problem(value) if check is not None else None
+        if problem:
+            raise ValueError(f"{flag(f.name, prefix)} {problem}")
+
+
+def out_dir_problem(out: str | os.PathLike) -> str | None:
+    """Why a run directory cannot be written at ``out``, or None; creates nothing."""
+    path = Path(out).resolve()
+    if path.exists() and not path.is_dir():
+        return f"{path} exists and is not a directory"
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        return f"{existing} is not a writable directory"
+    return None

@@ -19,17 +19,14 @@ the termination rule is estimated from data (:func:`estimate_demand`).
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 import torch
 
-from ftc.plant import NUM_TANKS
-from ftc.reward import AREAS, reward_torch
-from ftc.world_model import TANK_HEIGHT, Transitions, WorldModel, torch_threads
-
-TERMINAL_TOLERANCE = 1e-6  # m^3, in favour of ending, as the plant's rule
-
+from ftc.common.constants import NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE
+from ftc.learning.rollout import EnvStep
+from ftc.learning.transitions import Transitions
+from ftc.learning.world_model import WorldModel, torch_threads
+from ftc.plant.reward import AREAS, reward_torch
 
 def estimate_demand(data: Transitions, empty_level: float = 1e-3) -> float:
     """Total engine demand per step, m^3, estimated from observed consumption.
@@ -56,23 +53,6 @@ def estimate_demand(data: Transitions, empty_level: float = 1e-3) -> float:
     if (drop > 0).any():
         return float(np.median(drop[drop > 0]))
     raise ValueError("no transition in the data shows any consumption")
-
-
-class ModelStep(NamedTuple):
-    """One batched step of :class:`ModelEnv` (N = num_envs).
-
-    obs:       (N, 6) levels to act on next, m: after auto-reset for envs that finished
-    reward:    (N,) reward of the step (ftc.reward on the predicted levels)
-    terminal:  (N,) bool, fuel exhausted (do not bootstrap)
-    truncated: (N,) bool, cut off at max_episode_steps and not terminal (bootstrap)
-    final_obs: (N, 6) levels after the step before any reset, m (bootstrap from these)
-    """
-
-    obs: torch.Tensor
-    reward: torch.Tensor
-    terminal: torch.Tensor
-    truncated: torch.Tensor
-    final_obs: torch.Tensor
 
 
 class ModelEnv:
@@ -126,7 +106,7 @@ class ModelEnv:
         self.steps.zero_()
         return self.level.clone()
 
-    def step(self, actions: torch.Tensor) -> ModelStep:
+    def step(self, actions: torch.Tensor) -> EnvStep:
         """Apply valves ``actions`` (N, 6) in {0, 1} (any dtype) for one step."""
         if actions.shape != (self.num_envs, NUM_TANKS):
             raise ValueError(f"actions must have shape ({self.num_envs}, {NUM_TANKS}), "
@@ -134,7 +114,7 @@ class ModelEnv:
         with torch.no_grad(), torch_threads(self.num_threads):
             return self._step(actions)
 
-    def _step(self, actions: torch.Tensor) -> ModelStep:
+    def _step(self, actions: torch.Tensor) -> EnvStep:
         valves = actions.to(self.dtype)
         nxt = self.model.predict(self.level, valves).to(self.dtype)
         r = reward_torch(nxt, valves)
@@ -145,5 +125,5 @@ class ModelEnv:
         obs = torch.where(done.unsqueeze(-1), self._start_levels(self.num_envs), nxt)
         self.steps = torch.where(done, torch.zeros_like(self.steps), self.steps)
         self.level = obs
-        return ModelStep(obs=obs.clone(), reward=r, terminal=terminal, truncated=truncated,
+        return EnvStep(obs=obs.clone(), reward=r, terminal=terminal, truncated=truncated,
                          final_obs=nxt)

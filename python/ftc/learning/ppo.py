@@ -1,11 +1,11 @@
-"""PPO for six binary valves: config, actor-critic, rollout buffer with GAE, update.
+"""PPO for six binary valves: config, actor-critic, update (buffer: :mod:`ftc.learning.buffer`).
 
 Responsibilities are split as in Stable-Baselines3, and each part reads top to
 bottom as in CleanRL:
 
 * :class:`PPOConfig`     every hyperparameter, with help text and the source of its default
 * :class:`ActorCritic`   the networks and the Bernoulli-per-valve distribution
-* :class:`RolloutBuffer` preallocated (T, N, ...) storage; GAE and returns
+* :class:`RolloutBuffer` preallocated (T, N, ...) storage; GAE and returns (buffer.py)
 * :func:`ppo_update`     epochs x minibatches of the clipped-surrogate update
 * :class:`PPO`           the algorithm: owns policy, optimiser and generator;
                          acts, fills a buffer, updates
@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
-NUM_VALVES = 6
-OBS_DIM = 6
+from ftc.common.cli import at_least, between, positive
+from ftc.learning.buffer import NUM_VALVES, OBS_DIM, RolloutBatch, RolloutBuffer
 
 
 @dataclass
@@ -38,32 +38,32 @@ class PPOConfig:
     code behind their figures; ``notes`` = /work/shared/design/controller-notes.md;
     ``measured`` = changed by a measurement of ours, recorded in docs/controller.md."""
 
-    learning_rate: float = field(default=1e-3, metadata={"help": (
+    learning_rate: float = field(default=1e-3, metadata={"check": positive(1.0), "help": (
         "Adam step size. paper: 1e-2; 1e-3 per the notes and measured here (single "
         "fault, online+offline, pretrained, 3-5 seeds): 1e-2 earns 2.42 per step in "
         "interval 0 and 2.03 over intervals 1-9, 1e-3 earns 2.60 and 2.28")})
-    gamma: float = field(default=0.99, metadata={"help": "discount factor (paper)"})
-    gae_lambda: float = field(default=0.95, metadata={"help": "GAE lambda (paper)"})
-    clip_coef: float = field(default=0.2, metadata={"help": "surrogate clip range epsilon (paper)"})
-    ent_coef: float = field(default=0.01, metadata={"help": "entropy bonus weight (paper)"})
-    vf_coef: float = field(default=0.5, metadata={"help": "value-loss weight (CleanRL/SB3 default)"})
+    gamma: float = field(default=0.99, metadata={"check": between(0.0, 1.0), "help": "discount factor (paper)"})
+    gae_lambda: float = field(default=0.95, metadata={"check": between(0.0, 1.0), "help": "GAE lambda (paper)"})
+    clip_coef: float = field(default=0.2, metadata={"check": positive(10.0), "help": "surrogate clip range epsilon (paper)"})
+    ent_coef: float = field(default=0.01, metadata={"check": between(0.0, 10.0), "help": "entropy bonus weight (paper)"})
+    vf_coef: float = field(default=0.5, metadata={"check": between(0.0, 100.0), "help": "value-loss weight (CleanRL/SB3 default)"})
     clip_vloss: bool = field(default=False, metadata={"help": (
         "clip the value update around the old value (CleanRL option); off: with scaled "
         "rewards it only slows the critic")})
-    max_grad_norm: float = field(default=0.5, metadata={"help": (
+    max_grad_norm: float = field(default=0.5, metadata={"check": positive(1e6), "help": (
         "global gradient-norm clip (CleanRL/SB3 default)")})
-    update_epochs: int = field(default=4, metadata={"help": "passes over each rollout (paper)"})
-    minibatch_size: int = field(default=16, metadata={"help": (
+    update_epochs: int = field(default=4, metadata={"check": at_least(1, 1000), "help": "passes over each rollout (paper)"})
+    minibatch_size: int = field(default=16, metadata={"check": at_least(1, 1_000_000), "help": (
         "samples per gradient step (paper: 16 for the 128-step real rollouts)")})
     norm_adv: bool = field(default=True, metadata={"help": "normalise advantages per minibatch"})
-    target_kl: float | None = field(default=None, metadata={"help": (
+    target_kl: float | None = field(default=None, metadata={"check": positive(), "help": (
         "stop the epochs of an update early once approx-KL exceeds this (None: never)")})
-    reward_scale: float = field(default=0.01, metadata={"help": (
+    reward_scale: float = field(default=0.01, metadata={"check": positive(1e6), "help": (
         "rewards are multiplied by this before GAE so critic targets are O(1) "
         "(rewards ~2.5/step, discounted returns ~100). notes item 4")})
-    trunk_sizes: tuple[int, ...] = field(default=(64, 64), metadata={"help": (
+    trunk_sizes: tuple[int, ...] = field(default=(64, 64), metadata={"check": at_least(1, 4096), "help": (
         "shared tanh trunk (paper)")})
-    head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"help": (
+    head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"check": at_least(1, 4096), "help": (
         "tanh layers of each of the policy and value heads (paper)")})
 
     @classmethod
@@ -155,113 +155,6 @@ class ActorCritic(nn.Module):
         logits, value = self.forward(obs)
         logprob, entropy = self.log_prob_entropy(logits, actions)
         return logprob, entropy, value
-
-
-# --------------------------------------------------------------------------
-# Rollout storage and advantages
-# --------------------------------------------------------------------------
-
-class RolloutBatch(NamedTuple):
-    """Flattened rollout, B = T * N samples."""
-
-    obs: torch.Tensor         # (B, 6) levels, m
-    actions: torch.Tensor     # (B, 6) valves in {0, 1}
-    logprobs: torch.Tensor    # (B,) log-prob under the behaviour policy
-    values: torch.Tensor      # (B,) critic value when acting (scaled units)
-    advantages: torch.Tensor  # (B,) GAE advantages
-    returns: torch.Tensor     # (B,) critic targets = advantages + values
-
-
-class RolloutBuffer:
-    """Preallocated storage for T steps of N environments, (T, N, ...) tensors.
-
-    Per step t: the observation acted on, the action, its log-prob, the critic
-    value, the (unscaled) reward received, whether the step ended the episode by
-    termination or truncation, and for truncated steps the critic value of the
-    final observation (the bootstrap). After T steps, call
-    :meth:`compute_returns_and_advantages` with the value of the observation
-    that follows the last step.
-    """
-
-    def __init__(self, num_steps: int, num_envs: int) -> None:
-        self.num_steps, self.num_envs = num_steps, num_envs
-        shape = (num_steps, num_envs)
-        self.obs = torch.zeros(shape + (OBS_DIM,))
-        self.actions = torch.zeros(shape + (NUM_VALVES,))
-        self.logprobs = torch.zeros(shape)
-        self.values = torch.zeros(shape)
-        self.rewards = torch.zeros(shape)
-        self.terminals = torch.zeros(shape, dtype=torch.bool)
-        self.truncations = torch.zeros(shape, dtype=torch.bool)
-        self.truncation_values = torch.zeros(shape)
-        self.advantages = torch.zeros(shape)
-        self.returns = torch.zeros(shape)
-        self.pos = 0
-
-    @property
-    def full(self) -> bool:
-        return self.pos == self.num_steps
-
-    def reset(self) -> None:
-        self.pos = 0
-
-    def add(self, obs: torch.Tensor, actions: torch.Tensor, logprobs: torch.Tensor,
-            values: torch.Tensor, rewards: torch.Tensor, terminals: torch.Tensor,
-            truncations: torch.Tensor, truncation_values: torch.Tensor | None = None) -> None:
-        """Store one step of all N envs: obs (N, 6), actions (N, 6), the rest (N,).
-
-        truncation_values: critic value of the final observation of envs whose
-        episode was truncated at this step (ignored elsewhere); None: zeros.
-        """
-        if self.full:
-            raise IndexError("rollout buffer is full")
-        t = self.pos
-        self.obs[t] = obs
-        self.actions[t] = actions
-        self.logprobs[t] = logprobs
-        self.values[t] = values
-        self.rewards[t] = torch.as_tensor(rewards, dtype=torch.float32)
-        self.terminals[t] = torch.as_tensor(terminals, dtype=torch.bool)
-        self.truncations[t] = torch.as_tensor(truncations, dtype=torch.bool)
-        self.truncation_values[t] = (0.0 if truncation_values is None
-                                     else torch.as_tensor(truncation_values, dtype=torch.float32))
-        self.pos += 1
-
-    def compute_returns_and_advantages(self, last_values: torch.Tensor, gamma: float,
-                                       gae_lambda: float, reward_scale: float = 1.0) -> None:
-        """GAE backwards over the stored steps.
-
-        last_values (N,): critic value of the observation after the last stored
-        step (used only where that step did not end the episode).
-
-        delta_t = s * r_t + gamma * V_next_t - V_t, with V_next_t = 0 after a
-        termination, the final observation's value after a truncation, else the
-        value of the next stored observation; the GAE recursion is cut at every
-        episode end. returns = advantages + values.
-        """
-        T = self.pos
-        last_gae = torch.zeros(self.num_envs)
-        for t in reversed(range(T)):
-            next_values = last_values if t == T - 1 else self.values[t + 1]
-            next_values = torch.where(self.truncations[t], self.truncation_values[t], next_values)
-            next_values = torch.where(self.terminals[t], torch.zeros_like(next_values),
-                                      next_values)
-            continues = (~(self.terminals[t] | self.truncations[t])).float()
-            delta = reward_scale * self.rewards[t] + gamma * next_values - self.values[t]
-            last_gae = delta + gamma * gae_lambda * continues * last_gae
-            self.advantages[t] = last_gae
-        self.returns[:T] = self.advantages[:T] + self.values[:T]
-
-    def batch(self) -> RolloutBatch:
-        """The stored steps flattened to (T * N, ...)."""
-        T = self.pos
-        return RolloutBatch(
-            obs=self.obs[:T].reshape(-1, OBS_DIM),
-            actions=self.actions[:T].reshape(-1, NUM_VALVES),
-            logprobs=self.logprobs[:T].reshape(-1),
-            values=self.values[:T].reshape(-1),
-            advantages=self.advantages[:T].reshape(-1),
-            returns=self.returns[:T].reshape(-1))
 
 
 # --------------------------------------------------------------------------

@@ -15,8 +15,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ftc.plant import NUM_TANKS, PlantLink, PlantObservation, launch
-from ftc.reward import reward_terms
+from ftc.common.constants import NUM_TANKS
+from ftc.plant.lcm_link import launch
+from ftc.plant.link import PlantLink, PlantObservation
+from ftc.plant.reward import reward_terms
 
 
 class FuelTransferEnv(gym.Env):

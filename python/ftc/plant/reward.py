@@ -13,9 +13,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-MOMENT_ARMS = np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])
-AREAS = np.ones(6)
-EMPTY_VOLUME = 1e-6  # m^3: below this the plant counts as empty (cg = sigma = 0)
+from ftc.common.constants import EMPTY_VOLUME, NUM_TANKS
+
+MOMENT_ARMS = np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])  # m_i, tanks one unit apart
+AREAS = np.ones(NUM_TANKS)  # c_i, m^2
 
 
 class RewardTerms(NamedTuple):

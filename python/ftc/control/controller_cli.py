@@ -1,0 +1,117 @@
+"""The adaptive controller (the paper's Algorithm 1): PPO online on the real plant,
+offline on a world model refitted from real experience, interval by interval.
+
+    python -m ftc.controller --scenario scenarios/single.toml --seed 0 --out runs/s0
+    python -m ftc.controller --method closed --out runs/closed      # a baseline
+    python -m ftc.controller --resume runs/s0                       # continue a stopped run
+
+Outputs in --out DIR: config.json (resolved config, seed, git revision),
+metrics.csv (one row per interval, rewritten atomically after each), a
+checkpoint after every interval (checkpoint.pt, torch.load(weights_only=True)),
+done.json when the run has finished; plant.pid while a launched plant runs.
+
+Failures (one line on stderr, "ftc.controller: error: ..."; nothing written
+after the last finished interval, so metrics.csv and checkpoint.pt stay those
+of that interval and --resume continues from it):
+
+    exit 2  bad input: a flag, a scenario file, or a --resume directory whose
+            config.json or checkpoint.pt is corrupt, truncated or from another
+            configuration
+    exit 3  the plant stopped answering (retried with back-off for
+            --link-give-up-timeout seconds): "plant gone at interval K, step T: ..."
+    exit 4  a non-finite number: observation, PPO loss, gradient or weights
+    exit 5  a result could not be written (disk full, unwritable file)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+import torch
+
+from ftc.common.cli import add_dataclass_options, config_from_namespace
+from ftc.control.agent import Agent
+from ftc.control.baselines import BaselineAgent
+from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
+from ftc.control.ppo_agent import ControllerConfig, PPOAgent
+from ftc.control.runner import IntervalRunner
+from ftc.learning.ppo import PPOConfig
+
+TOOL = "ftc.controller"
+# options of a resumed run taken from this command line, not from its config.json
+RESUME_OVERRIDES = ("lcm_url", "prefix", "attach", "allow_network", "quiet",
+                    "link_retry_timeout", "link_backoff", "link_give_up_timeout")
+
+
+def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
+    """The agent of --method: PPO (Algorithm 1) or a baseline."""
+    if cfg.method == "ppo":
+        return PPOAgent(cfg, ppo_config)
+    return BaselineAgent(cfg.method, cfg.seed)
+
+
+class Controller(IntervalRunner):
+    """A controller run: the interval runner driving the agent of ``cfg.method``."""
+
+    def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
+        cfg.validate()
+        super().__init__(cfg, make_agent(cfg, ppo_config),
+                         {"controller": cfg, "ppo": ppo_config})
+
+    @property
+    def ppo(self):
+        """The PPO algorithm of a ``--method ppo`` run (None for a baseline)."""
+        return getattr(self.agent, "ppo", None)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m ftc.controller", allow_abbrev=False,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__.split("\n\n")[0] + " Prints one progress line per interval.",
+        epilog=__doc__.split("\n\n", 1)[1])
+    add_run_options(parser, ControllerConfig)
+    add_dataclass_options(parser.add_argument_group("PPO hyperparameters"), PPOConfig, "ppo-")
+    return parser
+
+
+def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPOConfig]:
+    """The run's configs from the command line; bad input exits 2 before anything
+    is written."""
+    parser = build_parser()
+    ns = vars(parser.parse_args(argv))
+    cfg = config_from_namespace(ControllerConfig, ns)
+    ppo = config_from_namespace(PPOConfig, ns, "ppo-")
+    check_or_exit(parser, cfg, {"ppo-": ppo})
+    return cfg, ppo
+
+
+def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
+    """The configuration a stopped run was started with (from its config.json);
+    raises CheckpointError when it is missing or malformed."""
+    configs = read_run_configs(out, {"controller": ControllerConfig, "ppo": PPOConfig})
+    cfg, ppo = configs["controller"], configs["ppo"]
+    cfg.resume, cfg.out = out, out
+    return cfg, ppo
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    torch.set_num_threads(1)
+    cfg, ppo = parse_args(argv)
+
+    def run() -> None:
+        nonlocal cfg, ppo
+        if cfg.resume:
+            overrides = {k: getattr(cfg, k) for k in RESUME_OVERRIDES}
+            cfg, ppo = resume_config(cfg.resume)
+            for k, v in overrides.items():
+                setattr(cfg, k, v)
+        Controller(cfg, ppo).run()
+
+    return run_or_report(TOOL, run)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,244 @@
+"""The interval runner: the one loop every controller runs in.
+
+    python -m ftc.controller ...   (PPO, baselines)     python -m ftc.mpc ...   (MPC)
+
+One interval k (t_online real steps; the plant degrades itself at each
+interval boundary and ends episodes itself):
+
+    plant --obs--> agent.act --valves--> plant      x steps_per_interval
+      |               ^                               (reset after a terminal step)
+      +-- reward, Transition --> agent.observe        (PPO: update every t_update)
+      |
+      +-- evaluation episode (age frozen), agent.act(evaluation)   if agent.evaluates
+      |   bounded at steps_per_interval steps (a dead pump can strand fuel forever)
+      |
+      +-- Transitions of the interval --> agent.end_interval      (refit, offline, swap)
+      |
+    metrics.csv row, checkpoint.pt, progress line
+
+The runner owns the plant link, the loop and its checks, metrics.csv,
+config.json, checkpoints and --resume, done.json and the progress lines; the
+agent (:mod:`ftc.control.agent`) owns its decisions and what it learns.
+
+Failures raise :class:`ftc.common.errors.RunError` subclasses (their
+``exit_code`` is the command line's), with nothing written after the last
+finished interval, so metrics.csv and checkpoint.pt stay those of that
+interval and --resume continues from it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
+from ftc.common.build_info import git_revision
+from ftc.common.errors import CheckpointError, PlantLostError, RunError
+from ftc.control import checkpoint
+from ftc.control.agent import Agent, StepContext, Transition
+from ftc.control.checkpoint import finite_observation
+from ftc.control.config import RunConfig, open_plant
+from ftc.control.metrics import METRIC_COLUMNS, format_cell, progress_line
+from ftc.learning.transitions import Transitions
+from ftc.plant.link import PlantGoneError, PlantLink, PlantObservation
+from ftc.plant.reward import reward
+
+
+class IntervalRunner:
+    """Runs ``agent`` on the plant of ``cfg`` interval by interval.
+
+    configs: the config dataclasses of the run by name ({"controller": ...,
+    "ppo": ...}); they go into config.json and a checkpoint must match them.
+    """
+
+    def __init__(self, cfg: RunConfig, agent: Agent, configs: dict[str, Any]) -> None:
+        self.cfg, self.agent, self.configs = cfg, agent, configs
+        self.out = Path(cfg.out)
+        self.rows: list[dict[str, Any]] = []
+        self.info: dict[str, Any] = {}
+        self.interval = 0
+        self.where = "before the first step"  # position in the run, for error messages
+        self.columns = METRIC_COLUMNS + [c for c in agent.extra_columns
+                                         if c not in METRIC_COLUMNS]
+
+    # -- the run ----------------------------------------------------------------
+    def run(self, stop_after: int | None = None, plant: PlantLink | None = None
+            ) -> list[dict[str, Any]]:
+        """Run (or continue, with cfg.resume) the intervals; returns the metrics rows.
+
+        stop_after: return after this many intervals of this call, as if the run
+        had been stopped there (its checkpoint written; for tests of --resume).
+        plant: drive this link instead of opening one from the config (tests).
+        """
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        # one intra-op thread: the networks are tiny (threads cost more than they
+        # give) and results are then bit-for-bit reproducible (measured: with the
+        # default thread pool, losses differ in the 7th digit run to run)
+        torch.set_num_threads(1)
+        torch.manual_seed(cfg.seed)
+        if cfg.resume:
+            self.restore()
+        else:
+            self.write_config()
+            self.info.update(self.agent.prepare())
+            self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
+        start = time.perf_counter()
+        try:
+            if plant is None:
+                try:
+                    plant = open_plant(cfg, self.interval * cfg.steps_per_interval)
+                except PlantLostError as e:
+                    raise PlantLostError(f"at interval {self.interval}: {e}") from None
+            self._run_intervals(plant, start, stop_after)
+        except PlantGoneError as e:
+            raise PlantLostError(f"plant gone at {self.where}: {e}; results of the "
+                                 f"{self.interval} finished intervals are in {self.out}, "
+                                 "--resume continues from them") from None
+        finally:
+            self.agent.close()
+        if self.interval >= cfg.intervals:
+            atomic_write_json(self.out / "done.json", {
+                "intervals": self.interval, "wall_time": time.perf_counter() - start}, indent=None)
+        return self.rows
+
+    def _run_intervals(self, plant: PlantLink, start: float, stop_after: int | None) -> None:
+        pid_file = self.out / "plant.pid"
+        process = getattr(plant, "process", None)
+        if process is not None:  # for tools (and tests) that need the plant's process
+            atomic_write_text(pid_file, f"{process.pid}\n")
+        try:
+            while self.interval < self.cfg.intervals:
+                self._one_interval(plant, start)
+                if stop_after is not None and self.interval >= stop_after:
+                    return
+            self.agent.finish()
+            self._merge_late_metrics()
+            self.checkpoint()
+            self.write_metrics()
+        finally:
+            plant.close()
+            if process is not None:
+                pid_file.unlink(missing_ok=True)
+
+    def _one_interval(self, plant: PlantLink, start: float) -> None:
+        k = self.interval
+        t0 = time.perf_counter()
+        self.agent.begin_interval(k)
+        online, data = self.online(plant)
+        row = {"interval": k, **online, "online_seconds": time.perf_counter() - t0}
+        row["eval_reward_per_step"], row["eval_steps"] = (
+            self.evaluate(plant) if self.agent.evaluates else (None, None))
+        self.rows.append(row)
+        row.update(self.agent.end_interval(k, data))
+        self._merge_late_metrics()
+        row["wall_time"] = time.perf_counter() - start
+        self.interval += 1
+        self.checkpoint()
+        self.write_metrics()
+        self._say(progress_line(row, self.cfg.intervals, self.agent.progress_keys))
+
+    def _merge_late_metrics(self) -> None:
+        for interval, metrics in self.agent.late_metrics():
+            self.rows[interval].update(metrics)
+
+    def _checked(self, o: PlantObservation) -> PlantObservation:
+        return finite_observation(o, self.where)
+
+    def online(self, plant: PlantLink) -> tuple[dict[str, Any], Transitions | None]:
+        """One interval of operating steps; returns its metrics and, for an agent
+        that wants them, its transitions."""
+        n, k, agent = self.cfg.steps_per_interval, self.interval, self.agent
+        keep = agent.wants_data()
+        rewards = np.zeros(n)
+        observations: list[PlantObservation] = []
+        self.where = f"interval {k}, step 0"
+        o = self._checked(plant.reset())
+        agent.start_episode(o)
+        observations.append(o)
+        episodes = 1
+        for t in range(n):
+            u = agent.act(o, StepContext(k, t, n - t))
+            self.where = f"interval {k}, step {t + 1}"
+            nxt = self._checked(plant.step(u))
+            observations.append(nxt)
+            rewards[t] = reward(nxt.level, u)
+            last = t == n - 1
+            if last and not nxt.done:
+                raise RunError(f"plant did not end the interval after {t + 1} steps at "
+                               f"{self.where} (is its steps_per_interval the same as ours?)")
+            if nxt.truncated and not last:
+                raise RunError(f"plant truncated the episode at {self.where}, before the "
+                               "interval's end (is its steps_per_interval the same as ours?)")
+            following = nxt
+            if nxt.terminal and not last:
+                following = self._checked(plant.reset())
+                observations.append(following)
+                episodes += 1
+            agent.observe(Transition(o, u, float(rewards[t]), nxt, following))
+            if following is not nxt:
+                agent.start_episode(following)
+            o = following
+        metrics = {"reward_per_step": float(rewards.mean()), "episodes": episodes,
+                   **agent.end_online()}
+        return metrics, (Transitions.from_observations(observations) if keep else None)
+
+    def evaluate(self, plant: PlantLink) -> tuple[float, int]:
+        """One evaluation episode (age frozen; a learned policy acts greedily),
+        cut off after steps_per_interval steps: fuel stranded behind a dead pump
+        can keep an episode from ever ending. Returns (reward per step, steps)."""
+        k, limit = self.interval, self.cfg.steps_per_interval
+        self.where = f"interval {k}, evaluation step 0"
+        o = self._checked(plant.evaluate())
+        self.agent.start_episode(o)
+        total, steps = 0.0, 0
+        while not o.done and steps < limit:
+            u = self.agent.act(o, StepContext(k, steps, None, evaluation=True))
+            self.where = f"interval {k}, evaluation step {steps + 1}"
+            o = self._checked(plant.step(u))
+            total += float(reward(o.level, u))
+            steps += 1
+        return total / max(steps, 1), steps
+
+    # -- persistence -------------------------------------------------------------
+    def checkpoint(self) -> None:
+        """Everything needed to continue after interval ``self.interval - 1``."""
+        checkpoint.save(self.out / "checkpoint.pt", {
+            "interval": self.interval, "rows": self.rows, "info": self.info,
+            "torch_rng": torch.get_rng_state(), "config": checkpoint.config_stamp(self.configs),
+            "agent": self.agent.state_dict()})
+
+    def restore(self) -> None:
+        path = self.out / "checkpoint.pt"
+        state = checkpoint.load(path, self.configs, self.cfg.intervals)
+        self.interval, self.rows, self.info = state["interval"], state["rows"], state["info"]
+        torch.set_rng_state(state["torch_rng"])
+        try:
+            self.agent.load_state_dict(state["agent"])
+        except CheckpointError as e:
+            raise CheckpointError(f"{path}: {e}") from None
+        except (KeyError, RuntimeError, ValueError, TypeError) as e:
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise CheckpointError(f"{path}: the {self.agent.name} state does not load: "
+                                  f"{reason[:200]}") from None
+
+    def write_metrics(self) -> None:
+        atomic_write_csv(self.out / "metrics.csv", self.columns,
+                         [[format_cell(row.get(c)) for c in self.columns] for row in self.rows],
+                         lineterminator="\n")
+
+    def write_config(self) -> None:
+        doc = {**{name: dataclasses.asdict(c) for name, c in self.configs.items()},
+               "seed": self.cfg.seed, "git_revision": git_revision(), "argv": sys.argv,
+               **self.agent.config_doc()}
+        atomic_write_json(self.out / "config.json", doc)
+
+    def _say(self, text: str) -> None:
+        if not self.cfg.quiet and text:
+            print(text, flush=True)

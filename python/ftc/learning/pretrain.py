@@ -1,0 +1,140 @@
+"""Nominal pretraining of the policy in simulation, stopped while it still
+explores (controller-notes item 1), with a cache of pretrained policies.
+
+Stop rule (explicit and measured): after an update, the mean valve-open
+probability over the rollout is <= ``open_fraction`` and, if
+``deterministic_closed``, the deterministic policy (open iff p > 0.5) keeps
+every valve closed on every state of the rollout (states a nominal
+closed-loop run visits; off that distribution, e.g. at random levels, the
+policy is not asked to be closed).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ftc.common.atomic import atomic_torch_save
+from ftc.common.constants import NUM_TANKS, pretrain_seed
+from ftc.learning.model_env import ModelEnv
+from ftc.learning.ppo import PPO, UpdateStats
+from ftc.learning.rollout import train_on_env
+from ftc.learning.sim_env import VecCorePlant
+
+CACHE_VERSION = 2  # bump when the cached record's layout changes
+
+
+@dataclass(frozen=True)
+class PretrainSettings:
+    """What pretraining depends on (the controller's --pretrain-* options)."""
+
+    seed: int
+    steps_per_interval: int
+    envs: int = 16
+    rollout: int = 64
+    minibatch: int = 256
+    max_steps: int = 200_000
+    open_fraction: float = 0.05
+    deterministic_closed: bool = False
+    ent_coef: float = 0.0
+    lr: float | None = None
+    sim: str = "core"  # core: nominal C++ plants; model: the pretrained world model
+    model_episodes: int = 50  # (sim = model) episodes of the model's data set
+
+
+def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
+                    demand: float = 0.0) -> dict[str, float]:
+    """Pretrain ``ppo`` in place on nominal plants (or ``model``); returns what
+    was measured at the stop."""
+    s = settings
+    if model is None:
+        env = VecCorePlant(s.envs, pretrain_seed(s.seed))
+    else:
+        env = ModelEnv(model, s.envs, demand, max_episode_steps=s.steps_per_interval,
+                       seed=pretrain_seed(s.seed))
+    probe: dict[str, float] = {}
+
+    def stop(stats: UpdateStats, obs: torch.Tensor) -> bool:
+        with torch.no_grad():
+            logits, _ = ppo.policy(obs.reshape(-1, NUM_TANKS))
+        det_open = float((logits > 0).float().mean())
+        probe.update(open_fraction=stats.open_fraction, entropy=stats.entropy,
+                     deterministic_open_fraction=det_open)
+        if stats.open_fraction > s.open_fraction:
+            return False
+        return det_open == 0.0 or not s.deterministic_closed
+
+    start = time.perf_counter()
+    online_config = ppo.config
+    ppo.config = dataclasses.replace(online_config, ent_coef=s.ent_coef, minibatch_size=s.minibatch)
+    if s.lr is not None:
+        for group in ppo.optimizer.param_groups:
+            group["lr"] = s.lr
+    try:
+        stats, rew, steps = train_on_env(ppo, env, s.max_steps, s.rollout, stop)
+    finally:
+        ppo.config = online_config
+        for group in ppo.optimizer.param_groups:
+            group["lr"] = online_config.learning_rate
+    return {"pretrain_steps": steps, "pretrain_plant_errors": getattr(env, "errors", 0),
+            "pretrain_updates": len(stats), "pretrain_reward_per_step": rew,
+            "pretrain_open_fraction": probe["open_fraction"],
+            "pretrain_entropy": probe["entropy"],
+            "pretrain_deterministic_open_fraction": probe["deterministic_open_fraction"],
+            "pretrain_seconds": time.perf_counter() - start}
+
+
+def code_fingerprint() -> str:
+    """A hash of the code pretraining runs: the learning and plant Python
+    sources and the compiled physics core. A cached policy made by other code
+    is not reused."""
+    from ftc import _core  # native: the physics the nominal plants run
+
+    here = Path(__file__).resolve().parent
+    files = sorted(here.glob("*.py")) + sorted((here.parent / "plant").glob("*.py"))
+    h = hashlib.sha256()
+    for path in [*files, Path(_core.__file__)]:
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def cache_path(cache_dir: str, settings: PretrainSettings, ppo_config: Any) -> tuple[Path, dict]:
+    """Where the policy pretrained with these settings and this code is cached."""
+    key_fields = {"settings": dataclasses.asdict(settings),
+                  "ppo": dataclasses.asdict(ppo_config), "code": code_fingerprint(),
+                  "version": CACHE_VERSION}
+    key = hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(os.path.expanduser(cache_dir)) / f"{key}.pt", key_fields
+
+
+def pretrain_cached(ppo: PPO, settings: PretrainSettings, cache_dir: str, model: Any = None,
+                    demand: float = 0.0) -> dict[str, Any]:
+    """Pretrain ``ppo``, or load the identical result from ``cache_dir`` ('' : no cache).
+
+    A cache entry that does not load (corrupt, other layout) is ignored and
+    replaced; the returned info says which happened (``pretrain_cached``)."""
+    if not cache_dir:
+        return {**pretrain_policy(ppo, settings, model, demand), "pretrain_cached": 0}
+    path, key_fields = cache_path(cache_dir, settings, ppo.config)
+    if path.exists():
+        try:
+            cached = torch.load(path, weights_only=True)
+            ppo.load_state_dict(cached["ppo"])
+            return {**cached["info"], "pretrain_cached": 1}
+        except Exception:  # noqa: BLE001 - any unreadable entry is rebuilt
+            pass
+    info = pretrain_policy(ppo, settings, model, demand)
+    try:
+        atomic_torch_save(path, {"ppo": ppo.state_dict(), "info": info, "key": key_fields})
+    except OSError:
+        pass  # a cache that cannot be written costs time, not results
+    return {**info, "pretrain_cached": 0}
