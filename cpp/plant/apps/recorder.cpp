@@ -16,12 +16,18 @@
 #include <csignal>
 #include <cstdio>
 #include <iostream>
+#include <memory>
 #include <string>
 
 namespace {
 
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
+
+struct EventLogDestroy {
+  void operator()(lcm_eventlog_t* log) const { lcm_eventlog_destroy(log); }
+};
+using EventLogPtr = std::unique_ptr<lcm_eventlog_t, EventLogDestroy>;
 
 class Recorder final {
  public:
@@ -71,7 +77,8 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? 0 : 2;
   }
-  lcm_eventlog_t* log = lcm_eventlog_create(path.c_str(), "w");
+  // Declared before the LCM instance: closed (flushed) after LCM stops delivering.
+  const EventLogPtr log(lcm_eventlog_create(path.c_str(), "w"));
   if (!log) {
     std::cerr << "lcm_recorder: error: cannot open '" << path << "' for writing\n";
     return 2;
@@ -81,10 +88,9 @@ int main(int argc, char** argv) {
     lcm::LCM lcm(url);
     if (!lcm.good()) {
       std::cerr << "lcm_recorder: error: cannot open LCM at '" << url << "'\n";
-      lcm_eventlog_destroy(log);
       return 1;
     }
-    Recorder recorder(log);
+    Recorder recorder(log.get());
     lcm::Subscription* sub = lcm.subscribe(channel, &Recorder::OnMessage, &recorder);
     sub->setQueueCapacity(0);  // unbounded: see the file comment
     std::signal(SIGINT, OnSignal);
@@ -107,6 +113,5 @@ int main(int argc, char** argv) {
     }
     if (recorder.failed()) rc = 1;
   }
-  lcm_eventlog_destroy(log);
   return rc;
 }

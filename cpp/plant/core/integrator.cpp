@@ -46,6 +46,7 @@
 #include <cmath>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 
 namespace ftc {
 namespace {
@@ -97,47 +98,69 @@ int Roots(realtype /*t*/, N_Vector y, realtype* gout, void* user_data) noexcept 
   return 0;
 }
 
+// Owners of the SUNDIALS handles: each is freed by its own deleter, so a
+// checked call failing halfway through Impl's constructor leaks nothing.
+struct ContextFree {
+  void operator()(SUNContext c) const { SUNContext_Free(&c); }
+};
+struct VectorDestroy {
+  void operator()(N_Vector v) const { N_VDestroy(v); }
+};
+struct NonlinearSolverFree {
+  void operator()(SUNNonlinearSolver s) const { SUNNonlinSolFree(s); }
+};
+struct CvodeFree {
+  void operator()(void* mem) const { CVodeFree(&mem); }
+};
+using ContextPtr = std::unique_ptr<std::remove_pointer_t<SUNContext>, ContextFree>;
+using VectorPtr = std::unique_ptr<std::remove_pointer_t<N_Vector>, VectorDestroy>;
+using NonlinearSolverPtr =
+    std::unique_ptr<std::remove_pointer_t<SUNNonlinearSolver>, NonlinearSolverFree>;
+using CvodePtr = std::unique_ptr<void, CvodeFree>;
+
+template <typename Ptr>
+Ptr NonNull(Ptr p, const char* function) {
+  if (p == nullptr) throw std::runtime_error(std::string(function) + " returned null");
+  return p;
+}
+
 }  // namespace
 
 struct StepIntegrator::Impl {
   IntegratorOptions options;
-  SUNContext context = nullptr;
-  N_Vector y = nullptr;
-  SUNNonlinearSolver solver = nullptr;
-  void* cvode = nullptr;
+  // Declaration order is teardown order reversed: CVODE's memory goes first,
+  // the context that all of them were created in last.
+  ContextPtr context;
+  VectorPtr y;
+  NonlinearSolverPtr solver;
+  CvodePtr cvode;
   ProblemData data;
   bool warm = false;  // CVODE's state continues the last step (see Step)
   realtype t = 0;     // CVODE's time at the end of the last step
   std::string last_error;  // message of CVODE's error handler, for the exception
 
   explicit Impl(const IntegratorOptions& o) : options(o) {
-    Check(SUNContext_Create(nullptr, &context), "SUNContext_Create");
-    y = N_VNew_Serial(kStateSize, context);
-    if (y == nullptr) throw std::runtime_error("N_VNew_Serial returned null");
-    N_VConst(0.0, y);
-    cvode = CVodeCreate(CV_ADAMS, context);
-    if (cvode == nullptr) throw std::runtime_error("CVodeCreate returned null");
-    Check(CVodeSetErrHandlerFn(cvode, &Impl::ErrorHandler, this), "CVodeSetErrHandlerFn");
-    Check(CVodeInit(cvode, Rhs, 0.0, y), "CVodeInit");
-    Check(CVodeSStolerances(cvode, options.rtol, options.atol), "CVodeSStolerances");
-    Check(CVodeSetUserData(cvode, &data), "CVodeSetUserData");
-    solver = SUNNonlinSol_FixedPoint(y, 0, context);
-    if (solver == nullptr) throw std::runtime_error("SUNNonlinSol_FixedPoint returned null");
-    Check(CVodeSetNonlinearSolver(cvode, solver), "CVodeSetNonlinearSolver");
-    Check(CVodeRootInit(cvode, kNumRoots, Roots), "CVodeRootInit");
+    SUNContext raw_context = nullptr;
+    Check(SUNContext_Create(nullptr, &raw_context), "SUNContext_Create");
+    context.reset(raw_context);
+    y.reset(NonNull(N_VNew_Serial(kStateSize, context.get()), "N_VNew_Serial"));
+    N_VConst(0.0, y.get());
+    cvode.reset(NonNull(CVodeCreate(CV_ADAMS, context.get()), "CVodeCreate"));
+    void* mem = cvode.get();
+    Check(CVodeSetErrHandlerFn(mem, &Impl::ErrorHandler, this), "CVodeSetErrHandlerFn");
+    Check(CVodeInit(mem, Rhs, 0.0, y.get()), "CVodeInit");
+    Check(CVodeSStolerances(mem, options.rtol, options.atol), "CVodeSStolerances");
+    Check(CVodeSetUserData(mem, &data), "CVodeSetUserData");
+    solver.reset(
+        NonNull(SUNNonlinSol_FixedPoint(y.get(), 0, context.get()), "SUNNonlinSol_FixedPoint"));
+    Check(CVodeSetNonlinearSolver(mem, solver.get()), "CVodeSetNonlinearSolver");
+    Check(CVodeRootInit(mem, kNumRoots, Roots), "CVodeRootInit");
     int directions[kNumRoots];
     std::fill(directions, directions + kNumRoots, -1);  // every root function falls to 0
-    Check(CVodeSetRootDirection(cvode, directions), "CVodeSetRootDirection");
+    Check(CVodeSetRootDirection(mem, directions), "CVodeSetRootDirection");
     // Functions resting at exactly 0 at a restart (a tank just emptied) are expected.
-    Check(CVodeSetNoInactiveRootWarn(cvode), "CVodeSetNoInactiveRootWarn");
-    Check(CVodeSetMaxNumSteps(cvode, 5000), "CVodeSetMaxNumSteps");
-  }
-
-  ~Impl() {
-    if (cvode != nullptr) CVodeFree(&cvode);
-    if (solver != nullptr) SUNNonlinSolFree(solver);
-    if (y != nullptr) N_VDestroy(y);
-    if (context != nullptr) SUNContext_Free(&context);
+    Check(CVodeSetNoInactiveRootWarn(mem), "CVodeSetNoInactiveRootWarn");
+    Check(CVodeSetMaxNumSteps(mem, 5000), "CVodeSetMaxNumSteps");
   }
 
   Impl(const Impl&) = delete;
@@ -167,7 +190,7 @@ StepResult StepIntegrator::Step(const Vec6& x0, const Valves& u, const PlantPara
                                 double dt) {
   if (!(dt > 0)) throw std::invalid_argument("StepIntegrator::Step: dt must be > 0");
   Impl& m = *impl_;
-  realtype* y = N_VGetArrayPointer(m.y);
+  realtype* y = N_VGetArrayPointer(m.y.get());
   const auto height = p.height;
   // Levels within kEmptySnap of the bottom are empty: rounding leaves such
   // residues when a tank empties exactly at the end of a step, and a pump
@@ -188,11 +211,11 @@ StepResult StepIntegrator::Step(const Vec6& x0, const Valves& u, const PlantPara
   // valves and parameters, continues the integration: the field is the same
   // and CVODE keeps its step size and order instead of restarting at order 1.
   const bool warm = m.warm && u == m.data.valves && SameParams(p, m.data.params) &&
-                    x0 == Levels(m.y);
+                    x0 == Levels(m.y.get());
   realtype t = m.t;
   m.warm = false;  // until this step has succeeded
   if (!warm) {
-    N_VConst(0.0, m.y);
+    N_VConst(0.0, m.y.get());
     for (int i = 0; i < kTanks; ++i) y[i] = x0[i];
     clamp_levels();
     m.data.params = p;
@@ -211,12 +234,12 @@ StepResult StepIntegrator::Step(const Vec6& x0, const Valves& u, const PlantPara
   bool restart = !warm;
   for (;;) {
     if (restart) {
-      m.data.mode = ComputeMode(Levels(m.y), u, p);
-      m.Check(CVodeReInit(m.cvode, t, m.y), "CVodeReInit");
+      m.data.mode = ComputeMode(Levels(m.y.get()), u, p);
+      m.Check(CVodeReInit(m.cvode.get(), t, m.y.get()), "CVodeReInit");
       restart = false;
     }
-    m.Check(CVodeSetStopTime(m.cvode, t_end), "CVodeSetStopTime");
-    const int flag = CVode(m.cvode, t_end, m.y, &t, CV_NORMAL);
+    m.Check(CVodeSetStopTime(m.cvode.get(), t_end), "CVodeSetStopTime");
+    const int flag = CVode(m.cvode.get(), t_end, m.y.get(), &t, CV_NORMAL);
     m.Check(flag, "CVode");
     if (flag != CV_ROOT_RETURN) break;  // CV_TSTOP_RETURN or CV_SUCCESS: at t_end
     if (++result.events > m.options.max_events) {
@@ -225,7 +248,7 @@ StepResult StepIntegrator::Step(const Vec6& x0, const Valves& u, const PlantPara
                                " mode switches in one step (chattering)");
     }
     int found[kNumRoots];
-    m.Check(CVodeGetRootInfo(m.cvode, found), "CVodeGetRootInfo");
+    m.Check(CVodeGetRootInfo(m.cvode.get(), found), "CVodeGetRootInfo");
     // A tank located at its bottom is empty: make it exactly so, and let the
     // new mode see it that way.
     for (int i = 0; i < kTanks; ++i)
