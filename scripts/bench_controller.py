@@ -33,10 +33,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ftc.build_info import echo_binary
-from ftc.controller import Controller, ControllerConfig, train_on_env
+from ftc.common.build_info import echo_binary
+from ftc.control.controller_cli import Controller
+from ftc.control.ppo_agent import ControllerConfig
+from ftc.learning.rollout import train_on_env
 from ftc.plant import LcmPlant, LinkConfig, launch, private_lcm_url, private_prefix
-from ftc.ppo import PPO, PPOConfig
+from ftc.learning.ppo import PPO, PPOConfig
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO = str(REPO / "scenarios" / "single.toml")
@@ -106,10 +108,10 @@ def bench_online(steps: int, rounds: int) -> tuple[dict, list]:
 def bench_offline() -> dict[str, float]:
     """Model env steps/s with the policy acting (no updates, and PPO as the offline
     phase runs it), and seconds per warm-started refit on one interval of data."""
-    from ftc.model_env import ModelEnv, estimate_demand
+    from ftc.learning.model_env import ModelEnv, estimate_demand
+    from ftc.learning.transitions import Transitions, collect_nominal_dataset
+    from ftc.learning.world_model import WorldModel, WorldModelConfig
     from ftc.plant import CorePlant
-    from ftc.world_model import (Transitions, WorldModel, WorldModelConfig,
-                                 collect_nominal_dataset)
 
     torch.set_num_threads(1)
     data = collect_nominal_dataset(50, seed=0)

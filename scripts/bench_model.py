@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
-from ftc.model_env import ModelEnv, estimate_demand
+from ftc.learning.model_env import ModelEnv, estimate_demand
+from ftc.learning.transitions import collect_nominal_dataset, collect_random_episodes
+from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant import CorePlant
-from ftc.world_model import (WorldModel, WorldModelConfig, collect_nominal_dataset,
-                             collect_random_episodes)
 
 SINGLE_FAULT_TOML = 'name = "bench-single"\nengine_factor = [20.0, inf]\n'
 

@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "python"))
 
 from ftc import _core  # noqa: E402
-from ftc.mpc import HoldPlanner, ModelEvaluator, OracleEvaluator  # noqa: E402
+from ftc.control.planners import HoldPlanner, ModelEvaluator, OracleEvaluator  # noqa: E402
 from ftc.plant import CorePlant  # noqa: E402
 
 SCENARIO = REPO / "scenarios" / "single.toml"
@@ -80,8 +80,9 @@ def bench_decisions(seconds: float) -> None:
     r = rate(lambda age, x: plain.run(x, seqs, params[age]), states, seconds)
     print(f"oracle without caches (CVODE every step, rtol 1e-8): {r:.0f} decisions/s")
 
-    from ftc.model_env import estimate_demand
-    from ftc.world_model import WorldModel, WorldModelConfig, collect_nominal_dataset
+    from ftc.learning.model_env import estimate_demand
+    from ftc.learning.transitions import collect_nominal_dataset
+    from ftc.learning.world_model import WorldModel, WorldModelConfig
 
     torch.set_num_threads(1)
     data = collect_nominal_dataset(50, seed=0)

@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from ftc import BUILD_DIR
-from ftc.build_info import echo_binary
+from ftc.common.build_info import echo_binary
 from ftc.plant import LcmPlant, launch, private_lcm_url, private_prefix
 
 

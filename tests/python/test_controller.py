@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from ftc.controller import Controller, ControllerConfig, main, parse_args, resume_config
-from ftc.ppo import PPOConfig
+from ftc.control.controller_cli import Controller, main, parse_args, resume_config
+from ftc.control.ppo_agent import ControllerConfig
+from ftc.learning.ppo import PPOConfig
 
 TIME_COLUMNS = {"online_seconds", "offline_seconds", "wall_time", "refit_seconds",
                 "pretrain_seconds", "model_pretrain_seconds"}
@@ -49,7 +50,8 @@ def test_end_to_end_over_lcm_with_offline(tmp_path, scenarios):
     assert doc["seed"] == 3 and doc["git_revision"]
     assert (out / "done.json").exists()
     state = torch.load(out / "checkpoint.pt", weights_only=True)
-    assert state["interval"] == 2 and "policy" in state["ppo"] and state["model"] is not None
+    agent = state["agent"]
+    assert state["interval"] == 2 and "policy" in agent["ppo"] and agent["model"] is not None
 
 
 @pytest.mark.parametrize("method", ["closed", "open", "random"])
@@ -77,8 +79,8 @@ def test_resume_equals_uninterrupted(tmp_path, link, scenarios):
     cfg, ppo = resume_config(str(stopped))
     resumed = Controller(cfg, ppo).run()
     assert _comparable(resumed) == _comparable(full)
-    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)["ppo"]["policy"]
-    b = torch.load(stopped / "checkpoint.pt", weights_only=True)["ppo"]["policy"]
+    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)["agent"]["ppo"]["policy"]
+    b = torch.load(stopped / "checkpoint.pt", weights_only=True)["agent"]["ppo"]["policy"]
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
@@ -113,7 +115,7 @@ def test_background_resume_restarts_the_offline_phase_in_flight(tmp_path, scenar
                  scenario=str(scenarios / "single.toml"))
     Controller(cfg, PPOConfig()).run(stop_after=2)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
-    assert state["pending"] is not None and state["pending"]["interval"] == 1
+    assert state["agent"]["pending"] is not None and state["agent"]["pending"]["interval"] == 1
     cfg, ppo = resume_config(str(tmp_path))
     rows = Controller(cfg, ppo).run()
     assert [r["interval"] for r in rows] == [0, 1, 2]

@@ -33,11 +33,14 @@ import numpy as np
 import pytest
 import torch
 
-import ftc.controller as controller
-from ftc.build_info import plant_binary
-from ftc.controller import Controller, ControllerConfig, NonFiniteError, resume_config
+import ftc.control.controller_cli as controller
+import ftc.control.runner as runner
+from ftc.common.build_info import plant_binary
+from ftc.common.errors import NonFiniteError
+from ftc.control.controller_cli import Controller, resume_config
+from ftc.control.ppo_agent import ControllerConfig
 from ftc.plant import CorePlant, private_lcm_url, private_prefix
-from ftc.ppo import PPOConfig
+from ftc.learning.ppo import PPOConfig
 
 REPO = Path(__file__).resolve().parents[2]
 PY = sys.executable
@@ -218,7 +221,7 @@ def test_nan_observation_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_pa
         Controller(cfg, PPOConfig()).run(plant=NaNPlant(_core(cfg), 128 + 10))
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert state["interval"] == 1
-    assert all(torch.isfinite(t).all() for t in state["ppo"]["policy"].values())
+    assert all(torch.isfinite(t).all() for t in state["agent"]["ppo"]["policy"].values())
     assert _rows(tmp_path) == 1 and not (tmp_path / "done.json").exists()
     # the kept checkpoint resumes (the plant healthy again)
     cfg, ppo = resume_config(str(tmp_path))
@@ -253,11 +256,11 @@ def test_nan_loss_gradient_or_weights_stop_the_run(tmp_path, scenarios, fault, m
         ctrl.run(plant=_core(cfg))
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert state["interval"] == 1
-    assert all(torch.isfinite(t).all() for t in state["ppo"]["policy"].values())
+    assert all(torch.isfinite(t).all() for t in state["agent"]["ppo"]["policy"].values())
 
 
 def test_cli_exits_4_on_a_nan_observation(tmp_path, scenarios, monkeypatch, capsys):
-    monkeypatch.setattr(controller, "open_plant",
+    monkeypatch.setattr(runner, "open_plant",
                         lambda cfg, start: NaNPlant(_core(cfg), 5))
     rc = controller.main([*SHORT, "--link", "core", "--scenario", str(scenarios / "single.toml"),
                           "--out", str(tmp_path)])
@@ -302,14 +305,15 @@ CORRUPTIONS = {
     "a pickled object": (lambda good, other: _torch_bytes({"x": argparse_namespace()}),
                          "corrupt or truncated checkpoint"),
     "not a checkpoint": (lambda good, other: _torch_bytes([1, 2, 3]),
-                         "not a controller checkpoint"),
+                         "not a run checkpoint of this version"),
     "other network sizes": (lambda good, other: other["small_net"],
-                            r"network sizes differ: trunk\.0\.weight is \(32, 6\) in the "
-                            r"checkpoint, \(64, 6\)"),
+                            r"another configuration: ppo\.trunk_sizes \[32, 32\] in the "
+                            r"checkpoint, \[64, 64\] here"),
     "other scenario": (lambda good, other: other["multiple"],
                        r"another configuration: controller\.scenario .*multiple\.toml"),
     "other method": (lambda good, other: other["closed"],
-                     "checkpoint of a run without a policy, this run's --method is ppo"),
+                     "another configuration: controller.method 'closed' in the checkpoint, "
+                     "'ppo' here"),
 }
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ftc.build_info import plant_binary
+from ftc.common.build_info import plant_binary
 from ftc.plant import (LinkConfig, PlantGoneError, check_loopback_url, launch, private_lcm_url,
                        private_prefix)
 

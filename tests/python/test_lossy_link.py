@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from ftc.build_info import plant_binary
+from ftc.common.build_info import plant_binary
 from ftc.plant import CorePlant, LcmPlant, LinkConfig, private_lcm_url, private_prefix
 
 

@@ -12,11 +12,13 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.controller import METRIC_COLUMNS
-from ftc.mpc import (CEMPlanner, HoldPlanner, MPCConfig, MPCController, OracleEvaluator,
-                     hold_candidates, main, valve_settings)
+from ftc.control.metrics import METRIC_COLUMNS
+from ftc.control.mpc_agent import MPCConfig
+from ftc.control.mpc_cli import MPCController, main
+from ftc.control.planners import (CEMPlanner, HoldPlanner, OracleEvaluator, hold_candidates,
+                                  valve_settings)
 from ftc.plant import CorePlant, launch
-from ftc.reward import reward
+from ftc.plant.reward import reward
 
 STEPS_PER_INTERVAL = 512
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import reference_sim as ref
-from ftc import reward as ftc_reward
+from ftc.plant import reward as ftc_reward
 
 try:
     from ftc import _core

@@ -13,10 +13,10 @@ import time
 import numpy as np
 import pytest
 
-from ftc.build_info import plant_binary
+from ftc.common.build_info import plant_binary
 from ftc.plant import (CorePlant, LinkConfig, PlantError, PlantGoneError, launch,
                        private_lcm_url, private_prefix)
-from ftc.reward import reward
+from ftc.plant.reward import reward
 
 
 def test_lcm_plant_reproduces_in_process_core_step_for_step(scenarios):
@@ -71,7 +71,7 @@ def test_nominal_closed_and_open_episodes_match_the_spec():
 def test_gymnasium_env_checker_passes(scenarios):
     from gymnasium.utils.env_checker import check_env
 
-    from ftc.env import FuelTransferEnv
+    from ftc.plant.env import FuelTransferEnv
 
     env = FuelTransferEnv(str(scenarios / "single.toml"))
     try:

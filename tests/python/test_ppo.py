@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from ftc.ppo import (PPO, ActorCritic, PPOConfig, RolloutBuffer, clipped_surrogate_loss,
-                     ppo_update)
+from ftc.learning.buffer import RolloutBuffer
+from ftc.learning.ppo import PPO, ActorCritic, PPOConfig, clipped_surrogate_loss, ppo_update
 
 torch.set_num_threads(1)  # tiny networks: threads only add contention (and nondeterminism)
 

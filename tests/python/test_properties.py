@@ -27,7 +27,8 @@ from hypothesis import strategies as st
 
 from ftc.plant_control_t import plant_control_t
 from ftc.plant_state_t import plant_state_t
-from ftc.reward import EMPTY_VOLUME, reward, reward_terms, reward_torch
+from ftc.common.constants import EMPTY_VOLUME
+from ftc.plant.reward import reward, reward_terms, reward_torch
 from ftc.valve_command_t import valve_command_t
 
 FAST = settings(max_examples=200, deadline=None)

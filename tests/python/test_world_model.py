@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from ftc.model_env import ModelEnv, estimate_demand
+from ftc.learning.model_env import ModelEnv, estimate_demand
+from ftc.learning.transitions import Transitions, collect_nominal_dataset, collect_random_episodes
+from ftc.learning.world_model import (WorldModel, WorldModelConfig, cross_validated_scores,
+                                      evaluate_model)
 from ftc.plant import CorePlant
-from ftc.reward import reward_torch
-from ftc.world_model import (Transitions, WorldModel, WorldModelConfig, collect_nominal_dataset,
-                             collect_random_episodes, cross_validated_scores, evaluate_model)
+from ftc.plant.reward import reward_torch
 
 # The degraded plant of the refit test: engine E1 with D_E = 5 and tanks 5, 6
 # with D_T = 10, at age 5 (intervals). Demand then is

@@ -19,6 +19,15 @@ from pathlib import Path
 from typing import Any, Sequence
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line on stderr (``prog: error: ...``,
+    exit 2) instead of the usage text and the error: the line names the flag,
+    and ``--help`` shows the usage."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def flag(name: str, prefix: str = "") -> str:
     """The command-line option of config field ``name``."""
     return "--" + prefix + name.replace("_", "-")

@@ -31,7 +31,7 @@ from typing import Sequence
 
 import torch
 
-from ftc.common.cli import add_dataclass_options, config_from_namespace
+from ftc.common.cli import OneLineParser, add_dataclass_options, config_from_namespace
 from ftc.control.agent import Agent
 from ftc.control.baselines import BaselineAgent
 from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
@@ -67,7 +67,7 @@ class Controller(IntervalRunner):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m ftc.controller", allow_abbrev=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description=__doc__.split("\n\n")[0] + " Prints one progress line per interval.",

@@ -9,7 +9,7 @@ from typing import Any, Sequence
 
 import torch
 
-from ftc.common.cli import config_from_namespace
+from ftc.common.cli import OneLineParser, config_from_namespace
 from ftc.control import mpc_agent
 from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
@@ -41,7 +41,7 @@ IGNORED_CONTROLLER_OPTIONS: dict[str, dict[str, Any]] = {
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line: one option per MPCConfig field, plus the ignored PPO options."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m ftc.mpc", allow_abbrev=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description=mpc_agent.__doc__.split("\n\n")[0],

@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX, LCM_MULTICAST_GROUP
+from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX, LCM_MULTICAST_GROUP, NUM_TANKS
 from ftc.common.build_info import plant_binary
 from ftc.plant.link import PlantError, PlantGoneError, PlantObservation, valves_array
 

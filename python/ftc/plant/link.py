@@ -11,7 +11,7 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
-from ftc.common.constants import NUM_ENGINES, NUM_TANKS
+from ftc.common.constants import NUM_TANKS
 
 
 @dataclass(frozen=True)

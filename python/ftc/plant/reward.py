@@ -9,11 +9,14 @@ or torch.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from ftc.common.constants import EMPTY_VOLUME, NUM_TANKS
+
+if TYPE_CHECKING:
+    import torch
 
 MOMENT_ARMS = np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])  # m_i, tanks one unit apart
 AREAS = np.ones(NUM_TANKS)  # c_i, m^2
