@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import reference_sim
-from ftc.simulate import HEADER
+from ftc.tools.simulate import HEADER
 
 
 def _run(args, **kw):

@@ -8,7 +8,7 @@ returns the paths:
 (b) :func:`reward_per_interval`: mean reward per step in each interval for
     every method, single and multiple faults (``results.csv``);
 (c) :func:`tank_control`: the six tank levels over one episode with each
-    valve's open periods shaded (``trajectories/*.csv`` or ``ftc.replay``);
+    valve's open periods shaded (``trajectories/*.csv`` or ``ftc.tools.replay``);
 (d) :func:`aggregate`: mean and one-standard-deviation band over the
     aggregate trials, per method and interval (``results.csv``).
 
@@ -18,6 +18,7 @@ returns the paths:
 from __future__ import annotations
 
 import csv
+import io
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -28,6 +29,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
+from ftc.common.atomic import atomic_write_bytes  # noqa: E402
+from ftc.experiments.methods import METHODS  # noqa: E402
 
 FORMATS = ("png", "svg")
 #: Single-column paper figures: about 3.5 in wide; full width 7 in. Fonts of
@@ -57,19 +61,19 @@ def _save(fig: "plt.Figure", stem: Path, formats: Sequence[str] = FORMATS) -> li
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
     paths = []
-    for fmt in formats:
-        path = stem.with_name(stem.name + "." + fmt)
-        tmp = path.with_name(path.name + ".tmp")
-        fig.savefig(tmp, format=fmt, bbox_inches="tight")
-        tmp.replace(path)
-        paths.append(path)
-    plt.close(fig)
+    try:
+        for fmt in formats:
+            path = stem.with_name(stem.name + "." + fmt)
+            buf = io.BytesIO()
+            fig.savefig(buf, format=fmt, bbox_inches="tight")
+            atomic_write_bytes(path, buf.getvalue())
+            paths.append(path)
+    finally:
+        plt.close(fig)
     return paths
 
 
 def _labels(labels: dict[str, str] | None) -> dict[str, str]:
-    from ftc.experiments import METHODS
-
     out = {name: spec.label for name, spec in METHODS.items()}
     out.update(labels or {})
     return out

@@ -14,12 +14,16 @@ import base64
 import html
 import json
 import math
+import re
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from ftc.common.atomic import atomic_write_text
+from ftc.experiments import figures
 
 
 @dataclass
@@ -44,7 +48,7 @@ def _mean_std(values: list[float], digits: int = 3) -> str:
     return f"{np.mean(vals):.{digits}f} ± {np.std(vals):.{digits}f}"
 
 
-def _num(v) -> float | None:
+def _num(v: object) -> float | None:
     try:
         return None if v is None or v == "" else float(v)
     except (TypeError, ValueError):
@@ -256,8 +260,6 @@ def to_markdown(blocks: list[Block]) -> str:
 
 def _inline(text: str) -> str:
     """Escape, then render `code` and **bold** spans."""
-    import re
-
     s = html.escape(text)
     s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
     return re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", s)
@@ -293,9 +295,6 @@ def to_html(blocks: list[Block], run_dir: Path) -> str:
 
 def write_report(run_dir: Path) -> tuple[Path, Path]:
     """Draw the figures from saved data, then write report.md and report.html."""
-    from ftc import figures
-    from ftc.experiments import atomic_write_text
-
     run_dir = Path(run_dir)
     figures.draw_all(run_dir)
     blocks = build_blocks(run_dir)

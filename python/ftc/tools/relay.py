@@ -17,6 +17,7 @@ import json
 import random
 import signal
 import sys
+from typing import Callable
 
 from ftc.plant import DEFAULT_LCM_URL, check_loopback_url
 
@@ -43,7 +44,7 @@ class LossyRelay:
                         else (plant_prefix, client_prefix))
             self._lc.subscribe(src + suffix, self._forwarder(dst + suffix))
 
-    def _forwarder(self, destination: str):
+    def _forwarder(self, destination: str) -> Callable[[str, bytes], None]:
         def forward(channel: str, data: bytes) -> None:
             if self._rng.random() < self.loss:
                 self.counts["dropped"] += 1
@@ -55,7 +56,7 @@ class LossyRelay:
                 self.counts["duplicated"] += 1
         return forward
 
-    def run(self, should_stop) -> None:
+    def run(self, should_stop: Callable[[], bool]) -> None:
         while not should_stop():
             try:
                 self._lc.handle_timeout(100)

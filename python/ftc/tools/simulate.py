@@ -15,26 +15,22 @@ simulation of ../shared/design/plant-model.md with this file.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from ftc.atomic import atomic_write_csv
-from ftc.plant import NUM_TANKS, PlantError, launch
+from ftc.common.atomic import atomic_write_csv
+from ftc.common.cli import out_dir_problem
+from ftc.control.baselines import BASELINES, baseline_valves
+from ftc.plant import PlantError, launch, trajectory
 
-POLICIES = ("closed", "open", "random")
-HEADER = ["episode", "step", "age", *[f"u{i}" for i in range(1, 7)],
-          *[f"x{i}" for i in range(1, 7)]]
+POLICIES = BASELINES
+HEADER = trajectory.header()
 
 
-def policy_valves(policy: str, rng: np.random.Generator) -> np.ndarray:
-    if policy == "closed":
-        return np.zeros(NUM_TANKS, dtype=np.int8)
-    if policy == "open":
-        return np.ones(NUM_TANKS, dtype=np.int8)
-    return rng.integers(0, 2, NUM_TANKS).astype(np.int8)
+def _level(x: float) -> str:
+    return f"{x:.12g}"
 
 
 def run(scenario: str | None, policy: str, seed: int, steps: int, out: Path,
@@ -45,10 +41,10 @@ def run(scenario: str | None, policy: str, seed: int, steps: int, out: Path,
     with launch(scenario, seed, extra_args=extra_plant_args or []) as plant:
         plant.reset()
         for _ in range(steps):
-            u = policy_valves(policy, rng)
+            u = baseline_valves(policy, rng)
             o = plant.step(u)
-            rows.append([o.episode, o.step, f"{o.age:.6g}", *u.tolist(),
-                         *[f"{x:.12g}" for x in o.true_level]])
+            rows.append(trajectory.row(o.episode, o.step, o.age, u, o.true_level,
+                                       level_format=_level))
             if o.done:
                 plant.reset()
     atomic_write_csv(out, HEADER, rows)
@@ -74,12 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.scenario is not None and not args.scenario.is_file():
         parser.error(f"--scenario: no such file: {args.scenario}")
     # An unwritable --out is an error before the plant starts; nothing is created.
-    existing = args.out.resolve().parent
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        parser.error(f"--out {args.out}: cannot write there ({existing} is not a writable "
-                     "directory)")
+    problem = out_dir_problem(args.out.resolve().parent)
+    if problem:
+        parser.error(f"--out {args.out}: cannot write there ({problem})")
     extra = ([] if args.steps_per_interval is None
              else ["--steps-per-interval", str(args.steps_per_interval)])
     try:
