@@ -50,6 +50,8 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
             _core.load_scenario(cfg.scenario)
         except _core.ScenarioError as e:  # names the file and the key: one line
             parser.exit(EXIT_USAGE, f"{parser.prog}: error: --scenario: {e}\n")
+    if cfg.resume and not (Path(cfg.resume) / "config.json").is_file():
+        parser.error(f"--resume {cfg.resume}: config.json missing (is it a run directory?)")
     problem = out_dir_problem(cfg.resume or cfg.out)
     if problem:
         parser.error(f"--out {cfg.resume or cfg.out}: cannot write there ({problem})")

@@ -64,6 +64,12 @@ class RunConfig:
     def validate(self) -> None:
         """Cross-field rules (single fields declare their own constraints);
         raises ValueError naming the flag."""
+        if not self.out.strip():
+            raise ValueError("--out must name a directory, got ''")
+        if self.resume is not None and not self.resume.strip():
+            raise ValueError("--resume must name a run directory, got ''")
+        if self.prefix is not None and not self.prefix.strip():
+            raise ValueError("--prefix must not be empty (None: a private one)")
         if not self.link_retry_timeout <= self.link_give_up_timeout:
             raise ValueError("--link-retry-timeout must be > 0 and <= --link-give-up-timeout")
         if self.lcm_url is not None and self.link == "lcm":

@@ -44,7 +44,7 @@ from ftc.control.metrics import mean
 from ftc.learning.offline import (ModelWindow, OfflineResult, OfflineSettings, offline_phase,
                                   pretrained_world_model)
 from ftc.learning.ppo import PPO, PPOConfig, UpdateStats
-from ftc.learning.pretrain import PretrainSettings, pretrain_cached
+from ftc.learning.pretrain import PretrainSettings, code_fingerprint, pretrain_cached
 from ftc.learning.rollout import RolloutCollector
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
@@ -185,9 +185,12 @@ class PPOAgent(Agent):
         return self.cfg.offline
 
     def config_doc(self) -> dict[str, Any]:
-        if not self.cfg.offline:
-            return {}
-        return {"world_model": dataclasses.asdict(WorldModelConfig(seed=self.cfg.seed))}
+        doc: dict[str, Any] = {}
+        if self.cfg.offline:
+            doc["world_model"] = dataclasses.asdict(WorldModelConfig(seed=self.cfg.seed))
+        if self.cfg.pretrain:  # what the pretraining cache key covers
+            doc["pretrain_code"] = code_fingerprint()
+        return doc
 
     # -- online -----------------------------------------------------------------
     def begin_interval(self, interval: int) -> None:

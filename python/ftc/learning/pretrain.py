@@ -92,17 +92,22 @@ def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
             "pretrain_seconds": time.perf_counter() - start}
 
 
-def code_fingerprint() -> str:
-    """A hash of the code pretraining runs: the learning and plant Python
-    sources and the compiled physics core. A cached policy made by other code
-    is not reused."""
-    from ftc import _core  # native: the physics the nominal plants run
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
+FINGERPRINT_ROOMS = ("common", "plant", "learning")  # what pretraining executes
 
-    here = Path(__file__).resolve().parent
-    files = sorted(here.glob("*.py")) + sorted((here.parent / "plant").glob("*.py"))
+
+def code_fingerprint(package_dir: Path = PACKAGE_DIR, core: Path | None = None) -> str:
+    """A hash of the code pretraining runs: the Python sources of the rooms it
+    executes and the compiled physics core. A cached policy made by other code
+    is not reused."""
+    if core is None:
+        from ftc import _core  # native: the physics the nominal plants run
+
+        core = Path(_core.__file__)
+    files = [p for room in FINGERPRINT_ROOMS for p in sorted((package_dir / room).glob("*.py"))]
     h = hashlib.sha256()
-    for path in [*files, Path(_core.__file__)]:
-        h.update(path.name.encode())
+    for path in [*files, core]:
+        h.update(str(path.relative_to(path.parents[1])).encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:16]
 

@@ -121,7 +121,8 @@ class Transitions:
 # ---------------------------------------------------------------------------
 
 def collect_random_episodes(plant: PlantLink, episodes: int, seed: int = 0, *,
-                            max_hold: int = 30, evaluation: bool = False) -> Transitions:
+                            max_hold: int = 30, evaluation: bool = False,
+                            max_episode_steps: int = 4096) -> Transitions:
     """Run ``episodes`` episodes of random valve settings on ``plant``.
 
     Each setting (every valve open with probability 1/2) is held for a
@@ -129,15 +130,17 @@ def collect_random_episodes(plant: PlantLink, episodes: int, seed: int = 0, *,
     half a nominal episode), then redrawn; a new episode starts with a new
     setting. ``evaluation=True`` starts episodes with ``plant.evaluate()``
     (age frozen, steps not counted towards degradation) instead of ``reset()``.
-    Rows use the observed levels, as a controller sees them.
+    An episode is cut after ``max_episode_steps`` (a dead pump can keep one from
+    ever ending). Rows use the observed levels, as a controller sees them.
     """
     rng = np.random.default_rng(seed)
     observations: list[PlantObservation] = []
     for _ in range(episodes):
         obs = plant.evaluate() if evaluation else plant.reset()
         observations.append(obs)
-        hold = 0
-        while not obs.done:
+        hold, steps = 0, 0
+        while not obs.done and steps < max_episode_steps:
+            steps += 1
             if hold == 0:
                 valves = rng.integers(0, 2, NUM_TANKS).astype(np.int8)
                 hold = int(rng.integers(1, max_hold + 1))
