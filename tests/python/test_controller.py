@@ -101,9 +101,13 @@ def test_cli_parses_every_option_and_help_explains_them(capsys):
 def test_background_offline_swaps_in_improved_policies(tmp_path, scenarios):
     cfg = _short(tmp_path, intervals=3, link="core", offline_mode="background",
                  scenario=str(scenarios / "single.toml"))
-    rows = Controller(cfg, PPOConfig()).run()
+    ctrl = Controller(cfg, PPOConfig())
+    rows = ctrl.run()
     assert len(rows) == 3
-    # every offline phase finished and was swapped in (at the latest at the end)
+    # every offline phase finished and was swapped in: interval k's during interval k + 1
+    # (at an update boundary, or waited for at its end), the last one at the end of the run
+    assert [r["policy_swaps"] for r in rows] == [0, 1, 1]
+    assert ctrl.agent.swaps == 3
     assert all(r.get("model_r2") is not None for r in rows)
     table = _rows(tmp_path)
     assert all(t["model_r2"] != "" for t in table)

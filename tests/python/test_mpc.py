@@ -177,7 +177,10 @@ def test_cli_writes_the_controllers_outputs(tmp_path, scenarios, method):
     assert reader.fieldnames[:len(METRIC_COLUMNS)] == METRIC_COLUMNS
     assert [int(r["interval"]) for r in rows] == [0, 1]
     for r in rows:
-        assert float(r["reward_per_step"]) > 1.0 and float(r["eval_reward_per_step"]) > 1.0
+        # well above every fixed rule (all open 1.39, random 1.85 per step) and near all
+        # closed, the optimum of the nearly healthy plant (2.65 / 2.43 over these steps);
+        # measured: oracle 2.65 / 2.59, model 2.53 / 2.42 (seed 0)
+        assert float(r["reward_per_step"]) > 2.3 and float(r["eval_reward_per_step"]) > 2.3
         assert (r["model_r2"] != "") == (method == "model")
     assert json.loads((out / "done.json").read_text())["intervals"] == 2
     config = json.loads((out / "config.json").read_text())

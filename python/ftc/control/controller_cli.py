@@ -57,6 +57,10 @@ class Controller(IntervalRunner):
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         cfg.validate()
+        # one thread before the networks are built: their orthogonal initialisation
+        # differs in the last bits under a multi-threaded BLAS (measured: a run built
+        # first in a fresh process differed from later ones in approx_kl's 6th digit)
+        torch.set_num_threads(1)
         super().__init__(cfg, make_agent(cfg, ppo_config),
                          {"controller": cfg, "ppo": ppo_config})
 

@@ -23,6 +23,10 @@ class MPCController(IntervalRunner):
 
     def __init__(self, cfg: MPCConfig) -> None:
         cfg.validate()
+        # one thread before the networks are built: their orthogonal initialisation
+        # differs in the last bits under a multi-threaded BLAS (measured: a run built
+        # first in a fresh process differed from later ones in approx_kl's 6th digit)
+        torch.set_num_threads(1)
         super().__init__(cfg, MPCAgent(cfg), {"mpc": cfg})
 
 
