@@ -33,6 +33,7 @@ import torch
 
 from ftc.common.cli import OneLineParser, add_dataclass_options, config_from_namespace
 from ftc.control.agent import Agent
+from ftc.control.balance import BalanceAgent
 from ftc.control.baselines import BaselineAgent
 from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
 from ftc.control.ppo_agent import ControllerConfig, PPOAgent
@@ -49,6 +50,8 @@ def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
     """The agent of --method: PPO (Algorithm 1) or a baseline."""
     if cfg.method == "ppo":
         return PPOAgent(cfg, ppo_config)
+    if cfg.method == "balance":
+        return BalanceAgent()
     return BaselineAgent(cfg.method, cfg.seed)
 
 

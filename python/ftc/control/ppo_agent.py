@@ -50,7 +50,7 @@ from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
 from ftc.plant.link import PlantObservation
 
-METHODS = ("ppo", "closed", "open", "random")
+METHODS = ("ppo", "closed", "open", "random", "balance")
 OFFLINE_MODES = ("sequential", "background")
 PRETRAIN_SIMS = ("model", "core")
 
@@ -61,7 +61,8 @@ class ControllerConfig(RunConfig):
 
     method: str = field(default="ppo", metadata={"choices": METHODS, "help": (
         "ppo: the adaptive controller; closed / open / random: baselines (all valves "
-        "closed, all open, each valve open with p=0.5) through the same loop and plant")})
+        "closed, all open, each valve open with p=0.5) through the same loop and plant; "
+        "balance: a rule that moves fuel to the light wing when |cg| > 0.1")})
     update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
         "t_update: real steps between PPO updates (paper: 128)")})
     offline: bool = field(default=True, metadata={"help": (

@@ -55,5 +55,7 @@ register_method(MethodSpec("oracle-mpc", "MPC, faults known (oracle)", ("--metho
                            module="ftc.mpc", cost=1.5))
 register_method(MethodSpec("model-mpc", "MPC on the learned model", ("--method", "model"),
                            module="ftc.mpc", cost=3.0, learns=True))
+register_method(MethodSpec("balance", "rule: balance the wings", ("--method", "balance"),
+                           cost=1.0))
 PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
 DEFAULT_METHODS = (*PAPER_METHODS, "oracle-mpc", "model-mpc")
