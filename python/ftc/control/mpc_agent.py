@@ -53,7 +53,7 @@ from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant.link import PlantObservation
 
-METHODS = ("oracle", "model")
+METHODS = ("oracle", "model", "adaptive")
 PLANNERS = ("hold", "cem")
 MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs")
 
@@ -64,7 +64,9 @@ class MPCConfig(RunConfig):
 
     method: str = field(default="oracle", metadata={"choices": METHODS, "help": (
         "oracle: plans on the true degraded physics (knows the faults); model: plans on "
-        "the learned world model, refitted every interval (never told the faults)")})
+        "the learned world model, refitted every interval (never told the faults); "
+        "adaptive: plans on the plant's physics with its parameters identified from the "
+        "observed data (assumes the plant's structure, never told the faults)")})
     scenario: str | None = field(default="scenarios/single.toml", metadata={"help": (
         "fault scenario TOML given to the plant and read by the oracle ('' = nominal)")})
     seed: int = field(default=0, metadata={"check": at_least(0, 2**31 - 1), "help": (
@@ -98,6 +100,9 @@ class MPCConfig(RunConfig):
         "as the controller's default)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
         "model: nominal random-valve episodes for world-model pretraining (paper: 50)")})
+    identify_every: int = field(default=64, metadata={"check": at_least(0, 1_000_000), "help": (
+        "adaptive: re-identify the parameters every N steps of an interval from its data "
+        "so far (0: only at interval ends)")})
     evaluate: bool = field(default=True, metadata={"help": (
         "after each interval run one evaluation episode (age frozen) with the planner "
         "(eval_reward_per_step; MPC is deterministic, so it measures the same policy)")})

@@ -12,6 +12,7 @@ import torch
 from ftc.common.cli import OneLineParser, config_from_namespace
 from ftc.control import mpc_agent
 from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
+from ftc.control.adaptive_agent import AdaptiveAgent
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.runner import IntervalRunner
 
@@ -27,7 +28,8 @@ class MPCController(IntervalRunner):
         # differs in the last bits under a multi-threaded BLAS (measured: a run built
         # first in a fresh process differed from later ones in approx_kl's 6th digit)
         torch.set_num_threads(1)
-        super().__init__(cfg, MPCAgent(cfg), {"mpc": cfg})
+        agent = AdaptiveAgent(cfg) if cfg.method == "adaptive" else MPCAgent(cfg)
+        super().__init__(cfg, agent, {"mpc": cfg})
 
 
 # Options ftc.experiments passes to every method's controller that configure

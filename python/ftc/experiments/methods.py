@@ -24,6 +24,8 @@ class MethodSpec:
     module: the Python module to run
     cost: relative wall time (for scheduling longest first and the ETA)
     learns: whether it has a learned policy (deterministic evaluation, model R^2)
+    benchmark: whether ``ftc.experiments benchmark`` runs it by default (False for
+        diagnostic or very slow variants)
     """
 
     name: str
@@ -32,6 +34,7 @@ class MethodSpec:
     module: str = "ftc.controller"
     cost: float = 1.0
     learns: bool = False
+    benchmark: bool = True
 
 
 METHODS: dict[str, MethodSpec] = {}
@@ -57,5 +60,7 @@ register_method(MethodSpec("model-mpc", "MPC on the learned model", ("--method",
                            module="ftc.mpc", cost=3.0, learns=True))
 register_method(MethodSpec("balance", "rule: balance the wings", ("--method", "balance"),
                            cost=1.0))
+register_method(MethodSpec("adaptive", "MPC on identified physics (adaptive)",
+                           ("--method", "adaptive"), module="ftc.mpc", cost=2.0, learns=True))
 PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
 DEFAULT_METHODS = (*PAPER_METHODS, "oracle-mpc", "model-mpc")
