@@ -4,10 +4,13 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
+#include <cctype>
+#include <cmath>
 #include <csignal>
 #include <cstdint>
 #include <iostream>
 #include <map>
+#include <sstream>
 #include <string>
 
 #include "plant/core/scenario.h"
@@ -56,6 +59,64 @@ bool UrlIsLoopbackOnly(const std::string& url) {
     start = end + 1;
   }
   return ttl_options == 1 && ttl_zero;
+}
+
+// Declared option constraints. Each keeps the description CLI11 shows in --help
+// (POSITIVE, NONNEGATIVE, or none) and refuses what CLI11's own checks let
+// through: nan (every comparison with it is false), inf, values whose
+// conversion overflows, "" and negative numbers given to an unsigned option, and
+// an enum's number instead of its name.
+constexpr double kMaxRateHz = 1e5;      // a step every 10 us: far above what CVODE keeps up with
+constexpr double kMaxWatchdogS = 1e6;   // 11.6 days; std::chrono durations overflow near 1e10 s
+
+CLI::Validator Number(const std::string& description, double low, bool low_open, double high) {
+  return CLI::Validator(
+      [=](std::string& text) -> std::string {
+        double v = 0.0;
+        std::istringstream in(text);
+        if (text.empty() || !(in >> v) || !in.eof()) return "must be a number, got '" + text + "'";
+        if (!std::isfinite(v)) return "must be a finite number, got " + text;
+        std::ostringstream bound;
+        bound << (low_open ? "> " : ">= ") << low << " and <= " << high;
+        if (v < low || (low_open && v == low) || v > high)
+          return "must be " + bound.str() + ", got " + text;
+        return {};
+      },
+      description);
+}
+
+CLI::Validator Digits() {  // an unsigned integer written as digits only
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        if (text.empty()) return "must be an integer >= 0, got ''";
+        for (const char c : text)
+          if (!std::isdigit(static_cast<unsigned char>(c)))
+            return "must be an integer >= 0, got '" + text + "'";
+        return {};
+      },
+      "");
+}
+
+CLI::Validator NonEmpty() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        return text.empty() ? std::string("must not be empty") : std::string();
+      },
+      "");
+}
+
+template <typename T>
+CLI::Validator NameOf(const std::map<std::string, T>& names) {  // run before the transformer
+  return CLI::Validator(
+      [names](std::string& text) -> std::string {
+        std::string lower;
+        for (const char c : text) lower += static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+        if (names.count(lower)) return {};
+        std::string known;
+        for (const auto& [name, value] : names) known += (known.empty() ? "" : ", ") + name;
+        return "must be one of " + known + ", got '" + text + "'";
+      },
+      "");
 }
 
 int Run(const Options& options) {
@@ -113,34 +174,42 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--prefix", options.node.prefix,
                  "Channel prefix: <prefix>STATE, <prefix>COMMAND, <prefix>CONTROL")
+      ->check(NonEmpty())
       ->capture_default_str();
   app.add_option("--seed", options.seed, "Seed for sensor noise and random starts")
+      ->check(Digits())
       ->capture_default_str();
   std::map<std::string, RunMode> modes{{"lockstep", RunMode::kLockstep},
                                        {"realtime", RunMode::kRealtime}};
   app.add_option("--mode", options.node.mode,
                  "lockstep: one step per valve command; realtime: free-running at --rate")
       ->transform(CLI::CheckedTransformer(modes, CLI::ignore_case).description("{lockstep,realtime}"))
+      ->transform(NameOf(modes))
       ->default_str("lockstep");
   app.add_option("--rate", options.node.rate_hz, "Real-time mode: control steps per second")
-      ->check(CLI::PositiveNumber)
+      ->check(Number("POSITIVE", 0.0, true, kMaxRateHz))
       ->capture_default_str();
   app.add_option("--watchdog", options.node.watchdog_s,
                  "Real-time mode: seconds without a valid command before the safe state")
-      ->check(CLI::PositiveNumber)
+      ->check(Number("POSITIVE", 0.0, true, kMaxWatchdogS))
       ->capture_default_str();
   std::map<std::string, SafeState> safe{{"hold", SafeState::kHold},
                                         {"closed", SafeState::kClosed}};
   app.add_option("--safe-state", options.node.safe_state,
                  "Real-time mode: valves while the watchdog is tripped (hold last or all closed)")
       ->transform(CLI::CheckedTransformer(safe, CLI::ignore_case).description("{hold,closed}"))
+      ->transform(NameOf(safe))
       ->default_str("closed");
   app.add_option("--steps-per-interval", options.steps_per_interval,
                  "Override the scenario's control steps per degradation interval")
-      ->check(CLI::PositiveNumber);
+      ->check(Number("POSITIVE", 0.0, true, 2147483647.0));
   app.add_option("--start-step", options.start_step,
                  "Operating steps already done (resume a run at its age)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(Number("NONNEGATIVE", 0.0, false, 9.0e15));  // exact in a double
+  // Usage errors are one line naming the flag ("plant: error: --rate: ..."), exit 2.
+  app.failure_message([](const CLI::App*, const CLI::Error& e) {
+    return std::string("plant: error: ") + e.what() + "\n";
+  });
   app.add_flag("--allow-network", options.allow_network,
                "Allow an LCM URL that may leave this machine (warns)");
   app.add_flag("-v,--verbose", options.node.verbose, "Log start, shutdown and watchdog events");

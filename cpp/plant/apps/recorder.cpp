@@ -57,6 +57,10 @@ class Recorder final {
 
 }  // namespace
 
+// Exit codes as ftc.common.errors: 1 LCM failed, 2 bad options or the file
+// cannot be opened, 5 a write to the file failed (disk full).
+constexpr int kExitStorage = 5;
+
 int main(int argc, char** argv) {
   std::string url = "udpm://239.255.76.67:7667?ttl=0";
   std::string channel = ".*";
@@ -104,14 +108,22 @@ int main(int argc, char** argv) {
         break;
       }
       if (Clock::now() >= next_flush) {
-        std::fflush(log->f);
+        if (std::fflush(log->f) != 0) {  // buffered writes fail here (disk full)
+          std::cerr << "lcm_recorder: error: write to '" << path << "' failed (disk full?)\n";
+          rc = kExitStorage;
+          break;
+        }
         next_flush = Clock::now() + std::chrono::milliseconds(flush_ms);
       }
     }
     // Drain what already arrived before closing.
     while (!recorder.failed() && lcm.handleTimeout(0) > 0) {
     }
-    if (recorder.failed()) rc = 1;
+    if (recorder.failed()) rc = kExitStorage;
+    if (rc == 0 && std::fflush(log->f) != 0) {
+      std::cerr << "lcm_recorder: error: write to '" << path << "' failed (disk full?)\n";
+      rc = kExitStorage;
+    }
   }
   return rc;
 }

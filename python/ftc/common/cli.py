@@ -16,7 +16,7 @@ import math
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -147,3 +147,27 @@ def out_dir_problem(out: str | os.PathLike) -> str | None:
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
         return f"{existing} is not a writable directory"
     return None
+
+
+def checked(convert: Callable[[str], Any], check: Check | None = None,
+            nonempty: bool = False) -> Callable[[str], Any]:
+    """An argparse ``type`` that converts an option's text and applies ``check``
+    there, so the constraint sits next to the option's help text and argparse's
+    one-line error names the flag (``argument --jobs: must be >= 1, got 0``).
+    nonempty: refuse the empty string (paths, prefixes)."""
+    kind = {int: "an integer", float: "a number"}.get(convert, "a value")  # type: ignore[arg-type]
+
+    def parse(text: str) -> Any:
+        if nonempty and not text.strip():
+            raise argparse.ArgumentTypeError(f"must not be empty, got {text!r}")
+        try:
+            value = convert(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"must be {kind}, got {text!r}") from None
+        problem = check.problem(value) if check is not None else None
+        if problem:
+            raise argparse.ArgumentTypeError(problem)
+        return value
+
+    parse.__name__ = getattr(convert, "__name__", "value")
+    return parse

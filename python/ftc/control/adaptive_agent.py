@@ -40,21 +40,37 @@ from ftc.plant.link import PlantObservation
 
 
 class ParamsEvaluator:
-    """Candidate sequences simulated with given physical parameters (C++ batch rollouts)."""
+    """Candidate sequences simulated with given physical parameters (C++ batch rollouts).
+
+    Estimated parameters can make a candidate's rollout ill-posed where the true
+    ones are not (the integrator refuses a step that would switch modes without
+    end: chattering); such a candidate scores -inf and the others are planned
+    on, one rollout each. ``refused`` counts them."""
 
     def __init__(self, rollout: Any) -> None:
         self.rollout = rollout
         self.params: dict | None = None
+        self.refused = 0
 
     def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
-        return self.rollout.run(np.asarray(x0, np.float64), sequences, self.params)
+        x0 = np.asarray(x0, np.float64)
+        try:
+            return self.rollout.run(x0, sequences, self.params)
+        except RuntimeError:
+            totals = np.full(len(sequences), -np.inf)
+            for k in range(len(sequences)):
+                try:
+                    totals[k] = self.rollout.run(x0, sequences[k:k + 1], self.params)[0]
+                except RuntimeError:
+                    self.refused += 1
+            return totals
 
 
 class AdaptiveAgent(MPCAgent):
     """MPC on identified physics; see the module docstring."""
 
     extra_columns = (*MPCAgent.extra_columns, "identify_seconds", "identified_pump_min",
-                     "identified_demand_max")
+                     "identified_demand_max", "refused_rollouts")
 
     def __init__(self, cfg: MPCConfig) -> None:
         super().__init__(cfg)
@@ -107,7 +123,9 @@ class AdaptiveAgent(MPCAgent):
             return {}
         self.params, rms = self._identify()
         self.history.append(self.params)
+        refused, self.evaluator_.refused = self.evaluator_.refused, 0
         return {"model_one_step_rmse": rms, "identify_seconds": self.identify_seconds,
+                "refused_rollouts": refused,
                 "identified_pump_min": float(self.params.pump.min()),
                 "identified_demand_max": float(self.params.demand.max())}
 

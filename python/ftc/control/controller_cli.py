@@ -37,6 +37,7 @@ from ftc.control.balance import BalanceAgent
 from ftc.control.baselines import BaselineAgent
 from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
 from ftc.control.ppo_agent import ControllerConfig, PPOAgent
+from ftc.control.ppo_robust_agent import RobustPPOAgent
 from ftc.control.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
 
@@ -52,6 +53,8 @@ def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
         return PPOAgent(cfg, ppo_config)
     if cfg.method == "balance":
         return BalanceAgent()
+    if cfg.method == "ppo-robust":
+        return RobustPPOAgent(cfg, ppo_config)
     return BaselineAgent(cfg.method, cfg.seed)
 
 

@@ -50,7 +50,7 @@ from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
 from ftc.plant.link import PlantObservation
 
-METHODS = ("ppo", "closed", "open", "random", "balance")
+METHODS = ("ppo", "closed", "open", "random", "balance", "ppo-robust")
 OFFLINE_MODES = ("sequential", "background")
 PRETRAIN_SIMS = ("model", "core")
 
@@ -62,7 +62,8 @@ class ControllerConfig(RunConfig):
     method: str = field(default="ppo", metadata={"choices": METHODS, "help": (
         "ppo: the adaptive controller; closed / open / random: baselines (all valves "
         "closed, all open, each valve open with p=0.5) through the same loop and plant; "
-        "balance: a rule that moves fuel to the light wing when |cg| > 0.1")})
+        "balance: a rule that moves fuel to the light wing when |cg| > 0.1; ppo-robust: "
+        "PPO offline on the identified physics (docs/controller.md)")})
     update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
         "t_update: real steps between PPO updates (paper: 128)")})
     offline: bool = field(default=True, metadata={"help": (
@@ -80,6 +81,11 @@ class ControllerConfig(RunConfig):
         "model steps per env between offline PPO updates (update batch = envs x rollout)")})
     offline_minibatch: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
         "PPO minibatch size for offline updates (online uses --ppo-minibatch-size)")})
+    branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
+        "ppo-robust: share of offline episodes that start from a level observed on the "
+        "plant (short branched rollouts) instead of full tanks")})
+    branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
+        "ppo-robust: steps of a branched offline rollout")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
         "intervals of real data each refit trains on: 1 = only the interval just run "
         "(Algorithm 1: the cache is cleared after each refit); k > 1 keeps the last k")})

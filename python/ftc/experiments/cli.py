@@ -32,28 +32,48 @@ last). --resume skips finished runs and redoes unfinished ones from scratch.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
+import json
 import os
 import shlex
+import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Sequence
 
-from ftc.common.cli import out_dir_problem
+from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
+from ftc.common.errors import EXIT_USAGE, RunError
+from ftc.control import controller_cli, mpc_cli
+from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import report
 from ftc.experiments.collect import collect
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
+from ftc.experiments.processes import OutInUse, check_out_free
 from ftc.experiments.scenarios import EXPERIMENTS, PRESETS, ExperimentConfig
+
+TOOL = "ftc.experiments"
+# Declared constraints of the options (checked by argparse as they are read).
+MAX_JOBS = 256
+MAX_TRIALS = 10_000
+MAX_RUN_TIMEOUT = 1e6  # seconds (11.6 days); 0 means no timeout
+SEED = at_least(0, 2**31 - 1)  # the controller's --seed range
+SCENARIO_SEED = at_least(0, 2**63 - 1)  # numpy's default_rng takes any non-negative int
+# The command line each method's module is started with, for --controller-args.
+PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m ftc.experiments", description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("command", choices=(*EXPERIMENTS, "all", "model-search", "report"),
                         help="which experiment(s) to run; model-search: the world-model grid; "
                              "report: redo results, figures and report from saved runs")
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("--out", type=checked(Path, nonempty=True), default=None,
                         help="run directory (default: runs/<command>-<date-time>)")
     parser.add_argument("--resume", action="store_true",
                         help="complete an interrupted run directory: finished runs are kept, "
@@ -61,16 +81,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--full", action="store_true",
                         help="the paper's protocol (20 aggregate trials); default: a short run "
                              f"({PRESETS['quick']['trials']} aggregate trials)")
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+    parser.add_argument("--jobs", type=checked(int, at_least(1, MAX_JOBS)),
+                        default=os.cpu_count() or 1,
                         help="runs in parallel (default: number of cores)")
-    parser.add_argument("--trials", type=int, default=None, help="aggregate trials")
-    parser.add_argument("--seeds", type=int, nargs="+", default=None,
+    parser.add_argument("--trials", type=checked(int, at_least(1, MAX_TRIALS)), default=None,
+                        help="aggregate trials")
+    parser.add_argument("--seeds", type=checked(int, SEED), nargs="+", default=None,
                         help="controller seeds; every trial and method runs each (default: 0)")
-    parser.add_argument("--scenario-seed", type=int, default=ExperimentConfig.scenario_seed,
+    parser.add_argument("--scenario-seed", type=checked(int, SCENARIO_SEED),
+                        default=ExperimentConfig.scenario_seed,
                         help="seed of the aggregate trials' random faults")
-    parser.add_argument("--intervals", type=int, default=None,
-                        help="degradation intervals per run (paper: 10)")
-    parser.add_argument("--steps-per-interval", type=int, default=None,
+    parser.add_argument("--intervals", type=checked(int, at_least(1, MAX_INTERVALS)),
+                        default=None, help="degradation intervals per run (paper: 10)")
+    parser.add_argument("--steps-per-interval",
+                        type=checked(int, at_least(1, MAX_STEPS_PER_INTERVAL)), default=None,
                         help="real control steps per interval, t_online (paper: 512)")
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
                         help=f"methods to compare (registered: {', '.join(METHODS)})")
@@ -80,7 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller-args", default="",
                         help="extra arguments for every run's controller, one string "
                              "(e.g. \"--model-episodes 10 --offline-steps 512\")")
-    parser.add_argument("--run-timeout", type=float, default=0.0,
+    parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
+                        default=0.0,
                         help="kill a run after this many seconds and count it failed (0: never)")
     parser.add_argument("--model-search", action="store_true",
                         help="with 'all': also run the world-model grid")
@@ -89,54 +114,118 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
+                             config: ExperimentConfig, out: Path) -> str | None:
+    """Why a run's controller would refuse ``extra``, or None: each method's own
+    parser reads the run's command line (writing nothing), so a bad
+    --controller-args is refused here instead of failing every run."""
+    for name in methods:
+        method = METHODS[name]
+        module = PARSERS.get(method.module)
+        if module is None:  # a registered module of another kind: its runs will tell
+            continue
+        argv = [*method.args, "--scenario", "", "--seed", str(config.seeds[0]),
+                "--intervals", str(config.intervals),
+                "--steps-per-interval", str(config.steps_per_interval),
+                "--out", str(out / "runs" / "check"), *extra]
+        err = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+                module.parse_args(argv)
+        except SystemExit as e:
+            if e.code:
+                line = (err.getvalue().strip().splitlines() or [f"exit {e.code}"])[-1]
+                return f"{name}: {line.split(': error: ', 1)[-1]}"
+            return f"{name}: --help is not a run option"
+    return None
+
+
+def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
+    """The command line, every option checked before anything is started or
+    written: bad input exits 2 with one line naming the flag. Returns the
+    parsed options with ``out`` resolved and, for experiment commands,
+    ``config`` (the ExperimentConfig)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
-        parser.error(f"unknown methods {unknown}; registered: {', '.join(METHODS)}")
+        parser.error(f"--methods: unknown methods {unknown}; registered: {', '.join(METHODS)}")
+    try:
+        extra = tuple(shlex.split(args.controller_args))
+    except ValueError as e:
+        parser.error(f"--controller-args: {e}")
     out = args.out or Path("runs") / f"{args.command}-{time.strftime('%Y%m%d-%H%M%S')}"
+    ns = SimpleNamespace(**vars(args), out_dir=out, config=None)
     if args.command == "report":
         if not (out / "experiment.json").is_file():
             parser.error(f"--out {out} holds no experiment.json")
+        return ns
+    problem = out_dir_problem(out)
+    if problem:  # an unwritable --out is an error before any run starts
+        parser.error(f"--out {out}: cannot write there ({problem})")
+    if args.command == "model-search":
+        return ns
+    preset = PRESETS["full" if args.full else "quick"]
+    ns.config = ExperimentConfig(
+        experiments=EXPERIMENTS if args.command == "all" else (args.command,),
+        methods=tuple(dict.fromkeys(args.methods)),
+        seeds=tuple(dict.fromkeys(args.seeds)) if args.seeds else preset["seeds"],
+        trials=args.trials if args.trials is not None else preset["trials"],
+        scenario_seed=args.scenario_seed,
+        # "is None", not "or": an explicit value is checked, never replaced
+        intervals=args.intervals if args.intervals is not None else preset["intervals"],
+        steps_per_interval=(args.steps_per_interval if args.steps_per_interval is not None
+                            else preset["steps_per_interval"]),
+        controller_args=(("--pretrain",) if args.pretrain else ()) + extra,
+        run_timeout=args.run_timeout)
+    problem = _controller_args_problem(ns.config.methods, ns.config.controller_args, ns.config,
+                                       out)
+    if problem:
+        parser.error(f"--controller-args: {problem}")
+    meta = out / "experiment.json"
+    if meta.is_file():
+        if not args.resume:
+            parser.error(f"--out {out} already holds an experiment; use --resume to complete "
+                         "it or choose another --out")
+        try:
+            ExperimentConfig.from_json(json.loads(meta.read_text())["config"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            parser.error(f"--resume: {meta} is not a readable experiment "
+                         f"({type(e).__name__}: {e})")
+    try:
+        check_out_free(out)
+    except OutInUse as e:
+        parser.exit(EXIT_USAGE, f"{parser.prog}: error: --resume: {e}\n")
+    return ns
+
+
+def _run(args: SimpleNamespace) -> int:
+    out = args.out_dir
+    if args.command == "report":
         collect(out)
         report.write_report(out)
         print(f"report at {out / 'report.md'}")
         return 0
     if args.command == "model-search":
-        out.mkdir(parents=True, exist_ok=True)
-        model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(),
-                     max(1, args.jobs))
+        model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(), args.jobs)
         if (out / "experiment.json").is_file():
             report.write_report(out)
         print(f"model search table at {out / 'model_search.csv'}")
         return 0
-    preset = PRESETS["full" if args.full else "quick"]
-    config = ExperimentConfig(
-        experiments=EXPERIMENTS if args.command == "all" else (args.command,),
-        methods=tuple(args.methods),
-        seeds=tuple(args.seeds) if args.seeds else preset["seeds"],
-        trials=args.trials if args.trials is not None else preset["trials"],
-        scenario_seed=args.scenario_seed,
-        # "is None", not "or": an explicit 0 must be refused below, not replaced
-        intervals=args.intervals if args.intervals is not None else preset["intervals"],
-        steps_per_interval=(args.steps_per_interval if args.steps_per_interval is not None
-                            else preset["steps_per_interval"]),
-        controller_args=(("--pretrain",) if args.pretrain else ())
-        + tuple(shlex.split(args.controller_args)),
-        run_timeout=args.run_timeout)
-    for name in ("trials", "intervals", "steps_per_interval"):
-        if getattr(config, name) <= 0:
-            parser.error(f"--{name.replace('_', '-')} must be positive")
-    # An unwritable --out is an error before any run starts.
-    problem = out_dir_problem(out)
-    if problem:
-        parser.error(f"--out {out}: cannot write there ({problem})")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        parser.error(f"--out {out}: cannot write there: {e.strerror or e}")
     if args.command == "all" and args.model_search:
-        model_search(out, ModelSearchConfig(), max(1, args.jobs))
-    failed = run_experiments(out, config, max(1, args.jobs), args.resume)
+        model_search(out, ModelSearchConfig(), args.jobs)
+    failed = run_experiments(out, args.config, args.jobs, args.resume)
     return 1 if failed else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit codes (:mod:`ftc.common.errors`): 0 done; 1 some runs failed (named on
+    the last line); 2 bad input, or --out in use by a running orchestrator;
+    5 a file could not be written (disk full, unwritable path: the line names
+    it; temporary files are removed and --resume continues once space is back)."""
+    args = parse_args(argv)
+    try:
+        return _run(args)
+    except RunError as e:
+        print(f"{TOOL}: error: {e}", file=sys.stderr, flush=True)
+        return e.exit_code

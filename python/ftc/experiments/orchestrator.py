@@ -5,7 +5,10 @@ process group on SIGINT/SIGTERM, then collect the results and write the
 figures and the report.
 
 --resume re-opens a directory: finished runs are kept, unfinished ones are
-redone from scratch.
+redone from scratch. While an orchestrator runs it holds OUT/orchestrator.lock
+(a second one on the same OUT refuses), and its children die with it, even
+when it is killed with SIGKILL (processes.Guardian). A file that cannot be
+written (disk full) stops every run and raises StorageError naming it.
 """
 
 from __future__ import annotations
@@ -23,10 +26,11 @@ from typing import Callable, TextIO
 
 from ftc.common.atomic import atomic_write_json, atomic_write_text
 from ftc.common.build_info import git_revision
+from ftc.common.errors import StorageError
 from ftc.experiments import report
 from ftc.experiments.collect import collect
 from ftc.experiments.methods import METHODS
-from ftc.experiments.processes import RunFailed, RunHandle
+from ftc.experiments.processes import Guardian, OrchestratorLock, RunFailed, RunHandle
 from ftc.experiments.progress import Progress
 from ftc.experiments.runs import (IncompleteLog, RunSpec, baseline_specs, execute_run,
                                   is_finished, plan_runs, run_baseline_episode)
@@ -41,12 +45,16 @@ class Orchestrator:
     before it counts as failed
     """
 
-    def __init__(self, jobs: int, attempts: int = 3) -> None:
-        self.jobs = max(1, jobs)
+    def __init__(self, jobs: int, attempts: int = 3, guardian: Guardian | None = None) -> None:
+        if jobs < 1:
+            raise ValueError(f"jobs must be >= 1, got {jobs}")
+        self.jobs = jobs
         self.attempts = attempts
+        self.guardian = guardian
         self.handles: dict[str, RunHandle] = {}
         self._lock = threading.Lock()
         self.stopping = False
+        self.storage_error: StorageError | None = None
 
     def stop_all(self) -> None:
         self.stopping = True
@@ -57,7 +65,7 @@ class Orchestrator:
     def _run_one(self, spec: RunSpec, config: ExperimentConfig, out: Path,
                  progress: Progress) -> dict:
         """One run, redone (up to ``attempts`` times) when its log misses messages."""
-        handle = RunHandle(spec.key, spec.directory(out))
+        handle = RunHandle(spec.key, spec.directory(out), guardian=self.guardian)
         with self._lock:
             if self.stopping:
                 raise RunFailed("cancelled")
@@ -68,6 +76,7 @@ class Orchestrator:
                 try:
                     return execute_run(spec, config, out, handle)
                 except IncompleteLog as e:
+                    handle.release()
                     if attempt >= self.attempts or self.stopping:
                         raise
                     # Kept for diagnosis, outside the results tree.
@@ -79,6 +88,7 @@ class Orchestrator:
                                           f"(attempt kept in {keep})\n")
                     attempt += 1
         finally:
+            handle.release()
             with self._lock:
                 self.handles.pop(spec.key, None)
 
@@ -101,6 +111,12 @@ class Orchestrator:
                         results[key] = {"status": "ok", "result": f.result()}
                         if key in progress.runs_keys:
                             progress.done.add(key)
+                    except StorageError as e:  # the disk is full for every run: stop
+                        results[key] = {"status": "failed", "error": str(e)}
+                        progress.failed.add(key)
+                        if self.storage_error is None:
+                            self.storage_error = e
+                            self.stop_all()
                     except Exception as e:  # noqa: BLE001 - reported per run, the rest go on
                         results[key] = {"status": "failed", "error": str(e)}
                         progress.failed.add(key)
@@ -110,6 +126,8 @@ class Orchestrator:
                     running = {k: h for k, h in self.handles.items() if h.started}
                 progress.show(running)
         progress.show({}, final=True)
+        if self.storage_error is not None:
+            raise self.storage_error
         return results
 
 
@@ -157,9 +175,29 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
 def run_experiments(out: Path, config: ExperimentConfig, jobs: int, resume: bool,
                     stream: TextIO = sys.stderr) -> int:
     """Run (or complete) the configured experiments into ``out``; then collect and
-    write the figures and report. Returns the number of failed runs."""
+    write the figures and report. Returns the number of failed runs.
+
+    Raises OutInUse if another orchestrator is running on ``out``, StorageError
+    if a file cannot be written."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise StorageError(f"cannot write {out}: {e.strerror or e}") from None
+    lock = OrchestratorLock(out).acquire()
+    if lock.took_over:
+        print(f"ftc.experiments: taking over the stale lock of pid {lock.took_over.get('pid')} "
+              f"(no longer running)", file=stream)
+    guardian = Guardian()
+    try:
+        return _run_locked(out, config, jobs, resume, stream, guardian)
+    finally:
+        guardian.close()
+        lock.release()
+
+
+def _run_locked(out: Path, config: ExperimentConfig, jobs: int, resume: bool, stream: TextIO,
+                guardian: Guardian) -> int:
     config = prepare_directory(out, config, resume)
     runs = plan_runs(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
@@ -170,7 +208,7 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int, resume: bool
     print(f"ftc.experiments: {len(runs)} runs in {out} ({len(finished)} already finished), "
           f"{len(baselines)} baseline episodes, jobs {jobs}", file=stream)
     progress = Progress(runs, finished, config.intervals, stream)
-    orchestrator = Orchestrator(jobs)
+    orchestrator = Orchestrator(jobs, guardian=guardian)
 
     def on_signal(signum: int, frame: object) -> None:
         orchestrator.stop_all()

@@ -1,6 +1,10 @@
 """The processes of a run other than its controller: the recorder of its LCM
-traffic, and the bookkeeping (pid and start time of every process group a run
-starts) that lets --resume stop what a killed orchestrator left running.
+traffic; the bookkeeping (pid and start time of every process group a run
+starts) that lets --resume stop what a killed orchestrator left running; and
+what makes the children die with the orchestrator (a parent-death signal on
+each, and a guardian process that kills their process groups, the plants
+the controllers started included, once the orchestrator is gone); the lock
+that keeps two orchestrators out of one run directory.
 
 Every process is started in its own session, so its process group id is its
 pid and stopping the group stops the plant a controller started too.
@@ -8,32 +12,114 @@ pid and stopping the group stops the plant a controller started too.
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import fcntl
 import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
-from ftc import BUILD_DIR
 from ftc.common.atomic import atomic_write_json
-from ftc.common.errors import RunError
+from ftc.common.build_info import recorder_binary
+from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE, RunError, StorageError
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+LOCK_NAME = "orchestrator.lock"
 
 
 class RunFailed(RunError):
     """One run failed (the others go on); the message says why."""
 
 
-def recorder_binary() -> Path:
-    """build/lcm_recorder: records a run's traffic in lcm-logger's file format
-    without lcm-logger's 30-message subscription queue, which dropped plant
-    states whenever the recorder was briefly descheduled (measured: 2 to 752
-    of ~5,000 per run on a loaded 2-core machine). See cpp/plant/apps/recorder.cpp."""
-    path = BUILD_DIR / "lcm_recorder"
-    if not path.is_file():
-        raise FileNotFoundError(f"lcm_recorder not found at {path}; run scripts/setup.sh")
-    return path
+class OutInUse(RunError):
+    """The run directory belongs to an orchestrator that is still running."""
+
+    exit_code = EXIT_USAGE
+
+
+def die_with_parent(then: Callable[[], None] | None = None) -> Callable[[], None]:
+    """A ``preexec_fn``: the child gets SIGKILL when the thread that started it
+    ends (PR_SET_PDEATHSIG; the pool threads of the orchestrator live as long as
+    it does), or exits at once if that already happened; then runs ``then``."""
+    parent = os.getpid()
+
+    def preexec() -> None:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent:  # the parent died before prctl took effect
+            os._exit(1)
+        if then is not None:
+            then()
+
+    return preexec
+
+
+# The guardian: reads "+gPGID" / "+pPID" lines (a process group, a single
+# process) and "-..." to forget one while the orchestrator lives; at end of
+# input (the orchestrator has exited or was killed) it kills what is still
+# listed. Standard library only, so it starts in a few milliseconds.
+_GUARDIAN = r"""
+import os, signal, sys
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+listed = set()
+for line in sys.stdin:
+    line = line.strip()
+    if line[:1] == "+":
+        listed.add(line[1:])
+    elif line[:1] == "-":
+        listed.discard(line[1:])
+for entry in listed:
+    try:
+        (os.killpg if entry[0] == "g" else os.kill)(int(entry[1:]), signal.SIGKILL)
+    except (OSError, ValueError):
+        pass
+"""
+
+
+class Guardian:
+    """Kills the process groups of the runs (controller, its plant, recorder) when
+    the orchestrator ends in any way, SIGKILL included: the parent-death signal
+    reaches only a direct child, not the plant a controller started."""
+
+    def __init__(self) -> None:
+        self.process = subprocess.Popen([sys.executable, "-S", "-c", _GUARDIAN],
+                                        stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL, text=True,
+                                        start_new_session=True)
+
+    def _send(self, line: str) -> None:
+        try:
+            self.process.stdin.write(line + "\n")
+            self.process.stdin.flush()
+        except (OSError, ValueError):
+            pass
+
+    def watch(self, pgid: int) -> None:
+        """Kill process group ``pgid`` when the orchestrator dies."""
+        self._send(f"+g{pgid}")
+
+    def release(self, pgid: int) -> None:
+        self._send(f"-g{pgid}")
+
+    def watch_process(self, pid: int) -> None:
+        """Kill process ``pid`` (not a group leader) when the orchestrator dies."""
+        self._send(f"+p{pid}")
+
+    def release_process(self, pid: int) -> None:
+        self._send(f"-p{pid}")
+
+    def close(self) -> None:
+        try:
+            self.process.stdin.close()
+        except OSError:
+            pass
+        self.process.wait()
 
 
 def _proc_start_time(pid: int) -> str | None:
@@ -86,6 +172,18 @@ class RunHandle:
     started: float = 0.0
     processes: list[subprocess.Popen] = field(default_factory=list)
     cancelled: bool = False
+    guardian: Guardian | None = None
+
+    def watch(self, proc: subprocess.Popen) -> None:
+        """Have the guardian kill ``proc``'s process group if the orchestrator dies."""
+        if self.guardian is not None:
+            self.guardian.watch(proc.pid)
+
+    def release(self) -> None:
+        """The run's processes have ended: the guardian forgets their groups."""
+        if self.guardian is not None:
+            for p in self.processes:
+                self.guardian.release(p.pid)
 
     def stop(self) -> None:
         self.cancelled = True
@@ -132,7 +230,8 @@ class LcmLogger:
     """
 
     def __init__(self, url: str, prefix: str, path: Path, stderr_path: Path,
-                 timeout: float = 10.0) -> None:
+                 timeout: float = 10.0,
+                 on_start: Callable[[subprocess.Popen], None] | None = None) -> None:
         import lcm
 
         self.url, self.prefix, self.path, self.timeout = url, prefix, path, timeout
@@ -146,7 +245,9 @@ class LcmLogger:
             [str(recorder_binary()), "--flush-interval", "100",
              "--channel", f"{prefix}.*", "--lcm-url", _with_recv_buffer(url), str(path)],
             stdin=subprocess.DEVNULL, stdout=self._stderr, stderr=self._stderr,
-            start_new_session=True, preexec_fn=_raise_priority)
+            start_new_session=True, preexec_fn=die_with_parent(_raise_priority))
+        if on_start is not None:
+            on_start(self.process)
         self._wait_for(f"{prefix}LOGGER_START")
 
     def _wait_for(self, channel: str) -> None:
@@ -154,6 +255,9 @@ class LcmLogger:
         deadline = time.monotonic() + self.timeout
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
+                if self.process.returncode == EXIT_STORAGE:
+                    raise StorageError(f"cannot write {self.path}: the recorder's write "
+                                       "failed (disk full?)")
                 raise RunFailed(f"recorder exited with code {self.process.returncode} "
                                 f"(see {self._stderr.name})")
             self._lc.publish(channel, b"probe")
@@ -183,3 +287,91 @@ class LcmLogger:
                     self.process.kill()
                     self.process.wait()
             self._stderr.close()
+
+
+class OrchestratorLock:
+    """OUT/orchestrator.lock while an orchestrator runs on OUT: an flock (which
+    a killed holder drops with its last descriptor) on a file naming its pid
+    and process start time. A lock left by a dead orchestrator is stale and
+    taken over; one held by a live orchestrator refuses with OutInUse."""
+
+    def __init__(self, out: Path) -> None:
+        self.path = Path(out) / LOCK_NAME
+        self._fd: int | None = None
+        self.took_over: dict | None = None
+
+    def acquire(self) -> "OrchestratorLock":
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise StorageError(f"cannot lock {self.path}: {e.strerror or e}") from None
+            raise OutInUse(_in_use_message(self.path, read_lock(self.path))) from None
+        holder = read_lock(self.path)
+        if holder and holder.get("pid") != os.getpid() and _alive(holder):
+            os.close(fd)  # a file system without flock: the pid and start time tell
+            raise OutInUse(_in_use_message(self.path, holder))
+        self.took_over = holder or None
+        me = json.dumps({"pid": os.getpid(), "start": _proc_start_time(os.getpid()),
+                         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode()
+        try:
+            os.ftruncate(fd, 0)
+            if os.pwrite(fd, me, 0) != len(me):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        except OSError as e:
+            os.close(fd)
+            self.path.unlink(missing_ok=True)
+            raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            self.path.unlink(missing_ok=True)  # still holding it: no one sees a gap
+            os.close(self._fd)
+            self._fd = None
+
+
+def read_lock(path: Path) -> dict:
+    try:
+        doc = json.loads(Path(path).read_text() or "{}")
+        return doc if isinstance(doc, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _alive(holder: dict) -> bool:
+    pid, start = holder.get("pid"), holder.get("start")
+    return bool(isinstance(pid, int) and start and _proc_start_time(pid) == start)
+
+
+def _in_use_message(path: Path, holder: dict) -> str:
+    who = f"pid {holder['pid']}" if holder.get("pid") else "another process"
+    since = f", started {holder['started']}" if holder.get("started") else ""
+    return (f"{path.parent} is in use by a running ftc.experiments ({who}{since}; lock "
+            f"{path}): wait for it to finish or stop it first")
+
+
+def check_out_free(out: Path) -> None:
+    """Raise OutInUse if a live orchestrator holds OUT's lock (creates nothing)."""
+    path = Path(out) / LOCK_NAME
+    if not path.is_file():
+        return
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        raise OutInUse(_in_use_message(path, read_lock(path))) from None
+    finally:
+        os.close(fd)
+    holder = read_lock(path)
+    if holder and holder.get("pid") != os.getpid() and _alive(holder):
+        raise OutInUse(_in_use_message(path, holder))

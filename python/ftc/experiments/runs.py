@@ -19,17 +19,21 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json
+from ftc.common.errors import EXIT_STORAGE, StorageError
 from ftc.control.baselines import baseline_valves
 from ftc.experiments.methods import METHODS
-from ftc.experiments.processes import (LcmLogger, RunFailed, RunHandle, record_process,
-                                       stop_leftover_processes)
+from ftc.experiments.processes import (LcmLogger, RunFailed, RunHandle, die_with_parent,
+                                       record_process, stop_leftover_processes)
 from ftc.experiments.scenarios import ExperimentConfig, experiment_scenarios
-from ftc.plant import launch, private_lcm_url, private_prefix, trajectory
+from ftc.common.build_info import plant_binary
+from ftc.plant import (LcmPlant, PlantError, PlantGoneError, private_lcm_url, private_prefix,
+                       trajectory)
 from ftc.plant.log import read_log
 from ftc.plant.reward import reward
 
@@ -110,8 +114,10 @@ def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: P
     cmd = [sys.executable, "-m", method.module, *method.args,
            "--scenario", str(scenario_path), "--seed", str(spec.seed), "--out", str(out_dir),
            "--intervals", str(config.intervals),
-           "--steps-per-interval", str(config.steps_per_interval),
-           "--lcm-url", url, "--prefix", prefix]
+           "--steps-per-interval", str(config.steps_per_interval)]
+    # link core: the physics runs in the controller's process, no LCM traffic
+    cmd += (["--link", "core"] if config.link == "core"
+            else ["--lcm-url", url, "--prefix", prefix])
     return cmd + list(config.controller_args)
 
 
@@ -119,7 +125,31 @@ def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunH
     """Run one controller against its own plant with a logger; write its results.
 
     Returns the result record (also written to result.json when it succeeded).
+    Raises StorageError (naming the path) when a file of the run cannot be
+    written, by this process, the controller (its exit code 5) or the recorder.
     """
+    try:
+        return _execute_run(spec, config, out, handle)
+    except OSError as e:
+        raise StorageError(f"cannot write {e.filename or handle.directory}: "
+                           f"{e.strerror or e}") from None
+
+
+def _storage_problem(run_dir: Path, returncode: int | None) -> str | None:
+    """The controller's own one-line storage error (exit 5), or None."""
+    if returncode != EXIT_STORAGE:
+        return None
+    try:
+        lines = (run_dir / "controller.log").read_text(errors="replace").strip().splitlines()
+    except OSError:
+        lines = []
+    line = next((x for x in reversed(lines) if "error:" in x), "")
+    return (line.split("error: ", 1)[1] if line else
+            f"cannot write in {run_dir / 'controller'}: the controller exited with code 5 "
+            "(storage)")
+
+
+def _execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunHandle) -> dict:
     run_dir = handle.directory
     if run_dir.exists():
         stop_leftover_processes(run_dir)
@@ -131,9 +161,12 @@ def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunH
     record = {"run": spec.key, **dataclasses.asdict(spec), "lcm_url": url, "prefix": prefix,
               "command": cmd, "status": "running"}
     handle.started = time.time()
-    logger = LcmLogger(url, prefix, run_dir / "plant.lcmlog", run_dir / "logger.log")
-    handle.processes.append(logger.process)
-    record_process(run_dir, "recorder", logger.process)
+    logger = None  # link core: no plant process, nothing to record
+    if config.link != "core":
+        logger = LcmLogger(url, prefix, run_dir / "plant.lcmlog", run_dir / "logger.log",
+                           on_start=handle.watch)
+        handle.processes.append(logger.process)
+        record_process(run_dir, "recorder", logger.process)
     returncode = None
     try:
         with open(run_dir / "controller.log", "wb") as log:
@@ -143,7 +176,9 @@ def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunH
             # is bounded and it missed states under load at equal priority).
             proc = subprocess.Popen(["nice", "-n", str(config.nice), *cmd],
                                     stdin=subprocess.DEVNULL, stdout=log,
-                                    stderr=subprocess.STDOUT, start_new_session=True)
+                                    stderr=subprocess.STDOUT, start_new_session=True,
+                                    preexec_fn=die_with_parent())
+            handle.watch(proc)
             handle.processes.append(proc)
             record_process(run_dir, "controller", proc)
             try:
@@ -153,18 +188,23 @@ def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunH
                 proc.wait()
                 raise RunFailed(f"timed out after {config.run_timeout:.0f} s") from None
     finally:
-        logger.stop()
+        if logger is not None:
+            logger.stop()
     wall = time.time() - handle.started
     record.update(started=handle.started, wall_time_s=wall, returncode=returncode)
     if handle.cancelled:
         raise RunFailed("cancelled")
+    problem = _storage_problem(run_dir, returncode)
+    if problem:
+        raise StorageError(problem)
     if returncode != 0:
         raise RunFailed(f"controller exited with code {returncode}; see "
                         f"{run_dir / 'controller.log'}")
     metrics_path = run_dir / "controller" / "metrics.csv"
     if not metrics_path.is_file():
         raise RunFailed(f"controller wrote no {metrics_path}")
-    record.update(check_log(run_dir / "plant.lcmlog"))
+    if logger is not None:
+        record.update(check_log(run_dir / "plant.lcmlog"))
     rows = read_metrics_csv(metrics_path)
     if len(rows) != config.intervals:
         raise RunFailed(f"{metrics_path} has {len(rows)} intervals, expected {config.intervals}")
@@ -195,27 +235,61 @@ def baseline_specs(config: ExperimentConfig) -> list[tuple[str, str | None, int,
     return specs
 
 
+BASELINE_INTERVAL = 100_000  # steps: the plant's degradation interval in a baseline episode
+
+
 def run_baseline_episode(out: Path, stem: str, scenario: str | None, age: int,
-                         policy: str) -> Path:
+                         policy: str, max_steps: int = BASELINE_INTERVAL) -> Path:
     """One episode with all valves closed or open at a given age, on the real plant;
     written to baselines/<stem>.csv (episode, step, age, u1..u6, x1..x6, reward).
 
     The plant starts at operating step age * K with a long interval K, so the
-    whole episode runs at that age.
+    whole episode runs at that age. The episode is cut after ``max_steps``
+    steps (at most K, where the plant would end it and change the age: an
+    episode whose fuel never runs out, e.g. behind a dead pump, ends there);
+    the cut is reported on stderr.
     """
     path = out / "baselines" / f"{stem}.csv"
-    long_interval = 100_000
+    max_steps = min(max_steps, BASELINE_INTERVAL)
     scenario_path = str(out / "scenarios" / f"{scenario}.toml") if scenario else None
     u = baseline_valves(policy)
     rows = []
-    with launch(scenario_path, 0, extra_args=["--steps-per-interval", str(long_interval),
-                                              "--start-step", str(age * long_interval)]) as plant:
+    done = False
+    with _launch_plant(scenario_path, ["--steps-per-interval", str(BASELINE_INTERVAL),
+                                       "--start-step", str(age * BASELINE_INTERVAL)]) as plant:
         plant.reset()
-        while True:
+        for _ in range(max_steps):
             o = plant.step(u)
             rows.append(trajectory.row(o.episode, o.step, o.age, u, o.level,
                                        reward=float(reward(o.level, u))))
             if o.done:
+                done = True
                 break
+    if not done:
+        print(f"baseline {stem}: episode cut at {max_steps} steps (it had not ended)",
+              file=sys.stderr)
     atomic_write_csv(path, trajectory.header(reward=True), rows)
     return path
+
+
+def _launch_plant(scenario: str | None, extra: list[str]) -> LcmPlant:
+    """ftc.plant.launch for the orchestrator's own plants: the same command on a
+    private URL and prefix, started with a parent-death signal so that it dies
+    with the orchestrator (launch() has no hook for one)."""
+    url, prefix = private_lcm_url(), private_prefix()
+    cmd = [str(plant_binary()), "--lcm-url", url, "--prefix", prefix, "--seed", "0",
+           *(["--scenario", scenario] if scenario else []), *extra]
+    fd, stderr_path = tempfile.mkstemp(prefix="ftc-plant-", suffix=".log")
+    with os.fdopen(fd, "wb") as stderr:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=stderr, preexec_fn=die_with_parent())
+    try:
+        return LcmPlant(url, prefix, process=proc, stderr_path=stderr_path)
+    except PlantGoneError as e:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        message = Path(stderr_path).read_text(errors="replace").strip()
+        os.unlink(stderr_path)
+        raise PlantError(f"plant failed to start ({' '.join(cmd)}): {message or e}",
+                         exit_code=proc.returncode) from None

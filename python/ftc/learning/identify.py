@@ -87,13 +87,18 @@ class Identifier:
 
     def predict(self, params: PlantParameters, level: np.ndarray, valves: np.ndarray
                 ) -> np.ndarray:
-        """Next levels (T, 6) of rows (level (T, 6), valves (T, 6)) under ``params``."""
+        """Next levels (T, 6) of rows (level (T, 6), valves (T, 6)) under ``params``;
+        NaN for a row the integrator refuses under these parameters (chattering)."""
         core = params.as_core()
         out = np.empty_like(level, dtype=np.float64)
         for t in range(len(level)):
-            r = self.rollout.run(level[t], valves[t].reshape(1, 1, NUM_TANKS).astype(np.int64),
-                                 core, details=True)
-            out[t] = r["levels"][0, 0]
+            try:
+                r = self.rollout.run(level[t],
+                                     valves[t].reshape(1, 1, NUM_TANKS).astype(np.int64),
+                                     core, details=True)
+                out[t] = r["levels"][0, 0]
+            except RuntimeError:
+                out[t] = np.nan
         return out
 
     def fit(self, level: np.ndarray, valves: np.ndarray, next_level: np.ndarray,
@@ -129,8 +134,8 @@ class Identifier:
                 return PlantParameters(pump, 1.0 / c, demand)
 
             def residuals(c_used: np.ndarray) -> np.ndarray:
-                pred = self.predict(with_c(c_used), x, u)
-                return np.r_[((pred - y) / LEVEL_STD).ravel(),
+                error = np.nan_to_num(self.predict(with_c(c_used), x, u) - y, nan=1.0)
+                return np.r_[(error / LEVEL_STD).ravel(),
                              (c_used - c0[used]) / PRIOR_STD[6:12][used]]
 
             result = least_squares(residuals, np.clip(c0[used], LOWER[6:12][used],
@@ -142,8 +147,9 @@ class Identifier:
         rows = np.arange(len(level))
         if len(rows) > self.max_rows:
             rows = np.sort(self.rng.choice(rows, self.max_rows, replace=False))
-        rms = (float(np.sqrt(np.mean((self.predict(params, level[rows], valves[rows])
-                                      - next_level[rows]) ** 2))) if len(rows) else float("nan"))
+        error = np.nan_to_num(self.predict(params, level[rows], valves[rows]) - next_level[rows],
+                              nan=1.0)
+        rms = float(np.sqrt(np.mean(error ** 2))) if len(rows) else float("nan")
         return params, rms
 
     def _rows(self, valves: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ import signal
 import sys
 from typing import Callable
 
+from ftc.common.cli import OneLineParser, at_least, between, checked
 from ftc.plant import DEFAULT_LCM_URL, check_loopback_url
 
 # channel suffix -> direction: True from the client to the plant
@@ -65,26 +66,44 @@ class LossyRelay:
                     raise
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m ftc.relay",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--lcm-url", default=DEFAULT_LCM_URL, help="LCM URL (ttl=0)")
-    parser.add_argument("--client-prefix", required=True, help="prefix the controller uses")
-    parser.add_argument("--plant-prefix", required=True, help="prefix the plant uses")
-    parser.add_argument("--loss", type=float, default=0.05, help="drop probability per message")
-    parser.add_argument("--duplicate", type=float, default=0.0,
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(prog="python -m ftc.relay", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--lcm-url", type=checked(str, nonempty=True), default=DEFAULT_LCM_URL,
+                        help="LCM URL (ttl=0)")
+    parser.add_argument("--client-prefix", type=checked(str, nonempty=True), required=True,
+                        help="prefix the controller uses")
+    parser.add_argument("--plant-prefix", type=checked(str, nonempty=True), required=True,
+                        help="prefix the plant uses")
+    # a rate of 1 would forward nothing (loss) or loop forever (duplicate)
+    parser.add_argument("--loss", type=checked(float, between(0.0, 1.0)), default=0.05,
+                        help="drop probability per message")
+    parser.add_argument("--duplicate", type=checked(float, between(0.0, 1.0)), default=0.0,
                         help="probability of sending a forwarded message twice")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the fault draws")
+    parser.add_argument("--seed", type=checked(int, at_least(0, 2**63 - 1)), default=0,
+                        help="seed of the fault draws")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The options, all checked before the relay opens LCM (exit 2, one line)."""
+    parser = build_parser()
     args = parser.parse_args(argv)
     for name in ("loss", "duplicate"):
-        value = getattr(args, name)
-        if not 0.0 <= value < 1.0:
-            parser.error(f"--{name} must be in [0, 1), got {value}")
+        if getattr(args, name) >= 1.0:
+            parser.error(f"--{name} must be in [0, 1), got {getattr(args, name)}")
+    if args.client_prefix == args.plant_prefix:
+        parser.error("--client-prefix and --plant-prefix must differ (the relay would loop)")
     try:
-        relay = LossyRelay(args.lcm_url, args.client_prefix, args.plant_prefix,
-                           loss=args.loss, duplicate=args.duplicate, seed=args.seed)
+        check_loopback_url(args.lcm_url)
     except ValueError as e:
-        parser.error(str(e))
+        parser.error(f"--lcm-url: {e}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    relay = LossyRelay(args.lcm_url, args.client_prefix, args.plant_prefix,
+                       loss=args.loss, duplicate=args.duplicate, seed=args.seed)
     stop = {"flag": False}
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.__setitem__("flag", True))

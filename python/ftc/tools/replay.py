@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
+from ftc.common.errors import RunError
 from ftc.experiments import figures
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig, cross_validated_r2
@@ -76,23 +78,54 @@ def fit_model_from_log(traj: Trajectory, seed: int = 0) -> dict:
     return {"transitions": len(xs), "episodes": len(set(eps)), "r2": float(r2)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+FIGURE_FORMATS = ("png", "svg")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
         prog="python -m ftc.replay", description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    parser.add_argument("log", type=Path, help="LCM log file written by lcm-logger")
-    parser.add_argument("--channel", default=None,
+    parser.add_argument("log", type=checked(Path, nonempty=True),
+                        help="LCM log file written by lcm-logger")
+    parser.add_argument("--channel", type=checked(str, nonempty=True), default=None,
                         help="STATE channel to read (default: the only *STATE channel)")
-    parser.add_argument("--episode", type=int, default=None,
+    parser.add_argument("--episode", type=checked(int, at_least(0, 2**63 - 1)), default=None,
                         help="episode to draw (default: the last complete one at the highest "
                              "degradation, preferring deterministic evaluation episodes)")
-    parser.add_argument("--figure", type=Path, default=None,
+    parser.add_argument("--figure", type=checked(Path, nonempty=True), default=None,
                         help="draw the tank-control figure for the episode (PNG; SVG too if "
                              "the name ends in .svg)")
-    parser.add_argument("--csv", type=Path, default=None, help="write the whole trajectory as CSV")
+    parser.add_argument("--csv", type=checked(Path, nonempty=True), default=None,
+                        help="write the whole trajectory as CSV")
     parser.add_argument("--fit-model", action="store_true",
                         help="fit the world model on the log's transitions and print its CV R^2")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The options, checked before the log is read: the outputs must be writable
+    files (not directories) and the figure's format one that is drawn."""
+    parser = build_parser()
     args = parser.parse_args(argv)
+    for name in ("figure", "csv"):
+        path = getattr(args, name)
+        if path is None:
+            continue
+        if path.is_dir():
+            parser.error(f"--{name} {path}: is a directory (give the file to write)")
+        problem = out_dir_problem(path.resolve().parent)
+        if problem:
+            parser.error(f"--{name} {path}: cannot write there ({problem})")
+    if args.figure is not None and args.figure.suffix.lstrip(".") not in ("", *FIGURE_FORMATS):
+        parser.error(f"--figure {args.figure}: the name must end in .png or .svg")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit codes: 2 a bad option (checked before the log is read, one line
+    naming the flag) or a truncated/corrupt log; 5 an output could not be
+    written (disk full): one line naming it."""
+    args = parse_args(argv)
     try:
         traj = read_log(args.log, args.channel)
         print(summary(traj))
@@ -120,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     except LogError as e:
         print(f"ftc.replay: error: {e}", file=sys.stderr)
         return 2
+    except RunError as e:  # StorageError: an output could not be written (exit 5)
+        print(f"ftc.replay: error: {e}", file=sys.stderr)
+        return e.exit_code
     return 0
 
 

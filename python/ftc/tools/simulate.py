@@ -10,6 +10,11 @@ episode, ``age`` is the degradation age (intervals) in force during the step,
 Every episode starts from full tanks; the plant cuts the running episode at
 each interval boundary. Anyone can check the physics against an independent
 simulation of ../shared/design/plant-model.md with this file.
+
+Exit codes: 2 bad input (a flag, the scenario file, an --out that is a
+directory or cannot be written), checked before the plant starts; 1 the plant
+failed or stopped answering; 5 the CSV could not be written (disk full): one
+line naming the path, no partial or temporary file left.
 """
 
 from __future__ import annotations
@@ -21,12 +26,15 @@ from pathlib import Path
 import numpy as np
 
 from ftc.common.atomic import atomic_write_csv
-from ftc.common.cli import out_dir_problem
+from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
+from ftc.common.errors import EXIT_USAGE, RunError
 from ftc.control.baselines import BASELINES, baseline_valves
+from ftc.control.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
 
 POLICIES = BASELINES
 HEADER = trajectory.header()
+MAX_STEPS = 100_000_000  # control steps of one export (~10 GB of CSV)
 
 
 def _level(x: float) -> str:
@@ -51,28 +59,52 @@ def run(scenario: str | None, policy: str, seed: int, steps: int, out: Path,
     return len(rows)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
         prog="python -m ftc.simulate", description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    parser.add_argument("--scenario", type=Path, default=None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n\n", 1)[1].rsplit("\n\nExit codes", 1)[0])
+    parser.add_argument("--scenario", type=checked(Path, nonempty=True), default=None,
                         help="fault scenario TOML file (default: nominal plant)")
     parser.add_argument("--policy", choices=POLICIES, default="closed",
                         help="valves all closed, all open, or uniformly random each step")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random policy and plant")
-    parser.add_argument("--steps", type=int, default=1000, help="control steps to simulate")
-    parser.add_argument("--out", type=Path, required=True, help="CSV file to write")
-    parser.add_argument("--steps-per-interval", type=int, default=None,
+    parser.add_argument("--seed", type=checked(int, at_least(0, 2**63 - 1)), default=0,
+                        help="seed of the random policy and plant")
+    parser.add_argument("--steps", type=checked(int, at_least(1, MAX_STEPS)), default=1000,
+                        help="control steps to simulate")
+    parser.add_argument("--out", type=checked(Path, nonempty=True), required=True,
+                        help="CSV file to write")
+    parser.add_argument("--steps-per-interval",
+                        type=checked(int, at_least(1, MAX_STEPS_PER_INTERVAL)), default=None,
                         help="override the scenario's steps per degradation interval")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The options, all checked (scenario file parsed, --out writable and not a
+    directory) before the plant starts; bad input exits 2 with one line."""
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if args.steps <= 0:
-        parser.error(f"--steps must be positive, got {args.steps}")
-    if args.scenario is not None and not args.scenario.is_file():
-        parser.error(f"--scenario: no such file: {args.scenario}")
+    if args.scenario is not None:
+        if not args.scenario.is_file():
+            parser.error(f"--scenario: no such file: {args.scenario}")
+        from ftc import _core  # native: the plant's own scenario parser
+
+        try:
+            _core.load_scenario(str(args.scenario))
+        except _core.ScenarioError as e:  # names the file and the key
+            parser.exit(EXIT_USAGE, f"{parser.prog}: error: --scenario: {e}\n")
+    if args.out.is_dir():
+        parser.error(f"--out {args.out}: is a directory (give the CSV file to write)")
     # An unwritable --out is an error before the plant starts; nothing is created.
     problem = out_dir_problem(args.out.resolve().parent)
     if problem:
         parser.error(f"--out {args.out}: cannot write there ({problem})")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     extra = ([] if args.steps_per_interval is None
              else ["--steps-per-interval", str(args.steps_per_interval)])
     try:
@@ -81,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     except PlantError as e:
         print(f"ftc.simulate: error: {e}", file=sys.stderr)
         return 2 if e.exit_code == 2 else 1
+    except RunError as e:  # StorageError: the CSV could not be written (exit 5)
+        print(f"ftc.simulate: error: {e}", file=sys.stderr)
+        return e.exit_code
     print(f"wrote {n} steps to {args.out}")
     return 0
 
