@@ -127,7 +127,7 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
         argv = [*method.args, "--scenario", "", "--seed", str(config.seeds[0]),
                 "--intervals", str(config.intervals),
                 "--steps-per-interval", str(config.steps_per_interval),
-                "--out", str(out / "runs" / "check"), *extra]
+                f"--out={out / 'runs' / 'check'}", *extra]
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
