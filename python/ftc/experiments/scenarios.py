@@ -37,6 +37,8 @@ class ExperimentConfig:
     run_timeout: seconds after which a run is killed and counted as failed (0: none)
     nice: niceness added to each controller and its plant (the recorder keeps the
         normal priority, so that it keeps up on a loaded machine)
+    link: the controllers' plant link: lcm (a plant process per run, recorded) or
+        core (the physics in the controller's process: no plant process, no log)
     """
 
     experiments: tuple[str, ...] = EXPERIMENTS
@@ -49,6 +51,7 @@ class ExperimentConfig:
     controller_args: tuple[str, ...] = ()
     run_timeout: float = 0.0
     nice: int = 5
+    link: str = "lcm"
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
