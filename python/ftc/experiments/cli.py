@@ -5,6 +5,8 @@
     python -m ftc.experiments single|multiple|aggregate [--trials 20] [--seeds 0 1 2]
     python -m ftc.experiments model-search [--quick]    # the world-model grid
     python -m ftc.experiments report --out runs/NAME    # figures and report again
+    python -m ftc.experiments benchmark [--scenarios FILE...] [--methods NAME...]
+                                        # the benchmark suite (benchmark --help)
 
 Experiments (../shared/design/plant-model.md, "The paper's experiments"):
 single (engine E1, D_E = 20), multiple (E1 D_E = 20, tanks 5 and 6 D_T = 20)
@@ -47,7 +49,7 @@ from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_prob
 from ftc.common.errors import EXIT_USAGE, RunError
 from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
-from ftc.experiments import report
+from ftc.experiments import benchmark, report
 from ftc.experiments.collect import collect
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
@@ -72,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("command", choices=(*EXPERIMENTS, "all", "model-search", "report"),
                         help="which experiment(s) to run; model-search: the world-model grid; "
-                             "report: redo results, figures and report from saved runs")
+                             "report: redo results, figures and report from saved runs (the "
+                             "benchmark suite has its own options: benchmark --help)")
     parser.add_argument("--out", type=checked(Path, nonempty=True), default=None,
                         help="run directory (default: runs/<command>-<date-time>)")
     parser.add_argument("--resume", action="store_true",
@@ -223,6 +226,9 @@ def main(argv: list[str] | None = None) -> int:
     the last line); 2 bad input, or --out in use by a running orchestrator;
     5 a file could not be written (disk full, unwritable path: the line names
     it; temporary files are removed and --resume continues once space is back)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["benchmark"]:  # its own options: ftc.experiments.benchmark
+        return benchmark.main(argv[1:])
     args = parse_args(argv)
     try:
         return _run(args)
