@@ -11,6 +11,8 @@ command line and the run directory).
     collect       results.csv/json and the tank-control trajectories from the logs
     model_search  the world-model grid
     figures, report  drawn and written from saved results only
+    suite         the benchmark suite's default scenarios
+    benchmark, benchmark_report  the benchmark suite (``benchmark`` command) and its report
 """
 
 from ftc.experiments.cli import build_parser, main
