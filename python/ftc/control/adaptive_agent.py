@@ -20,7 +20,14 @@ Per interval k:
   transitions so far (the plant degraded at the boundary, so only this
   interval's rows describe it), the extrapolation as the prior;
 * at its end, a final fit on the whole interval is kept for the next
-  extrapolation.
+  extrapolation;
+* after every step it compares the level it predicted with the one the plant
+  published; an error above ``identify_trigger`` means the plant has changed
+  (an abrupt fault, or the interval boundary's degradation): the rows before
+  it no longer describe the plant, and the parameters are re-identified from
+  the rows since, as soon as there are ``TRIGGER_ROWS`` of them, instead of
+  waiting for the next scheduled refit (the paper's future work: relearning
+  when the plant changes).
 """
 
 from __future__ import annotations
@@ -33,44 +40,20 @@ import numpy as np
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Transition
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
-from ftc.control.planners import Evaluator
+from ftc.control.planners import Evaluator, ParamsEvaluator
 from ftc.learning.identify import Identifier, PlantParameters
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
 
-class ParamsEvaluator:
-    """Candidate sequences simulated with given physical parameters (C++ batch rollouts).
-
-    Estimated parameters can make a candidate's rollout ill-posed where the true
-    ones are not (the integrator refuses a step that would switch modes without
-    end: chattering); such a candidate scores -inf and the others are planned
-    on, one rollout each. ``refused`` counts them."""
-
-    def __init__(self, rollout: Any) -> None:
-        self.rollout = rollout
-        self.params: dict | None = None
-        self.refused = 0
-
-    def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
-        x0 = np.asarray(x0, np.float64)
-        try:
-            return self.rollout.run(x0, sequences, self.params)
-        except RuntimeError:
-            totals = np.full(len(sequences), -np.inf)
-            for k in range(len(sequences)):
-                try:
-                    totals[k] = self.rollout.run(x0, sequences[k:k + 1], self.params)[0]
-                except RuntimeError:
-                    self.refused += 1
-            return totals
+TRIGGER_ROWS = 8  # rows since a detected change before re-identifying from them
 
 
 class AdaptiveAgent(MPCAgent):
     """MPC on identified physics; see the module docstring."""
 
     extra_columns = (*MPCAgent.extra_columns, "identify_seconds", "identified_pump_min",
-                     "identified_demand_max", "refused_rollouts")
+                     "identified_demand_max", "refused_rollouts", "detected_changes")
 
     def __init__(self, cfg: MPCConfig) -> None:
         super().__init__(cfg)
@@ -84,6 +67,9 @@ class AdaptiveAgent(MPCAgent):
         self.params = self.prior = PlantParameters.nominal()
         self.rows: list[tuple[np.ndarray, ...]] = []
         self.identify_seconds = 0.0
+        self.change_at = 0          # first row that describes the plant as it is now
+        self.pending_change = False  # a change was seen; re-identify once enough rows
+        self.changes = 0
 
     def prepare(self) -> dict[str, Any]:
         return {}
@@ -96,6 +82,7 @@ class AdaptiveAgent(MPCAgent):
         super().begin_interval(interval)
         self.rows = []
         self.identify_seconds = 0.0
+        self.change_at, self.pending_change, self.changes = 0, False, 0
         if len(self.history) >= 2:
             self.prior = self.history[-1].extrapolate(self.history[-2])
         elif self.history:
@@ -104,13 +91,25 @@ class AdaptiveAgent(MPCAgent):
 
     def observe(self, t: Transition) -> None:
         self.rows.append((t.obs.level, t.valves, t.next_obs.level, t.next_obs.deficit))
+        trigger = self.cfg.identify_trigger
+        if trigger:
+            predicted = self.identifier.predict(self.params, t.obs.level[None], t.valves[None])[0]
+            if not np.all(np.abs(predicted - t.next_obs.level) <= trigger):  # NaN counts
+                self.change_at, self.pending_change = len(self.rows) - 1, True
+                self.changes += 1
+        since = len(self.rows) - self.change_at
         every = self.cfg.identify_every
-        if every and len(self.rows) % every == 0:
+        if self.pending_change and since >= TRIGGER_ROWS:
+            self.params, _ = self._identify()
+            self.pending_change = False
+        elif every and since % every == 0:
             self.params, _ = self._identify()
 
     def _identify(self) -> tuple[PlantParameters, float]:
         start = time.perf_counter()
-        level, valves, next_level, deficit = (np.array(c) for c in zip(*self.rows))
+        rows = self.rows[self.change_at:] if len(self.rows) - self.change_at >= TRIGGER_ROWS \
+            else self.rows
+        level, valves, next_level, deficit = (np.array(c) for c in zip(*rows))
         params, rms = self.identifier.fit(level, valves, next_level, deficit, self.prior)
         self.identify_seconds += time.perf_counter() - start
         return params, rms
@@ -125,7 +124,7 @@ class AdaptiveAgent(MPCAgent):
         self.history.append(self.params)
         refused, self.evaluator_.refused = self.evaluator_.refused, 0
         return {"model_one_step_rmse": rms, "identify_seconds": self.identify_seconds,
-                "refused_rollouts": refused,
+                "refused_rollouts": refused, "detected_changes": self.changes,
                 "identified_pump_min": float(self.params.pump.min()),
                 "identified_demand_max": float(self.params.demand.max())}
 

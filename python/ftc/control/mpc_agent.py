@@ -103,6 +103,10 @@ class MPCConfig(RunConfig):
     identify_every: int = field(default=64, metadata={"check": at_least(0, 1_000_000), "help": (
         "adaptive: re-identify the parameters every N steps of an interval from its data "
         "so far (0: only at interval ends)")})
+    identify_trigger: float = field(default=1e-4, metadata={"check": between(0.0, 1.0), "help": (
+        "adaptive: a one-step prediction error above this (m) means the plant changed: the "
+        "parameters are re-identified from the data since then at once, not at the next "
+        "scheduled refit (0: off, relearn on the schedule only)")})
     evaluate: bool = field(default=True, metadata={"help": (
         "after each interval run one evaluation episode (age frozen) with the planner "
         "(eval_reward_per_step; MPC is deterministic, so it measures the same policy)")})
@@ -162,8 +166,9 @@ class MPCAgent(Agent):
     # -- planning ----------------------------------------------------------------
     def evaluator(self, o: PlantObservation) -> Evaluator:
         if self.oracle is not None:
-            # operating: the age the next step is taken at; evaluation: frozen (o.age)
-            self.oracle.set_age(o.age if o.evaluation else self.oracle.age_at(o.operating_steps))
+            # the next step's parameters and stuck valves (abrupt faults included);
+            # an evaluation episode's are frozen at the last operating step's
+            self.oracle.set_step(o.operating_steps, o.evaluation)
             return self.oracle
         return ModelEvaluator(self.model, self.demand)
 

@@ -84,6 +84,9 @@ class ControllerConfig(RunConfig):
     branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
         "ppo-robust: share of offline episodes that start from a level observed on the "
         "plant (short branched rollouts) instead of full tanks")})
+    teacher_states: int = field(default=1024, metadata={"check": at_least(2, 1_000_000), "help": (
+        "ppo-robust: levels the planner labels for the policy each interval (half observed, "
+        "half visited by the policy on the identified physics)")})
     branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
         "ppo-robust: steps of a branched offline rollout")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (

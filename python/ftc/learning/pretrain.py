@@ -93,21 +93,24 @@ def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
 
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
-FINGERPRINT_ROOMS = ("common", "plant", "learning")  # what pretraining executes
+# the sources pretraining executes (policy, update, collector, simulated plants,
+# the world model for --pretrain-sim model, the reward, constants)
+FINGERPRINT_FILES = ("common/constants.py", "plant/link.py", "plant/reward.py",
+                     "learning/buffer.py", "learning/ppo.py", "learning/rollout.py",
+                     "learning/sim_env.py", "learning/model_env.py", "learning/world_model.py",
+                     "learning/transitions.py", "learning/pretrain.py")
 
 
 def code_fingerprint(package_dir: Path = PACKAGE_DIR, core: Path | None = None) -> str:
-    """A hash of the code pretraining runs: the Python sources of the rooms it
-    executes and the compiled physics core. A cached policy made by other code
-    is not reused."""
+    """A hash of the code pretraining runs: the Python sources it executes and
+    the compiled physics core. A cached policy made by other code is not reused."""
     if core is None:
         from ftc import _core  # native: the physics the nominal plants run
 
         core = Path(_core.__file__)
-    files = [p for room in FINGERPRINT_ROOMS for p in sorted((package_dir / room).glob("*.py"))]
     h = hashlib.sha256()
-    for path in [*files, core]:
-        h.update(str(path.relative_to(path.parents[1])).encode())
+    for name, path in [*((n, package_dir / n) for n in FINGERPRINT_FILES), (core.name, core)]:
+        h.update(name.encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:16]
 

@@ -1,0 +1,37 @@
+"""Behaviour cloning of a teacher's valve decisions into the PPO policy (the
+actor's Bernoulli logits), for guided policy search: a planner labels states,
+the policy learns to act as it does, PPO then goes on from there."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ftc.learning.ppo import PPO
+
+
+def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: int = 30,
+            minibatch: int = 128, lr: float = 1e-3, seed: int = 0) -> dict[str, float]:
+    """Fit the policy's valve-open probabilities to ``actions`` (N, 6) in {0, 1}
+    at ``states`` (N, 6) by binary cross-entropy (a fresh Adam; PPO's own
+    optimiser state is kept). Returns the final loss and the share of valve
+    decisions the deterministic policy (open iff p > 0.5) now agrees on."""
+    generator = torch.Generator().manual_seed(seed)
+    optimizer = torch.optim.Adam(ppo.policy.parameters(), lr=lr, eps=1e-5)
+    loss_fn = nn.BCEWithLogitsLoss()
+    n = len(states)
+    loss = torch.tensor(float("nan"))
+    for _ in range(epochs):
+        order = torch.randperm(n, generator=generator)
+        for start in range(0, n, minibatch):
+            idx = order[start:start + minibatch]
+            logits, _ = ppo.policy(states[idx])
+            loss = loss_fn(logits, actions[idx])
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(ppo.policy.parameters(), ppo.config.max_grad_norm)
+            optimizer.step()
+    with torch.no_grad():
+        logits, _ = ppo.policy(states)
+        agree = float(((logits > 0).float() == actions).float().mean())
+    return {"distill_loss": float(loss), "distill_agreement": agree}
