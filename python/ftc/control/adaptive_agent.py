@@ -94,15 +94,15 @@ class AdaptiveAgent(MPCAgent):
         trigger = self.cfg.identify_trigger
         if trigger:
             predicted = self.identifier.predict(self.params, t.obs.level[None], t.valves[None])[0]
-            if not np.all(np.abs(predicted - t.next_obs.level) <= trigger):  # NaN counts
+            wrong = not np.all(np.abs(predicted - t.next_obs.level) <= trigger)  # NaN: wrong
+            if wrong and not self.pending_change:  # a change: the rows before it are stale
                 self.change_at, self.pending_change = len(self.rows) - 1, True
                 self.changes += 1
-        since = len(self.rows) - self.change_at
         every = self.cfg.identify_every
-        if self.pending_change and since >= TRIGGER_ROWS:
+        if self.pending_change and len(self.rows) - self.change_at >= TRIGGER_ROWS:
             self.params, _ = self._identify()
             self.pending_change = False
-        elif every and since % every == 0:
+        elif every and len(self.rows) % every == 0:
             self.params, _ = self._identify()
 
     def _identify(self) -> tuple[PlantParameters, float]:
