@@ -6,7 +6,9 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <cctype>
 #include <cmath>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -203,6 +205,67 @@ py::object RunRollout(ftc::BatchRollout* rollout, const py::object& x0,
   return RolloutToPython(r, k, l, details);
 }
 
+// Events <-> Python: a list of dicts as in the TOML file ({"at_step": 2600,
+// "tank": 4, "factor": 2.0}, {"at_step": 3100, "stuck_valve": 2, "state": "open"};
+// indices 1-based), validated by the file parser itself so both accept the same.
+py::list EventsToPython(const std::vector<ftc::FaultEvent>& events) {
+  py::list out;
+  for (const ftc::FaultEvent& e : events) {
+    py::dict d;
+    d["at_step"] = e.at_step;
+    switch (e.kind) {
+      case ftc::FaultEvent::Kind::kTank: d["tank"] = e.index + 1; d["factor"] = e.factor; break;
+      case ftc::FaultEvent::Kind::kEngine: d["engine"] = e.index + 1; d["factor"] = e.factor; break;
+      case ftc::FaultEvent::Kind::kStuckValve:
+        d["stuck_valve"] = e.index + 1;
+        d["state"] = e.state ? "open" : "closed";
+        break;
+    }
+    out.append(d);
+  }
+  return out;
+}
+
+std::string TomlValue(const py::handle& v) {
+  if (py::isinstance<py::bool_>(v)) return v.cast<bool>() ? "true" : "false";
+  if (py::isinstance<py::int_>(v)) return std::to_string(v.cast<long long>());
+  if (py::isinstance<py::float_>(v)) {
+    const double x = v.cast<double>();
+    if (std::isnan(x)) return "nan";
+    if (std::isinf(x)) return x > 0 ? "inf" : "-inf";
+    std::ostringstream os;
+    os.precision(17);
+    os << std::showpoint << x;
+    return os.str();
+  }
+  if (py::isinstance<py::str>(v)) {
+    std::string text = "\"";
+    for (const char c : v.cast<std::string>()) {
+      if (c == '"' || c == '\\') text += '\\';
+      if (static_cast<unsigned char>(c) < 0x20)
+        throw py::value_error("events: control character in a string");
+      text += c;
+    }
+    return text + "\"";
+  }
+  throw py::value_error("events: values must be int, float or str, got " + Repr(v));
+}
+
+std::vector<ftc::FaultEvent> EventsFromPython(const py::handle& obj) {
+  std::string toml;
+  for (const auto& item : obj.cast<py::list>()) {
+    toml += "[[event]]\n";
+    for (const auto& [k, v] : item.cast<py::dict>()) {
+      const std::string key = py::str(k);
+      for (const char c : key)
+        if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_'))
+          throw py::value_error("events: bad key " + Repr(k));
+      toml += key + " = " + TomlValue(v) + "\n";
+    }
+  }
+  return ftc::ParseScenario(toml, "Scenario.events").events;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_core, m) {
@@ -251,13 +314,20 @@ PYBIND11_MODULE(_core, m) {
             s.steps_per_interval = v;
           },
           "control steps per degradation interval (t_online)")
+      .def_property(
+          "events", [](const ftc::FaultScenario& s) { return EventsToPython(s.events); },
+          [](ftc::FaultScenario& s, const py::object& v) { s.events = EventsFromPython(v); },
+          "abrupt faults, sorted by at_step: a list of dicts as the file's [[event]] tables "
+          "(at_step, and tank + factor, engine + factor, or stuck_valve + state; 1-based); "
+          "assigning validates as the file parser does (ScenarioError)")
       .def("__repr__", [](const ftc::FaultScenario& s) {
         return "Scenario(name=" + Repr(py::str(s.name)) +
                ", tank_factor=" + Repr(py::cast(ToList(s.tank_factor))) +
                ", engine_factor=" + Repr(py::cast(ToList(s.engine_factor))) + ", mode='" +
                ModeName(s.mode) + "', noise_std=" + Repr(py::float_(s.noise_std)) +
                ", random_start=" + (s.random_start ? "True" : "False") +
-               ", steps_per_interval=" + std::to_string(s.steps_per_interval) + ")";
+               ", steps_per_interval=" + std::to_string(s.steps_per_interval) +
+               (s.events.empty() ? "" : ", events=" + Repr(EventsToPython(s.events))) + ")";
       });
 
   m.def("load_scenario", &ftc::LoadScenario, py::arg("path"),
@@ -285,16 +355,48 @@ PYBIND11_MODULE(_core, m) {
       .def("set_operating_steps", &ftc::Plant::SetOperatingSteps, py::arg("steps"),
            "Resume at an operating age: the next step is taken at AgeAt(steps).")
       .def_property_readonly("scenario", &ftc::Plant::scenario)
+      .def_property_readonly("step_in_force", &ftc::Plant::step_in_force,
+                             "operating step whose parameters and stuck valves the next step "
+                             "uses (frozen at the last operating step's in evaluation)")
       .def(
           "params_at", [](const ftc::Plant& p, double age) { return ParamsDict(p.ParamsAt(age)); },
-          py::arg("age"));
+          py::arg("age"), "The scenario's factors at an age (events not applied).")
+      .def(
+          "params_at_step",
+          [](const ftc::Plant& p, std::int64_t steps) { return ParamsDict(p.ParamsAtStep(steps)); },
+          py::arg("operating_steps"),
+          "Parameters of the step after `operating_steps` operating steps (events applied).");
 
   m.def(
       "degraded_params",
       [](const ftc::FaultScenario& s, double age) {
         return ParamsDict(ftc::DegradedParams(ftc::PlantParams{}, s, age));
       },
-      py::arg("scenario"), py::arg("age"), "Nominal parameters degraded to an age (intervals).");
+      py::arg("scenario"), py::arg("age"),
+      "Nominal parameters degraded to an age (intervals), with the scenario's own factors "
+      "(events not applied; see params_at_step).");
+  m.def(
+      "params_at_step",
+      [](const ftc::FaultScenario& s, std::int64_t operating_steps) {
+        if (operating_steps < 0) throw py::value_error("operating_steps must be >= 0");
+        return ParamsDict(ftc::DegradedParamsAtStep(ftc::PlantParams{}, s, operating_steps));
+      },
+      py::arg("scenario"), py::arg("operating_steps"),
+      "Parameters in force during the step after `operating_steps` operating steps: the "
+      "factors with the events of at_step <= operating_steps applied, at age_at(...). "
+      "Equals degraded_params(scenario, age_at(...)) without events.");
+  m.def(
+      "stuck_valves_at_step",
+      [](const ftc::FaultScenario& s, std::int64_t operating_steps) {
+        if (operating_steps < 0) throw py::value_error("operating_steps must be >= 0");
+        const ftc::StuckValves v = ftc::StuckValvesAtStep(s, operating_steps);
+        py::array_t<bool> mask(kTanks);
+        for (int i = 0; i < kTanks; ++i) mask.mutable_at(i) = v.mask[i] != 0;
+        return py::make_tuple(mask, ToNumpy(v.state));
+      },
+      py::arg("scenario"), py::arg("operating_steps"),
+      "(mask (6,) bool, state (6,) int 0/1) of the valves stuck during the step after "
+      "`operating_steps` operating steps; state is 0 where not stuck.");
 
   m.def(
       "integrate_step",

@@ -1,6 +1,7 @@
 // The plant as a discrete-time system (plant-model.md, "Episodes" and
-// "Degradation"): episodes, termination, interval truncation, operating age
-// and sensor noise around the CVODE step.
+// "Degradation"): episodes, termination, interval truncation, operating age,
+// abrupt faults (parameter jumps, stuck valves) and sensor noise around the
+// CVODE step.
 #include "plant/core/plant.h"
 
 namespace ftc {
@@ -23,14 +24,10 @@ Plant::Plant(const FaultScenario& scenario, std::uint64_t seed, const PlantParam
   last_.episode = -1;  // no episode yet
 }
 
-double Plant::current_age() const {
-  return last_.evaluation ? eval_age_ : AgeAt(scenario_, operating_steps_);
-}
-
 void Plant::Reset() { StartEpisode(false); }
 
 void Plant::ResetEvaluation() {
-  eval_age_ = last_operating_age_;
+  eval_step_ = operating_steps_ > 0 ? operating_steps_ - 1 : 0;
   StartEpisode(true);
 }
 
@@ -50,13 +47,15 @@ void Plant::StartEpisode(bool evaluation) {
 
 const StepOutcome& Plant::Step(const Valves& u) {
   if (last_.episode < 0 || episode_over()) StartEpisode(last_.evaluation);
-  const double age = current_age();
-  const PlantParams p = ParamsAt(age);
-  const StepResult r = integrator_.Step(last_.level, u, p, kControlStep);
+  const std::int64_t at = step_in_force();
+  const double age = AgeAt(scenario_, at);
+  const PlantParams p = ParamsAtStep(at);
+  const Valves applied = StuckValvesAtStep(scenario_, at).Apply(u);
+  const StepResult r = integrator_.Step(last_.level, applied, p, kControlStep);
 
   last_.level = r.x;
   last_.observed = Observe(r.x);
-  last_.valves = u;
+  last_.valves = applied;
   last_.deficit = r.deficit;
   last_.age = age;
   ++last_.step;
@@ -64,7 +63,6 @@ const StepOutcome& Plant::Step(const Valves& u) {
   last_.truncated = false;
   if (!last_.evaluation) {
     ++operating_steps_;
-    last_operating_age_ = age;
     last_.truncated =
         !last_.terminal && operating_steps_ % scenario_.steps_per_interval == 0;
   }

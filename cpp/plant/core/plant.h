@@ -14,7 +14,7 @@ namespace ftc {
 struct StepOutcome {
   Vec6 level = Vec6::Zero();       // true levels after the step, m
   Vec6 observed = Vec6::Zero();    // published levels (true + sensor noise), m
-  Valves valves = Valves::Zero();  // valves applied
+  Valves valves = Valves::Zero();  // valves applied (the command with stuck valves replaced)
   Vec2 deficit = Vec2::Zero();     // unmet engine demand over the step, m^3
   double age = 0;                  // age in force during the step, intervals
   int step = 0;                    // steps taken in this episode (1 after the first)
@@ -31,10 +31,11 @@ class Plant final {
 
   // Ends the current episode and starts a new operating episode at the current age.
   void Reset();
-  // Starts an evaluation episode: age frozen at the age of the last operating
-  // step (0 before any), steps not counted towards the age.
+  // Starts an evaluation episode: parameters and stuck valves frozen at those
+  // of the last operating step (the first step's before any), steps not counted.
   void ResetEvaluation();
-  // Advances one control step (dt = 1 s). If the current episode has ended
+  // Advances one control step (dt = 1 s) under DegradedParamsAtStep, with the
+  // valves stuck at that step overriding u. If the current episode has ended
   // (terminal or truncated), first starts a new one of the same kind.
   const StepOutcome& Step(const Valves& u);
 
@@ -44,13 +45,21 @@ class Plant final {
   std::int64_t operating_steps() const { return operating_steps_; }
   // Sets the operating steps already done (to resume a run at its age); the
   // next step is taken at AgeAt(scenario, steps).
-  void SetOperatingSteps(std::int64_t steps) {
-    operating_steps_ = steps;
-    last_operating_age_ = steps > 0 ? AgeAt(scenario_, steps - 1) : 0.0;
+  void SetOperatingSteps(std::int64_t steps) { operating_steps_ = steps; }
+  // The operating step whose parameters and stuck valves the next step is
+  // taken with: operating_steps() when operating; in an evaluation episode the
+  // last operating step's, operating_steps() - 1 (0 before any) when it began.
+  std::int64_t step_in_force() const {
+    return last_.evaluation ? eval_step_ : operating_steps_;
   }
   // Age the next step would be taken at.
-  double current_age() const;
+  double current_age() const { return AgeAt(scenario_, step_in_force()); }
+  // The scenario's factors at an age, without its events.
   PlantParams ParamsAt(double age) const { return DegradedParams(nominal_, scenario_, age); }
+  // Parameters in force during the step after `steps` operating steps (events applied).
+  PlantParams ParamsAtStep(std::int64_t steps) const {
+    return DegradedParamsAtStep(nominal_, scenario_, steps);
+  }
   const FaultScenario& scenario() const { return scenario_; }
   const PlantParams& nominal() const { return nominal_; }
 
@@ -68,8 +77,7 @@ class Plant final {
   StepOutcome last_;
   std::int64_t operating_steps_ = 0;
   std::int64_t episodes_started_ = 0;
-  double eval_age_ = 0;
-  double last_operating_age_ = 0;
+  std::int64_t eval_step_ = 0;  // step_in_force() of the evaluation episode
 };
 
 }  // namespace ftc

@@ -3,7 +3,10 @@
 // because a typo in a fault file would otherwise run a healthy plant.
 #include "plant/core/scenario.h"
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <limits>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -59,17 +62,30 @@ class Reader {
         Fail(key, "element " + std::to_string(k) + " is a " + TypeName(e) + ", expected a number");
       }
       v[k] = *e.value<double>();
-      // Tiny factors are accepted by "> 0" but make the wear a/D overflow (a
-      // subnormal D gives an infinite resistance) and CVODE fail an interval
-      // later, ending the plant mid-run (found by tests/fuzz/fuzz_scenario.cpp).
-      // 1e-3 intervals already wears a component out within one control step.
-      if (std::isnan(v[k]) || !(v[k] >= kMinFactor)) {
-        std::ostringstream os;
-        os << "element " << k << " must be > 0 and at least " << kMinFactor
-           << " intervals (inf = healthy), got " << v[k];
-        Fail(key, os.str());
-      }
+      CheckFactor(v[k], key, "element " + std::to_string(k) + " ");
     }
+    return v;
+  }
+
+  // Tiny factors are accepted by "> 0" but make the wear a/D overflow (a
+  // subnormal D gives an infinite resistance) and CVODE fail an interval
+  // later, ending the plant mid-run (found by tests/fuzz/fuzz_scenario.cpp).
+  // 1e-3 intervals already wears a component out within one control step.
+  void CheckFactor(double v, const std::string& key, const std::string& what) const {
+    if (std::isnan(v) || !(v >= kMinFactor)) {
+      std::ostringstream os;
+      os << what << "must be > 0 and at least " << kMinFactor
+         << " intervals (inf = healthy), got " << v;
+      Fail(key, os.str());
+    }
+  }
+
+  // An integer in [low, high].
+  std::int64_t Integer(const toml::node& n, const std::string& key, std::int64_t low,
+                       std::int64_t high, const std::string& what) const {
+    if (!n.is_integer()) Fail(key, "expected an integer, got " + TypeName(n));
+    const std::int64_t v = *n.value<std::int64_t>();
+    if (v < low || v > high) Fail(key, "must be " + what + ", got " + std::to_string(v));
     return v;
   }
 
@@ -84,6 +100,59 @@ class Reader {
  private:
   std::string source_;
 };
+
+// One [[event]] table (keys in scenario.h); `key` is "event[n]", n 1-based.
+FaultEvent ParseEvent(const Reader& r, const toml::node& node, const std::string& key) {
+  const toml::table& t = r.Table(node, key);
+  FaultEvent e;
+  const toml::node* at_step = nullptr;
+  const toml::node* factor = nullptr;
+  const toml::node* state = nullptr;
+  std::string component;  // the one of tank / engine / stuck_valve given
+  for (const auto& [k, sub] : t) {
+    const std::string name(k.str());
+    const std::string subkey = key + "." + name;
+    if (name == "at_step") {
+      at_step = &sub;
+    } else if (name == "factor") {
+      factor = &sub;
+    } else if (name == "state") {
+      state = &sub;
+    } else if (name == "tank" || name == "engine" || name == "stuck_valve") {
+      if (!component.empty()) {
+        r.Fail(key, "gives both " + component + " and " + name +
+                        "; an event changes exactly one of tank, engine, stuck_valve");
+      }
+      component = name;
+      const int count = name == "engine" ? kEngines : kTanks;
+      const std::string range = "1.." + std::to_string(count) + " (1-based)";
+      e.index = static_cast<int>(r.Integer(sub, subkey, 1, count, range)) - 1;
+      e.kind = name == "tank"     ? FaultEvent::Kind::kTank
+               : name == "engine" ? FaultEvent::Kind::kEngine
+                                  : FaultEvent::Kind::kStuckValve;
+    } else {
+      r.Fail(subkey, "unknown key (known: at_step, tank, engine, stuck_valve, factor, state)");
+    }
+  }
+  if (at_step == nullptr) r.Fail(key + ".at_step", "missing (the operating step, an integer >= 0)");
+  e.at_step = r.Integer(*at_step, key + ".at_step", 0, std::numeric_limits<std::int64_t>::max(),
+                        "an integer >= 0 (operating steps)");
+  if (component.empty()) r.Fail(key, "needs one of tank, engine, stuck_valve");
+  if (e.kind == FaultEvent::Kind::kStuckValve) {
+    if (factor != nullptr) r.Fail(key + ".factor", "not allowed for stuck_valve (give state)");
+    if (state == nullptr) r.Fail(key + ".state", "missing (\"open\" or \"closed\")");
+    const std::string s = r.String(*state, key + ".state");
+    if (s != "open" && s != "closed")
+      r.Fail(key + ".state", "expected \"open\" or \"closed\", got \"" + s + "\"");
+    e.state = s == "open" ? 1 : 0;
+  } else {
+    if (state != nullptr) r.Fail(key + ".state", "only for stuck_valve (give factor)");
+    if (factor == nullptr) r.Fail(key + ".factor", "missing (the new D, intervals; inf = healthy)");
+    e.factor = r.Number(*factor, key + ".factor");
+    r.CheckFactor(e.factor, key + ".factor", "");
+  }
+  return e;
+}
 
 }  // namespace
 
@@ -145,10 +214,21 @@ FaultScenario ParseScenario(const std::string& toml_text, const std::string& sou
         if (!sub.is_boolean()) r.Fail(subkey, "expected a boolean, got " + Reader::TypeName(sub));
         s.random_start = *sub.value<bool>();
       }
+    } else if (key == "event") {
+      const toml::array* events = node.as_array();
+      if (events == nullptr || !events->is_array_of_tables()) {
+        r.Fail(key, "expected [[event]] tables, got " + Reader::TypeName(node));
+      }
+      for (std::size_t n = 0; n < events->size(); ++n)
+        s.events.push_back(ParseEvent(r, *events->get(n), "event[" + std::to_string(n + 1) + "]"));
+      // Any order in the file; applied by step, the file's order within a step.
+      std::stable_sort(
+          s.events.begin(), s.events.end(),
+          [](const FaultEvent& a, const FaultEvent& b) { return a.at_step < b.at_step; });
     } else {
       r.Fail(key,
              "unknown key (known: name, tank_factor, engine_factor, degradation, "
-             "steps_per_interval, [noise] std, [start] random)");
+             "steps_per_interval, [noise] std, [start] random, [[event]])");
     }
   }
   return s;

@@ -73,8 +73,9 @@ class ControllerConfig(RunConfig):
         "process while online control continues with the current policy, the improved "
         "policy swapped in at the next update boundary after it is ready (not "
         "reproducible step for step: the swap point depends on timing)")})
-    offline_steps: int = field(default=2048, metadata={"check": at_least(1, 100_000_000), "help": (
-        "t_offline: model steps of offline PPO per interval (paper: 2048)")})
+    offline_steps: int = field(default=2048, metadata={"check": at_least(0, 100_000_000), "help": (
+        "t_offline: model steps of offline PPO per interval (paper: 2048; ppo-robust: 0 "
+        "keeps only the guided fit)")})
     offline_envs: int = field(default=16, metadata={"check": at_least(1, 100_000), "help": (
         "model rollouts run side by side (one batch through the world model)")})
     offline_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
@@ -129,6 +130,8 @@ class ControllerConfig(RunConfig):
 
     def validate(self) -> None:
         super().validate()
+        if self.method == "ppo" and self.offline and self.offline_steps < 1:
+            raise ValueError("--offline-steps must be >= 1 with --method ppo --offline")
         if self.steps_per_interval % self.update_every:
             raise ValueError("--steps-per-interval must be a multiple of --update-every")
 

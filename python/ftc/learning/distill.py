@@ -34,4 +34,4 @@ def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: in
     with torch.no_grad():
         logits, _ = ppo.policy(states)
         agree = float(((logits > 0).float() == actions).float().mean())
-    return {"distill_loss": float(loss), "distill_agreement": agree}
+    return {"distill_loss": float(loss.detach()), "distill_agreement": agree}
