@@ -32,21 +32,16 @@ Per interval k:
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
-import numpy as np
 
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Transition
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.planners import Evaluator, ParamsEvaluator
-from ftc.learning.identify import Identifier, PlantParameters
+from ftc.learning.identify import Identifier, OnlineIdentification
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
-
-
-TRIGGER_ROWS = 8  # rows since a detected change before re-identifying from them
 
 
 class AdaptiveAgent(MPCAgent):
@@ -60,88 +55,49 @@ class AdaptiveAgent(MPCAgent):
         self.name = "adaptive"
         from ftc import _core  # native: the plant's integrator for the rollouts
 
-        self.identifier = Identifier(cfg.rollout_rtol, cfg.rollout_atol, seed=cfg.seed)
+        self.online_id = OnlineIdentification(
+            Identifier(cfg.rollout_rtol, cfg.rollout_atol, seed=cfg.seed),
+            trigger=cfg.identify_trigger, every=cfg.identify_every)
         self.evaluator_ = ParamsEvaluator(_core.BatchRollout(rtol=cfg.rollout_rtol,
                                                              atol=cfg.rollout_atol))
-        self.history: list[PlantParameters] = []
-        self.params = self.prior = PlantParameters.nominal()
-        self.rows: list[tuple[np.ndarray, ...]] = []
-        self.identify_seconds = 0.0
-        self.change_at = 0          # first row that describes the plant as it is now
-        self.pending_change = False  # a change was seen; re-identify once enough rows
-        self.changes = 0
 
     def prepare(self) -> dict[str, Any]:
         return {}
 
     def evaluator(self, o: PlantObservation) -> Evaluator:
-        self.evaluator_.params = self.params.as_core()
+        self.evaluator_.params = self.online_id.params.as_core()
         return self.evaluator_
 
     def begin_interval(self, interval: int) -> None:
         super().begin_interval(interval)
-        self.rows = []
-        self.identify_seconds = 0.0
-        self.change_at, self.pending_change, self.changes = 0, False, 0
-        if len(self.history) >= 2:
-            self.prior = self.history[-1].extrapolate(self.history[-2])
-        elif self.history:
-            self.prior = self.history[-1]
-        self.params = self.prior
+        self.online_id.begin()
 
     def observe(self, t: Transition) -> None:
-        self.rows.append((t.obs.level, t.valves, t.next_obs.level, t.next_obs.deficit))
-        trigger = self.cfg.identify_trigger
-        if trigger:
-            predicted = self.identifier.predict(self.params, t.obs.level[None], t.valves[None])[0]
-            wrong = not np.all(np.abs(predicted - t.next_obs.level) <= trigger)  # NaN: wrong
-            if wrong and not self.pending_change:  # a change: the rows before it are stale
-                self.change_at, self.pending_change = len(self.rows) - 1, True
-                self.changes += 1
-        every = self.cfg.identify_every
-        if self.pending_change and len(self.rows) - self.change_at >= TRIGGER_ROWS:
-            self.params, _ = self._identify()
-            self.pending_change = False
-        elif every and len(self.rows) % every == 0:
-            self.params, _ = self._identify()
-
-    def _identify(self) -> tuple[PlantParameters, float]:
-        start = time.perf_counter()
-        rows = self.rows[self.change_at:] if len(self.rows) - self.change_at >= TRIGGER_ROWS \
-            else self.rows
-        level, valves, next_level, deficit = (np.array(c) for c in zip(*rows))
-        params, rms = self.identifier.fit(level, valves, next_level, deficit, self.prior)
-        self.identify_seconds += time.perf_counter() - start
-        return params, rms
+        self.online_id.add(t.obs.level, t.valves, t.next_obs.level, t.next_obs.deficit)
 
     def wants_data(self) -> bool:
         return False
 
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
-        if not self.rows:
+        ident = self.online_id
+        if not ident.rows:
             return {}
-        self.params, rms = self._identify()
-        self.history.append(self.params)
+        params, rms = ident.end()
         refused, self.evaluator_.refused = self.evaluator_.refused, 0
-        return {"model_one_step_rmse": rms, "identify_seconds": self.identify_seconds,
-                "refused_rollouts": refused, "detected_changes": self.changes,
-                "identified_pump_min": float(self.params.pump.min()),
-                "identified_demand_max": float(self.params.demand.max())}
+        return {"model_one_step_rmse": rms, "identify_seconds": ident.seconds,
+                "refused_rollouts": refused, "detected_changes": ident.changes,
+                "identified_pump_min": float(params.pump.min()),
+                "identified_demand_max": float(params.demand.max())}
 
     def config_doc(self) -> dict[str, Any]:
         return {}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"np_rng": self.rng.bit_generator.state,
-                "history": [p.vector().tolist() for p in self.history],
-                "identifier_rng": self.identifier.rng.bit_generator.state}
+        return {"np_rng": self.rng.bit_generator.state, "identification": self.online_id.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        missing = sorted({"np_rng", "history", "identifier_rng"} - set(state))
+        missing = sorted({"np_rng", "identification"} - set(state))
         if missing:
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.rng.bit_generator.state = state["np_rng"]
-        self.identifier.rng.bit_generator.state = state["identifier_rng"]
-        self.history = [PlantParameters.from_vector(np.array(v)) for v in state["history"]]
-        if self.history:
-            self.params = self.prior = self.history[-1]
+        self.online_id.load_state_dict(state["identification"])

@@ -85,9 +85,15 @@ class ControllerConfig(RunConfig):
     branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
         "ppo-robust: share of offline episodes that start from a level observed on the "
         "plant (short branched rollouts) instead of full tanks")})
-    teacher_states: int = field(default=1024, metadata={"check": at_least(2, 1_000_000), "help": (
-        "ppo-robust: levels the planner labels for the policy each interval (half observed, "
-        "half visited by the policy on the identified physics)")})
+    teacher_states: int = field(default=2048, metadata={"check": at_least(2, 1_000_000), "help": (
+        "ppo-robust: labelled levels the policy is fitted to (the most recent: first a "
+        "sample of those observed on the plant, then those the policy visits on the model)")})
+    teacher_rounds: int = field(default=3, metadata={"check": at_least(0, 100), "help": (
+        "ppo-robust: DAgger rounds per interval (policy rollout on the model, labels, fit)")})
+    teacher_refits: int = field(default=2, metadata={"check": at_least(0, 1000), "help": (
+        "ppo-robust: refits of the policy within an interval when the plant is seen to change")})
+    teacher_epochs: int = field(default=100, metadata={"check": at_least(1, 10_000), "help": (
+        "ppo-robust: epochs of each fit to the labels")})
     branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
         "ppo-robust: steps of a branched offline rollout")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (

@@ -18,6 +18,7 @@ in them); a conductance at its floor means a valve that passes almost nothing.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -206,3 +207,86 @@ def pumps_and_demands(level: np.ndarray, valves: np.ndarray, next_level: np.ndar
             else:
                 pump[i] = max(pump[i], seen[i])
     return pump, demand
+
+
+TRIGGER_ROWS = 8  # rows since a detected change before re-identifying from them
+
+
+class OnlineIdentification:
+    """The parameters of the plant as it is now, kept up to date step by step.
+
+    Per interval (``begin``): the parameters start from the extrapolation of
+    the last two intervals' estimates (the degradation of the spec is linear
+    in age), or the last one's. Every row (``add``) is predicted first; a
+    prediction error above ``trigger`` (m) means the plant changed (an abrupt
+    fault, the interval boundary's degradation): the rows before it are stale,
+    and the parameters are re-identified from the rows since as soon as there
+    are TRIGGER_ROWS of them (and every ``every`` rows, 0: never). ``end``
+    fits the interval's rows once more and keeps the estimate.
+    """
+
+    def __init__(self, identifier: Identifier, trigger: float = 1e-4, every: int = 64) -> None:
+        self.identifier, self.trigger, self.every = identifier, trigger, every
+        self.history: list[PlantParameters] = []
+        self.params = self.prior = PlantParameters.nominal()
+        self.rows: list[tuple[np.ndarray, ...]] = []
+        self.change_at, self.pending, self.changes, self.seconds = 0, False, 0, 0.0
+
+    def begin(self) -> None:
+        self.rows, self.change_at, self.pending, self.changes, self.seconds = [], 0, False, 0, 0.0
+        if len(self.history) >= 2:
+            self.prior = self.history[-1].extrapolate(self.history[-2])
+        elif self.history:
+            self.prior = self.history[-1]
+        self.params = self.prior
+
+    def add(self, level: np.ndarray, valves: np.ndarray, next_level: np.ndarray,
+            deficit: np.ndarray) -> bool:
+        """One observed step; True when the parameters were re-identified."""
+        self.rows.append((level, valves, next_level, deficit))
+        if self.trigger:
+            predicted = self.identifier.predict(self.params, level[None], valves[None])[0]
+            wrong = not np.all(np.abs(predicted - next_level) <= self.trigger)  # NaN: wrong
+            if wrong and not self.pending:
+                self.change_at, self.pending = len(self.rows) - 1, True
+                self.changes += 1
+        if self.pending and len(self.rows) - self.change_at >= TRIGGER_ROWS:
+            self.pending = False
+            self.params = self.fit()[0]
+            return True
+        if self.every and len(self.rows) % self.every == 0:
+            self.params = self.fit()[0]
+            return True
+        return False
+
+    def fit(self) -> tuple[PlantParameters, float]:
+        """Parameters from the rows since the last change (all rows if too few)."""
+        start = time.perf_counter()
+        rows = self.rows[self.change_at:] if len(self.rows) - self.change_at >= TRIGGER_ROWS \
+            else self.rows
+        level, valves, next_level, deficit = (np.array(c) for c in zip(*rows))
+        params, rms = self.identifier.fit(level, valves, next_level, deficit, self.prior)
+        self.seconds += time.perf_counter() - start
+        return params, rms
+
+    def end(self) -> tuple[PlantParameters, float]:
+        """The interval's final estimate (kept for the next extrapolation)."""
+        self.params, rms = self.fit()
+        self.history.append(self.params)
+        return self.params, rms
+
+    def ahead(self) -> PlantParameters:
+        """The parameters expected one interval on."""
+        if len(self.history) >= 2:
+            return self.history[-1].extrapolate(self.history[-2])
+        return self.history[-1] if self.history else self.params
+
+    def state_dict(self) -> dict:
+        return {"history": [p.vector().tolist() for p in self.history],
+                "rng": self.identifier.rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.identifier.rng.bit_generator.state = state["rng"]
+        self.history = [PlantParameters.from_vector(np.array(v)) for v in state["history"]]
+        if self.history:
+            self.params = self.prior = self.history[-1]
