@@ -30,7 +30,6 @@ import io
 import json
 import os
 import shlex
-import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report
 from ftc.experiments.methods import METHODS
-from ftc.experiments.orchestrator import Orchestrator
+from ftc.experiments.orchestrator import run_on_pool
 from ftc.experiments.processes import Guardian, OrchestratorLock, OutInUse, check_out_free
 from ftc.experiments.progress import Progress
 from ftc.experiments.runs import RunSpec, is_finished
@@ -346,8 +345,7 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int,
 
 def _run_all(out: Path, config: BenchmarkConfig, jobs: int, stream: TextIO,
              guardian: Guardian) -> list[str]:
-    """The unfinished runs on the orchestrator's pool; returns the failed keys.
-    (The same loop as orchestrator.run_experiments, without its baselines.)"""
+    """The unfinished runs on the orchestrator's pool; returns the failed keys."""
     runs = plan_benchmark(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
     todo = [r for r in runs if r.key not in finished]
@@ -355,23 +353,8 @@ def _run_all(out: Path, config: BenchmarkConfig, jobs: int, stream: TextIO,
           f"{len(config.methods)} methods x {len(config.seeds)} seeds) in {out} "
           f"({len(finished)} already finished), link {config.link}, jobs {jobs}", file=stream)
     progress = Progress(runs, finished, config.intervals, stream)
-    orchestrator = Orchestrator(jobs, guardian=guardian)
-
-    def on_signal(signum: int, frame: object) -> None:
-        orchestrator.stop_all()
-        raise KeyboardInterrupt
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        results = orchestrator.run(out, config.run_config(), todo, [], progress)
-    except KeyboardInterrupt:
-        orchestrator.stop_all()
-        print(f"\n{TOOL}: interrupted; finished runs are kept, --resume completes the rest",
-              file=stream)
-        raise SystemExit(130)
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+    results = run_on_pool(out, config.run_config(), todo, [], progress, jobs, guardian, stream,
+                          TOOL)
     meta = json.loads((out / "benchmark.json").read_text())
     meta["wall_time_s"] = time.time() - progress.start
     meta["jobs"] = jobs

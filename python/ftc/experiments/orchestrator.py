@@ -200,6 +200,30 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int, resume: bool
         lock.release()
 
 
+def run_on_pool(out: Path, config: ExperimentConfig, todo: list, baselines: list,
+                progress: Progress, jobs: int, guardian: Guardian, stream: TextIO,
+                tool: str) -> dict:
+    """Run ``todo`` (and ``baselines``) on the orchestrator's pool; SIGINT or
+    SIGTERM stops every run and exits 130 with the finished runs kept."""
+    orchestrator = Orchestrator(jobs, guardian=guardian)
+
+    def on_signal(signum: int, frame: object) -> None:
+        orchestrator.stop_all()
+        raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return orchestrator.run(out, config, todo, baselines, progress)
+    except KeyboardInterrupt:
+        orchestrator.stop_all()
+        print(f"\n{tool}: interrupted; finished runs are kept, --resume completes the rest",
+              file=stream)
+        raise SystemExit(130)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
 def _run_locked(out: Path, config: ExperimentConfig, jobs: int, resume: bool, stream: TextIO,
                 guardian: Guardian) -> int:
     config = prepare_directory(out, config, resume)
@@ -212,23 +236,8 @@ def _run_locked(out: Path, config: ExperimentConfig, jobs: int, resume: bool, st
     print(f"ftc.experiments: {len(runs)} runs in {out} ({len(finished)} already finished), "
           f"{len(baselines)} baseline episodes, jobs {jobs}", file=stream)
     progress = Progress(runs, finished, config.intervals, stream)
-    orchestrator = Orchestrator(jobs, guardian=guardian)
-
-    def on_signal(signum: int, frame: object) -> None:
-        orchestrator.stop_all()
-        raise KeyboardInterrupt
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        results = orchestrator.run(out, config, todo, baselines, progress)
-    except KeyboardInterrupt:
-        orchestrator.stop_all()
-        print("\nftc.experiments: interrupted; finished runs are kept, --resume completes "
-              "the rest", file=stream)
-        raise SystemExit(130)
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+    results = run_on_pool(out, config, todo, baselines, progress, jobs, guardian, stream,
+                          "ftc.experiments")
     failed = [k for k, v in results.items() if v["status"] != "ok"]
     meta = json.loads((out / "experiment.json").read_text())
     meta["wall_time_s"] = time.time() - progress.start
