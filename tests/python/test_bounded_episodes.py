@@ -94,3 +94,22 @@ def test_controller_and_both_mpcs_finish_on_a_dead_pump(tmp_path):
         rows = _run([*args, *SHORT, *scenario], tmp_path / name)
         assert len(rows) == 3, name
         assert all(1 <= int(r["eval_steps"]) <= 128 for r in rows), name
+
+
+def test_the_experiments_finish_on_a_dead_pump(tmp_path):
+    """The benchmark (the experiments' machinery) runs a dead-pump scenario to the
+    end with a baseline, a rule that evaluates, and the oracle MPC."""
+    out = tmp_path / "bench"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ftc.experiments", "benchmark", "--scenarios",
+         str(_scenario(tmp_path)), "--methods", "closed", "balance", "--seeds", "0",
+         "--intervals", "3", "--steps-per-interval", "64", "--controller-args",
+         "--update-every 32", "--jobs", "2", "--out", str(out)],
+        cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with open(out / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["method"] for r in rows} == {"closed", "balance", "oracle-mpc"}
+    assert len(rows) == 9 and all(r["scenario"] == "dead-pump" for r in rows)
+    evaluated = [r for r in rows if r["method"] != "closed"]
+    assert all(1 <= int(r["eval_steps"]) <= 64 for r in evaluated)

@@ -34,9 +34,11 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 
 from ftc.common.errors import CheckpointError
-from ftc.control.agent import Transition
+from ftc.control.agent import StepContext, Transition
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.planners import Evaluator, ParamsEvaluator
 from ftc.learning.identify import Identifier, OnlineIdentification
@@ -73,7 +75,16 @@ class AdaptiveAgent(MPCAgent):
         self.online_id.begin()
 
     def observe(self, t: Transition) -> None:
-        self.online_id.add(t.obs.level, t.valves, t.next_obs.level, t.next_obs.deficit)
+        applied = t.next_obs.valves  # the plant publishes the valves it applied
+        for i in np.flatnonzero(applied != t.valves):  # a valve that ignores its command
+            self.evaluator_.stuck[int(i)] = int(applied[i])
+        self.online_id.add(t.obs.level, applied, t.next_obs.level, t.next_obs.deficit)
+
+    def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
+        u = super().act(obs, ctx)
+        for i, state in self.evaluator_.stuck.items():
+            u[i] = state  # command what it will do anyway: no activity paid for nothing
+        return u
 
     def wants_data(self) -> bool:
         return False

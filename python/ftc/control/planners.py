@@ -201,9 +201,15 @@ class ParamsEvaluator:
         self.rollout = rollout
         self.params: dict | None = None
         self.refused = 0
+        # valves seen not to follow their commands: index -> the state they stay in
+        self.stuck: dict[int, int] = {}
 
     def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
         x0 = np.asarray(x0, np.float64)
+        if self.stuck:  # plan with the valves as they will be, not as commanded
+            sequences = sequences.copy()
+            for i, state in self.stuck.items():
+                sequences[:, :, i] = state
         try:
             return self.rollout.run(x0, sequences, self.params)
         except RuntimeError:

@@ -80,7 +80,8 @@ class RobustPPOAgent(PPOAgent):
 
     def observe(self, t: Transition) -> None:
         super().observe(t)
-        changed = self.online_id.add(t.obs.level, t.valves, t.next_obs.level, t.next_obs.deficit)
+        changed = self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
+                                     t.next_obs.deficit)  # the valves the plant applied
         if changed and self.refits < self.cfg.teacher_refits:
             # the plant changed (the interval boundary, an abrupt fault): fit the policy
             # to the planner on the plant as it is now, at once; the partial rollout was
