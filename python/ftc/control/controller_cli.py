@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
 from typing import Sequence
 
 import torch
@@ -80,7 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="python -m ftc.controller", allow_abbrev=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description=__doc__.split("\n\n")[0] + " Prints one progress line per interval.",
+        description=textwrap.fill(" ".join(__doc__.split("\n\n")[0].split())
+                                  + " Prints one progress line per interval.", 79),
         epilog=__doc__.split("\n\n", 1)[1])
     add_run_options(parser, ControllerConfig)
     add_dataclass_options(parser.add_argument_group("PPO hyperparameters"), PPOConfig, "ppo-")

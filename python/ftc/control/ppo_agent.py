@@ -63,7 +63,8 @@ class ControllerConfig(RunConfig):
         "ppo: the adaptive controller; closed / open / random: baselines (all valves "
         "closed, all open, each valve open with p=0.5) through the same loop and plant; "
         "balance: a rule that moves fuel to the light wing when |cg| > 0.1; ppo-robust: "
-        "PPO offline on the identified physics (docs/controller.md)")})
+        "PPO online with an offline phase guided by a planner on the identified physics "
+        "(docs/controller.md)")})
     update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
         "t_update: real steps between PPO updates (paper: 128)")})
     offline: bool = field(default=True, metadata={"help": (
