@@ -25,7 +25,8 @@ class OneLineParser(argparse.ArgumentParser):
     and ``--help`` shows the usage."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        # the same prefix as the tool's run-time errors ("ftc.controller: error: ...")
+        self.exit(2, f"{self.prog.removeprefix('python -m ')}: error: {message}\n")
 
 
 def flag(name: str, prefix: str = "") -> str:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ftc.common.cli import add_dataclass_options, check_config, out_dir_problem
-from ftc.common.errors import EXIT_USAGE, CheckpointError, RunError
+from ftc.common.errors import CheckpointError, RunError
 from ftc.control.config import RunConfig
 
 # RunConfig's fields before and after the tool's own in --help
@@ -49,7 +49,7 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
         try:
             _core.load_scenario(cfg.scenario)
         except _core.ScenarioError as e:  # names the file and the key: one line
-            parser.exit(EXIT_USAGE, f"{parser.prog}: error: --scenario: {e}\n")
+            parser.error(f"--scenario: {e}")
     if cfg.resume and not (Path(cfg.resume) / "config.json").is_file():
         parser.error(f"--resume {cfg.resume}: config.json missing (is it a run directory?)")
     problem = out_dir_problem(cfg.resume or cfg.out)

@@ -16,7 +16,7 @@ from ftc.control.adaptive_agent import AdaptiveAgent
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.runner import IntervalRunner
 
-TOOL = "python -m ftc.mpc"
+TOOL = "ftc.mpc"
 
 
 class MPCController(IntervalRunner):

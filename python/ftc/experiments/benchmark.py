@@ -39,7 +39,7 @@ from typing import Sequence, TextIO
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
 from ftc.common.build_info import git_revision
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
-from ftc.common.errors import EXIT_USAGE, RunError, StorageError
+from ftc.common.errors import RunError, StorageError
 from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report
@@ -239,7 +239,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     try:
         check_out_free(out)
     except OutInUse as e:
-        parser.exit(EXIT_USAGE, f"{parser.prog}: error: --out: {e}\n")
+        parser.error(f"--out: {e}")
     return argparse.Namespace(**vars(args), out_dir=out, config=config, texts=texts)
 
 

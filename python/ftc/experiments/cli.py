@@ -46,7 +46,7 @@ from types import SimpleNamespace
 from typing import Sequence
 
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
-from ftc.common.errors import EXIT_USAGE, RunError
+from ftc.common.errors import RunError
 from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark, report
@@ -198,7 +198,7 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     try:
         check_out_free(out)
     except OutInUse as e:
-        parser.exit(EXIT_USAGE, f"{parser.prog}: error: --resume: {e}\n")
+        parser.error(f"--resume: {e}")
     return ns
 
 

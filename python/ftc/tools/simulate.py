@@ -27,7 +27,7 @@ import numpy as np
 
 from ftc.common.atomic import atomic_write_csv
 from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
-from ftc.common.errors import EXIT_USAGE, RunError
+from ftc.common.errors import RunError
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
@@ -93,7 +93,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         try:
             _core.load_scenario(str(args.scenario))
         except _core.ScenarioError as e:  # names the file and the key
-            parser.exit(EXIT_USAGE, f"{parser.prog}: error: --scenario: {e}\n")
+            parser.error(f"--scenario: {e}")
     if args.out.is_dir():
         parser.error(f"--out {args.out}: is a directory (give the CSV file to write)")
     # An unwritable --out is an error before the plant starts; nothing is created.
