@@ -95,7 +95,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys, extra
         benchmark.parse_args(["--out", str(out), *extra])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("python -m ftc.experiments benchmark: error:")
+    assert len(err) == 1 and err[0].startswith("ftc.experiments benchmark: error:")
     assert message in err[0], err
     assert not out.exists()
 
