@@ -37,14 +37,13 @@ from pathlib import Path
 from typing import Sequence, TextIO
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
-from ftc.common.build_info import git_revision
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError, StorageError
 from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report
 from ftc.experiments.methods import METHODS
-from ftc.experiments.orchestrator import run_on_pool
+from ftc.experiments.orchestrator import provenance, run_on_pool
 from ftc.experiments.processes import Guardian, OrchestratorLock, OutInUse, check_out_free
 from ftc.experiments.progress import Progress
 from ftc.experiments.runs import RunSpec, is_finished
@@ -304,12 +303,7 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
                            "source": texts[stem][0] if stem in texts
                            else scenarios.get(stem, {}).get("source", "?")}
     atomic_write_json(meta_path, {
-        "config": config.to_json(),
-        "git_revision": git_revision(),
-        "git_revisions": sorted(set(previous.get("git_revisions", [])) | {git_revision()}),
-        "created": previous.get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z")),
-        "python": sys.version.split()[0],
-        "methods": {m: dataclasses.asdict(METHODS[m]) for m in config.methods},
+        **provenance(config, config.methods, previous),
         "scenarios": scenarios,
         **{k: previous[k] for k in ("wall_time_s", "jobs") if k in previous},
     })

@@ -160,12 +160,7 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
             atomic_write_text(out / "scenarios" / f"{name}.toml", sc.toml(config.steps_per_interval))
     previous = json.loads(meta.read_text()) if meta.is_file() else {}
     atomic_write_json(meta, {
-        "config": config.to_json(),
-        "git_revision": git_revision(),
-        "git_revisions": sorted(set(previous.get("git_revisions", [])) | {git_revision()}),
-        "created": previous.get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z")),
-        "python": sys.version.split()[0],
-        "methods": {m: dataclasses.asdict(METHODS[m]) for m in config.methods},
+        **provenance(config, config.methods, previous),
         "scenarios": {exp: [sc.to_json() for sc in trials] for exp, trials in scenarios.items()},
         "seeds": {"controller": list(config.seeds), "scenario": config.scenario_seed},
     })
@@ -198,6 +193,16 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int, resume: bool
     finally:
         guardian.close()
         lock.release()
+
+
+def provenance(config, methods, previous: dict) -> dict:
+    """The record of what a run directory was made with (its JSON's first keys);
+    ``previous``: the record already there, whose creation time and revisions are kept."""
+    return {"config": config.to_json(), "git_revision": git_revision(),
+            "git_revisions": sorted(set(previous.get("git_revisions", [])) | {git_revision()}),
+            "created": previous.get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z")),
+            "python": sys.version.split()[0],
+            "methods": {m: dataclasses.asdict(METHODS[m]) for m in methods}}
 
 
 def run_on_pool(out: Path, config: ExperimentConfig, todo: list, baselines: list,
