@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up a fresh machine for this project, idempotently:
 #   1. Debian packages (SUNDIALS, Eigen, CLI11, GoogleTest, toml++, CMake, a C++ compiler);
-#   2. a virtual environment .venv with the pinned Python dependencies and the
+#   2. a virtual environment .venv with the pinned Python dependencies
+#      (requirements.txt, then the interoperability ones in requirements-extra.txt) and the
 #      ftc package installed in editable mode;
 #   3. CMake configure and build into build/ (plant, tests, Python bindings,
 #      generated LCM types).
@@ -41,7 +42,7 @@ if [ ! -x .venv/bin/python ]; then
   "$python_bin" -m venv .venv
 fi
 stamp=.venv/.requirements.sha
-want="$(cat requirements.txt pyproject.toml | sha256sum | cut -d' ' -f1)"
+want="$(cat requirements.txt requirements-extra.txt pyproject.toml | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setup: installing Python dependencies into .venv"
   quiet_pip() {  # this machine's pip config names local mirrors that may be absent: not errors
@@ -50,6 +51,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   }
   quiet_pip install -q --upgrade pip
   quiet_pip install -q -r requirements.txt
+  quiet_pip install -q -r requirements-extra.txt
   quiet_pip install -q --no-deps --no-build-isolation -e .
   echo "$want" > "$stamp"
 fi
