@@ -1,7 +1,8 @@
 """The pretraining cache is keyed on the code pretraining runs (Reliability
 item 5): one changed byte in one of its sources, or in the physics core,
 gives another key, so a policy pretrained by other code is never loaded; and
-the key is recorded in the run's config.json."""
+the key is recorded in the run's config.json. The pretrained world model
+is cached beside the policies, and a hit is the same model bit for bit."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ from pathlib import Path
 from ftc import _core
 from ftc.control.controller_cli import Controller
 from ftc.control.ppo_agent import ControllerConfig
-from ftc.learning import pretrain
+import torch
+
+from ftc.learning import offline, pretrain
 from ftc.learning.ppo import PPOConfig
 
 PACKAGE = Path(pretrain.__file__).resolve().parents[1]
@@ -67,3 +70,36 @@ def test_the_key_is_in_config_json(tmp_path, scenarios):
     Controller(cfg, PPOConfig()).run()
     doc = json.loads((tmp_path / "config.json").read_text())
     assert doc["pretrain_code"] == pretrain.code_fingerprint()
+
+
+def _model_tensors(model) -> dict:
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+def test_the_world_model_cache_returns_the_same_model(tmp_path):
+    # A hit must be indistinguishable from pretraining: same weights, normalisers,
+    # demand and fit count (the fit count seeds every later refit's split and order).
+    fresh, demand, info = offline.pretrained_world_model(4, seed=3)
+    assert info["model_pretrain_cached"] == 0
+    cache = str(tmp_path / "cache")
+    built, demand_built, info_built = offline.pretrained_world_model(4, 3, cache)
+    hit, demand_hit, info_hit = offline.pretrained_world_model(4, 3, cache)
+    assert (info_built["model_pretrain_cached"], info_hit["model_pretrain_cached"]) == (0, 1)
+    assert demand == demand_built == demand_hit
+    assert fresh.fits == built.fits == hit.fits == 1
+    for key, value in _model_tensors(fresh).items():
+        assert torch.equal(value, hit.state_dict()[key]), key
+    # another seed is another entry
+    offline.pretrained_world_model(4, 4, cache)
+    assert len(list((tmp_path / "cache").glob("*.pt"))) == 2
+
+
+def test_a_corrupt_world_model_entry_is_rebuilt(tmp_path):
+    cache = str(tmp_path / "cache")
+    offline.pretrained_world_model(4, 3, cache)
+    (entry,) = (tmp_path / "cache").glob("*.pt")
+    entry.write_bytes(b"not a torch file")
+    model, _, info = offline.pretrained_world_model(4, 3, cache)
+    assert info["model_pretrain_cached"] == 0
+    assert offline.pretrained_world_model(4, 3, cache)[2]["model_pretrain_cached"] == 1
+    assert bool(model.fitted)

@@ -98,8 +98,16 @@ class MPCConfig(RunConfig):
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
         "model: intervals of real data each refit trains on (1 = the interval just run, "
         "as the controller's default)")})
+    model_engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
+        "model: how the world model is trained: numpy (several times faster at this size) or "
+        "torch (autograd); the same algorithm, minibatches and stopping rule, float32 "
+        "rounding differs (docs/benchmarks.md)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
         "model: nominal random-valve episodes for world-model pretraining (paper: 50)")})
+    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
+        "model: directory of pretrained world models keyed by a hash of everything "
+        "pretraining depends on (episodes, seed, model config, code); a hit skips the "
+        "pretraining with the same weights ('' disables)")})
     identify_every: int = field(default=64, metadata={"check": at_least(0, 1_000_000), "help": (
         "adaptive: re-identify the parameters every N steps of an interval from its data "
         "so far (0: only at interval ends)")})
@@ -150,10 +158,12 @@ class MPCAgent(Agent):
     def prepare(self) -> dict[str, Any]:
         if self.oracle is not None:
             return {}
-        self.model, self.demand, info = pretrained_world_model(self.cfg.model_episodes,
-                                                               self.cfg.seed)
+        self.model, self.demand, info = pretrained_world_model(
+            self.cfg.model_episodes, self.cfg.seed, self.cfg.pretrain_cache,
+            self.cfg.model_engine)
         return {"model_pretrain_r2": info["model_pretrain_r2"], "demand_estimate": self.demand,
-                "model_pretrain_seconds": info["model_pretrain_seconds"]}
+                "model_pretrain_seconds": info["model_pretrain_seconds"],
+                "model_pretrain_cached": info["model_pretrain_cached"]}
 
     def wants_data(self) -> bool:
         return self.cfg.method == "model"
@@ -161,7 +171,8 @@ class MPCAgent(Agent):
     def config_doc(self) -> dict[str, Any]:
         if self.cfg.method != "model":
             return {}
-        return {"world_model": dataclasses.asdict(WorldModelConfig(seed=self.cfg.seed))}
+        return {"world_model": dataclasses.asdict(
+            WorldModelConfig(seed=self.cfg.seed, engine=self.cfg.model_engine))}
 
     # -- planning ----------------------------------------------------------------
     def evaluator(self, o: PlantObservation) -> Evaluator:
@@ -223,7 +234,8 @@ class MPCAgent(Agent):
         if (state["model"] is None) != (self.cfg.method != "model"):
             raise CheckpointError("checkpoint of another MPC method")
         if state["model"] is not None:
-            self.model = WorldModel(WorldModelConfig(seed=self.cfg.seed))
+            self.model = WorldModel(WorldModelConfig(seed=self.cfg.seed,
+                                                     engine=self.cfg.model_engine))
             checkpoint.check_network_shapes_of(self.model.state_dict(), state["model"],
                                                "world-model")
             self.model.load_state_dict(state["model"])

@@ -100,6 +100,10 @@ class ControllerConfig(RunConfig):
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
         "intervals of real data each refit trains on: 1 = only the interval just run "
         "(Algorithm 1: the cache is cleared after each refit); k > 1 keeps the last k")})
+    model_engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
+        "how the world model is trained: numpy (several times faster at this size) or "
+        "torch (autograd); the same algorithm, minibatches and stopping rule, float32 "
+        "rounding differs (docs/benchmarks.md)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
         "nominal random-valve episodes for world-model pretraining (paper: 50)")})
     pretrain: bool = field(default=False, metadata={"help": (
@@ -129,9 +133,9 @@ class ControllerConfig(RunConfig):
         "PPO minibatch size while pretraining (large batches of cheap simulated steps)")})
     pretrain_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": "steps per plant between updates"})
     pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
-        "directory of pretrained policies keyed by a hash of everything pretraining "
-        "depends on (seed, pretrain and PPO settings); a hit skips pretraining with the "
-        "same result ('' disables)")})
+        "directory of pretrained policies and world models, keyed by a hash of everything "
+        "pretraining depends on (seed, pretrain, PPO and model settings, code); a hit skips "
+        "pretraining with the same result ('' disables)")})
     fresh_optimizer: bool = field(default=True, metadata={"help": (
         "reset Adam's state when adaptation starts, after pretraining (controller-notes item 3)")})
 
@@ -149,12 +153,13 @@ class ControllerConfig(RunConfig):
             max_steps=self.pretrain_max_steps, open_fraction=self.pretrain_open_fraction,
             deterministic_closed=self.pretrain_deterministic_closed,
             ent_coef=self.pretrain_ent_coef, lr=self.pretrain_lr, sim=self.pretrain_sim,
-            model_episodes=self.model_episodes)
+            model_episodes=self.model_episodes, model_engine=self.model_engine)
 
     def offline_settings(self) -> OfflineSettings:
         return OfflineSettings(seed=self.seed, steps=self.offline_steps, envs=self.offline_envs,
                                rollout=self.offline_rollout, minibatch=self.offline_minibatch,
-                               max_episode_steps=self.steps_per_interval)
+                               max_episode_steps=self.steps_per_interval,
+                               model_engine=self.model_engine)
 
 
 def _obs(o: PlantObservation) -> torch.Tensor:
@@ -192,7 +197,8 @@ class PPOAgent(Agent):
         cfg, info = self.cfg, {}
         model, demand = None, 0.0
         if cfg.offline or (cfg.pretrain and cfg.pretrain_sim == "model"):
-            model, demand, info = pretrained_world_model(cfg.model_episodes, cfg.seed)
+            model, demand, info = pretrained_world_model(cfg.model_episodes, cfg.seed,
+                                                         cfg.pretrain_cache, cfg.model_engine)
             self.model_state, self.model_fits = model.state_dict(), model.fits
         if cfg.pretrain:
             info.update(pretrain_cached(self.ppo, cfg.pretrain_settings(), cfg.pretrain_cache,
@@ -207,7 +213,8 @@ class PPOAgent(Agent):
     def config_doc(self) -> dict[str, Any]:
         doc: dict[str, Any] = {}
         if self.cfg.offline:
-            doc["world_model"] = dataclasses.asdict(WorldModelConfig(seed=self.cfg.seed))
+            doc["world_model"] = dataclasses.asdict(
+                WorldModelConfig(seed=self.cfg.seed, engine=self.cfg.model_engine))
         if self.cfg.pretrain:  # what the pretraining cache key covers
             doc["pretrain_code"] = code_fingerprint()
         return doc

@@ -15,20 +15,44 @@ import torch
 from ftc.common.constants import offline_seed
 from ftc.learning.model_env import ModelEnv, estimate_demand
 from ftc.learning.ppo import PPO, PPOConfig
+from ftc.learning.pretrain import cache_file, load_cached, store_cached
 from ftc.learning.rollout import train_on_env
 from ftc.learning.transitions import Transitions, collect_nominal_dataset
 from ftc.learning.world_model import WorldModel, WorldModelConfig, evaluate_model
 
 
-def pretrained_world_model(episodes: int, seed: int) -> tuple[WorldModel, float, dict[str, float]]:
+def pretrained_world_model(episodes: int, seed: int, cache_dir: str = "", engine: str = "numpy"
+                           ) -> tuple[WorldModel, float, dict[str, float]]:
     """The model fitted on the paper's nominal data set (``episodes`` random-valve
-    episodes), the demand per step estimated from it, and what was measured."""
+    episodes), the demand per step estimated from it, and what was measured.
+
+    With ``cache_dir`` the result is kept there, keyed on (episodes, seed, the
+    model's config, the code's fingerprint), and loaded by later runs: the
+    same weights, normalisers and fit count bit for bit, since pretraining is
+    deterministic in those inputs; ``model_pretrain_cached`` says which happened.
+    """
+    config = WorldModelConfig(seed=seed, engine=engine)
+    path = cache_file(cache_dir, {"world_model": dataclasses.asdict(config),
+                                  "episodes": episodes, "seed": seed}) if cache_dir else None
+    cached = load_cached(path) if path is not None else None
+    if cached is not None:
+        try:
+            model = WorldModel(config)
+            model.load_state_dict(cached["model"])
+            model.fits = int(cached["fits"])
+            return model, float(cached["demand"]), {**cached["info"], "model_pretrain_cached": 1}
+        except Exception:  # noqa: BLE001 - a record of another layout is rebuilt
+            pass
     start = time.perf_counter()
     data = collect_nominal_dataset(episodes, seed=seed)
-    model = WorldModel(WorldModelConfig(seed=seed))
+    model = WorldModel(config)
     report = model.fit(data, warm_start=False)
-    return model, estimate_demand(data), {"model_pretrain_r2": report.r2,
-                                          "model_pretrain_seconds": time.perf_counter() - start}
+    demand = estimate_demand(data)
+    info = {"model_pretrain_r2": report.r2, "model_pretrain_seconds": time.perf_counter() - start}
+    if path is not None:
+        store_cached(path, {"model": model.state_dict(), "fits": model.fits, "demand": demand,
+                            "info": info})
+    return model, demand, {**info, "model_pretrain_cached": 0}
 
 
 class ModelWindow:
@@ -75,6 +99,7 @@ class OfflineSettings:
     rollout: int = 64          # model steps per env between updates
     minibatch: int = 64
     max_episode_steps: int = 512
+    model_engine: str = "numpy"  # WorldModelConfig.engine of the refits
 
 
 class OfflineResult(NamedTuple):
@@ -94,7 +119,7 @@ def offline_phase(ppo_state: dict, ppo_config: PPOConfig, model_state: dict, mod
     s = settings
     torch.set_num_threads(1)
     start = time.perf_counter()
-    model = WorldModel(WorldModelConfig(seed=s.seed))
+    model = WorldModel(WorldModelConfig(seed=s.seed, engine=s.model_engine))
     model.load_state_dict(model_state)
     model.fits = model_fits
     demand, metrics = refit(model, data)

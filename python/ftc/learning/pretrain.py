@@ -29,7 +29,7 @@ from ftc.learning.ppo import PPO, UpdateStats
 from ftc.learning.rollout import train_on_env
 from ftc.learning.sim_env import VecCorePlant
 
-CACHE_VERSION = 2  # bump when the cached record's layout changes
+CACHE_VERSION = 3  # bump when the cached record's layout changes
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,7 @@ class PretrainSettings:
     lr: float | None = None
     sim: str = "core"  # core: nominal C++ plants; model: the pretrained world model
     model_episodes: int = 50  # (sim = model) episodes of the model's data set
+    model_engine: str = "numpy"  # (sim = model) how that model was trained
 
 
 def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
@@ -98,7 +99,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1]
 FINGERPRINT_FILES = ("common/constants.py", "plant/link.py", "plant/reward.py",
                      "learning/buffer.py", "learning/ppo.py", "learning/rollout.py",
                      "learning/sim_env.py", "learning/model_env.py", "learning/world_model.py",
-                     "learning/transitions.py", "learning/pretrain.py")
+                     "learning/transitions.py", "learning/pretrain.py", "learning/offline.py")
 
 
 def code_fingerprint(package_dir: Path = PACKAGE_DIR, core: Path | None = None) -> str:
@@ -115,13 +116,38 @@ def code_fingerprint(package_dir: Path = PACKAGE_DIR, core: Path | None = None) 
     return h.hexdigest()[:16]
 
 
+def cache_file(cache_dir: str, key_fields: dict[str, Any]) -> Path:
+    """The cache entry of ``key_fields`` (plus this code's fingerprint and the
+    cache layout version, which every key includes) under ``cache_dir``."""
+    fields_ = {**key_fields, "code": code_fingerprint(), "version": CACHE_VERSION}
+    key = hashlib.sha256(json.dumps(fields_, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(os.path.expanduser(cache_dir)) / f"{key}.pt"
+
+
+def load_cached(path: Path) -> dict[str, Any] | None:
+    """The record at ``path``, or None when there is none or it does not load
+    (corrupt, other layout: the caller rebuilds and replaces it)."""
+    if not path.exists():
+        return None
+    try:
+        return torch.load(path, weights_only=True)
+    except Exception:  # noqa: BLE001 - any unreadable entry is rebuilt
+        return None
+
+
+def store_cached(path: Path, record: dict[str, Any]) -> None:
+    """Write ``record`` atomically; a cache that cannot be written costs time, not results."""
+    try:
+        atomic_torch_save(path, record)
+    except OSError:
+        pass
+
+
 def cache_path(cache_dir: str, settings: PretrainSettings, ppo_config: Any) -> tuple[Path, dict]:
     """Where the policy pretrained with these settings and this code is cached."""
-    key_fields = {"settings": dataclasses.asdict(settings),
-                  "ppo": dataclasses.asdict(ppo_config), "code": code_fingerprint(),
-                  "version": CACHE_VERSION}
-    key = hashlib.sha256(json.dumps(key_fields, sort_keys=True).encode()).hexdigest()[:16]
-    return Path(os.path.expanduser(cache_dir)) / f"{key}.pt", key_fields
+    key_fields = {"settings": dataclasses.asdict(settings), "ppo": dataclasses.asdict(ppo_config)}
+    return cache_file(cache_dir, key_fields), {**key_fields, "code": code_fingerprint(),
+                                               "version": CACHE_VERSION}
 
 
 def pretrain_cached(ppo: PPO, settings: PretrainSettings, cache_dir: str, model: Any = None,
@@ -133,16 +159,13 @@ def pretrain_cached(ppo: PPO, settings: PretrainSettings, cache_dir: str, model:
     if not cache_dir:
         return {**pretrain_policy(ppo, settings, model, demand), "pretrain_cached": 0}
     path, key_fields = cache_path(cache_dir, settings, ppo.config)
-    if path.exists():
+    cached = load_cached(path)
+    if cached is not None:
         try:
-            cached = torch.load(path, weights_only=True)
             ppo.load_state_dict(cached["ppo"])
             return {**cached["info"], "pretrain_cached": 1}
-        except Exception:  # noqa: BLE001 - any unreadable entry is rebuilt
+        except Exception:  # noqa: BLE001 - a record of another layout is rebuilt
             pass
     info = pretrain_policy(ppo, settings, model, demand)
-    try:
-        atomic_torch_save(path, {"ppo": ppo.state_dict(), "info": info, "key": key_fields})
-    except OSError:
-        pass  # a cache that cannot be written costs time, not results
+    store_cached(path, {"ppo": ppo.state_dict(), "info": info, "key": key_fields})
     return {**info, "pretrain_cached": 0}
