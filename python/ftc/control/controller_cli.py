@@ -45,7 +45,7 @@ from ftc.learning.ppo import PPOConfig
 TOOL = "ftc.controller"
 # options of a resumed run taken from this command line, not from its config.json
 RESUME_OVERRIDES = ("lcm_url", "prefix", "attach", "allow_network", "quiet",
-                    "link_retry_timeout", "link_backoff", "link_give_up_timeout")
+                    "link_retry_timeout", "link_backoff", "link_give_up_timeout", "tensorboard")
 
 
 def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
