@@ -93,10 +93,8 @@ class IntervalRunner:
             self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
         start = time.perf_counter()
         try:
-            # resumed: hide what an interrupted interval wrote past the checkpoint
             self.telemetry = self.agent.telemetry = open_telemetry(
-                cfg.tensorboard, cfg.steps_per_interval,
-                self.interval * cfg.steps_per_interval + 1 if cfg.resume else None)
+                cfg.tensorboard, cfg.steps_per_interval, self.interval if cfg.resume else None)
             if plant is None:
                 try:
                     plant = open_plant(cfg, self.interval * cfg.steps_per_interval)

@@ -162,8 +162,12 @@ NULL_TELEMETRY = Telemetry()
 
 
 def open_telemetry(log_dir: str | None, steps_per_interval: int,
-                   purge_step: int | None = None) -> Telemetry:
-    """TensorBoard telemetry into ``log_dir``, or the null one when it is None."""
+                   resumed_at: int | None = None) -> Telemetry:
+    """TensorBoard telemetry into ``log_dir``, or the null one when it is None.
+
+    resumed_at: the interval a resumed run continues from; what the interrupted
+    run wrote after that interval's first operating step is purged."""
     if log_dir is None:
         return NULL_TELEMETRY
-    return TensorBoardTelemetry(log_dir, steps_per_interval, purge_step)
+    purge = None if resumed_at is None else resumed_at * steps_per_interval + 1
+    return TensorBoardTelemetry(log_dir, steps_per_interval, purge)
