@@ -9,6 +9,10 @@ Outputs in --out DIR: config.json (resolved config, seed, git revision),
 metrics.csv (one row per interval, rewritten atomically after each), a
 checkpoint after every interval (checkpoint.pt, torch.load(weights_only=True)),
 done.json when the run has finished; plant.pid while a launched plant runs.
+With --tensorboard DIR, TensorBoard scalars in DIR: every PPO update's
+statistics, every interval's metrics, reward terms and steps/s
+(docs/ecosystem.md). A PPO run's policy exports to ONNX with
+python -m ftc.export OUT --out policy.onnx (OUT: the run's --out).
 
 Failures (one line on stderr, "ftc.controller: error: ..."; nothing written
 after the last finished interval, so metrics.csv and checkpoint.pt stay those

@@ -26,6 +26,8 @@ Run directory (--out):
   trajectories/*.csv     one episode at the highest degradation, from the logs (figure c)
   model_search.csv       the ranked world-model grid (model-search)
   figures/*.png|svg, report.md, report.html
+With --tensorboard TB: TB/EXP/tNN/METHOD/sS/ holds each run's TensorBoard
+scalars (its controller's --tensorboard; docs/ecosystem.md).
 
 A run counts as finished only once its result.json is written (atomically,
 last). --resume skips finished runs and redoes unfinished ones from scratch.
