@@ -33,6 +33,9 @@ ACCEPTED = {
     ("--pretrain-cache", ""), ("--pretrain-cache", "0"), ("--pretrain-cache", "-1"),
     ("--pretrain-cache", "nan"), ("--pretrain-cache", "inf"), ("--pretrain-cache", "1e18"),
     ("--pretrain-cache", "abc"),              # a cache directory ('' disables it)
+    ("--tensorboard", "0"), ("--tensorboard", "-1"), ("--tensorboard", "nan"),
+    ("--tensorboard", "inf"), ("--tensorboard", "1e18"),
+    ("--tensorboard", "abc"),                 # a directory name (relative to the cwd)
 }
 # --out is given a fresh directory by every case (its checks: test_fault_injection.py)
 SKIPPED = {"--out"}

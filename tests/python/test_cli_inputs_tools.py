@@ -1,7 +1,7 @@
-"""Every option of ftc.experiments, ftc.simulate, ftc.replay, ftc.relay and
-./build/plant with bad values: exit 2, one line on stderr naming the flag, no
-traceback, nothing written (Reliability item 2; the controller and the MPC are
-walked by test_cli_inputs.py).
+"""Every option of ftc.experiments, ftc.simulate, ftc.replay, ftc.relay,
+ftc.export and ./build/plant with bad values: exit 2, one line on stderr
+naming the flag, no traceback, nothing written (Reliability item 2; the
+controller and the MPC are walked by test_cli_inputs.py).
 
 The Python options are walked from the parsers themselves (an option added
 later is walked too) and parsed in process: each tool's ``parse_args`` does
@@ -28,7 +28,7 @@ import pytest
 from ftc.common.build_info import plant_binary
 from ftc.experiments import cli as experiments_cli
 from ftc.plant import LcmPlant, PlantGoneError, private_lcm_url, private_prefix
-from ftc.tools import relay, replay, simulate
+from ftc.tools import export, relay, replay, simulate
 
 BAD_VALUES = ["0", "-1", "nan", "inf", "1e18", "", "abc"]
 NAMES = {"0", "-1", "nan", "inf", "1e18", "abc"}  # every bad value but '' is a valid name
@@ -39,6 +39,9 @@ ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("ftc.experiments", "--scenario-seed"): {"0"},
     ("ftc.experiments", "--run-timeout"): {"0"},     # 0: no timeout
     ("ftc.experiments", "--controller-args"): {""},  # no extra arguments
+    ("ftc.experiments", "--tensorboard"): NAMES,     # a directory name (relative to the cwd)
+    ("ftc.export", "--out"): NAMES,                  # an .onnx file name (relative to the cwd)
+    ("ftc.export", "--verify-states"): {"0"},        # 0: no onnxruntime check
     ("ftc.simulate", "--seed"): {"0"},
     ("ftc.simulate", "--out"): NAMES,                # a CSV file name
     ("ftc.replay", "--channel"): NAMES,              # a channel name (not in the log: a run-time error)
@@ -62,11 +65,14 @@ def _base(tool: str, tmp_path: Path) -> list[str]:
     return {"ftc.experiments": ["single", "--out", str(tmp_path / "out")],
             "ftc.simulate": ["--out", str(tmp_path / "traj.csv")],
             "ftc.replay": [str(log)],
-            "ftc.relay": ["--client-prefix", "CLIENT_", "--plant-prefix", "PLANT_"]}[tool]
+            "ftc.relay": ["--client-prefix", "CLIENT_", "--plant-prefix", "PLANT_"],
+            # never read either: the checkpoint is opened only when the export runs
+            "ftc.export": [str(tmp_path / "checkpoint.pt"), "--out", str(tmp_path / "p.onnx")],
+            }[tool]
 
 
 TOOLS = {"ftc.experiments": experiments_cli, "ftc.simulate": simulate, "ftc.replay": replay,
-         "ftc.relay": relay}
+         "ftc.relay": relay, "ftc.export": export}
 
 
 def _value_options(parser: argparse.ArgumentParser) -> list[str]:
@@ -80,7 +86,7 @@ CASES = [(tool, flag, value) for tool, module in TOOLS.items()
 
 def test_every_option_is_walked():
     walked = {(t, f) for t, f, _ in CASES}
-    assert len(walked) == 10 + 6 + 4 + 6, sorted(walked)
+    assert len(walked) == 11 + 6 + 4 + 6 + 2, sorted(walked)
     for tool, flag in ACCEPTED:
         assert tool == "plant" or (tool, flag) in walked, (tool, flag)
 

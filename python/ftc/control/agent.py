@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ftc.control.telemetry import NULL_TELEMETRY, Telemetry
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
@@ -69,12 +70,15 @@ class Agent:
 
     name: shown in progress lines; evaluates: run the deterministic evaluation
     episode after each interval; extra_columns: metrics.csv columns beyond the
-    runner's; progress_keys: (metric, label) pairs shown per interval."""
+    runner's; progress_keys: (metric, label) pairs shown per interval;
+    telemetry: set by the runner (--tensorboard), for the agent's own scalars
+    (PPO: ``telemetry.update(stats)`` after every update); a no-op by default."""
 
     name = "agent"
     evaluates = True
     extra_columns: tuple[str, ...] = ()
     progress_keys: tuple[tuple[str, str], ...] = ()
+    telemetry: Telemetry = NULL_TELEMETRY
 
     def prepare(self) -> dict[str, Any]:
         """Before interval 0 of a new run (not on resume): pretraining. Returns info."""

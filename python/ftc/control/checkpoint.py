@@ -44,9 +44,10 @@ def save(path: Path, state: dict[str, Any]) -> None:
     atomic_torch_save(path, {"format": FORMAT, **state})
 
 
-def load(path: Path, configs: dict[str, Any], intervals: int) -> dict[str, Any]:
-    """``path`` checked: readable, of this format, written under the same
-    configuration, consistent; raises CheckpointError saying why not."""
+def read(path: Path) -> dict[str, Any]:
+    """The checkpoint at ``path``, checked only for being readable, of this
+    format and complete (the exporter's view; :func:`load` checks the rest);
+    raises CheckpointError saying why not."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint (the run stopped before its first "
                               "interval finished; start it again without --resume)")
@@ -64,6 +65,13 @@ def load(path: Path, configs: dict[str, Any], intervals: int) -> dict[str, Any]:
     missing = sorted(KEYS - set(state))
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {', '.join(missing)}")
+    return state
+
+
+def load(path: Path, configs: dict[str, Any], intervals: int) -> dict[str, Any]:
+    """``path`` checked: readable, of this format, written under the same
+    configuration, consistent; raises CheckpointError saying why not."""
+    state = read(path)
     mine = config_stamp(configs)
     theirs = state["config"] if isinstance(state["config"], dict) else {}
     diffs = [f"{part}.{key} {theirs.get(part, {}).get(key)!r} in the checkpoint, {value!r} here"

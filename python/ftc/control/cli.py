@@ -55,6 +55,9 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
     problem = out_dir_problem(cfg.resume or cfg.out)
     if problem:
         parser.error(f"--out {cfg.resume or cfg.out}: cannot write there ({problem})")
+    problem = out_dir_problem(cfg.tensorboard) if cfg.tensorboard else None
+    if problem:
+        parser.error(f"--tensorboard {cfg.tensorboard}: cannot write there ({problem})")
 
 
 def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:

@@ -60,6 +60,10 @@ class RunConfig:
                                                                "help": (
         "seconds without an answer after which the plant counts as gone (exit 3)")})
     quiet: bool = field(default=False, metadata={"help": "no progress lines on the console"})
+    tensorboard: str | None = field(default=None, metadata={"help": (
+        "write TensorBoard scalars into this directory: every PPO update's statistics, "
+        "every interval's metrics.csv columns, reward terms and steps/s "
+        "(docs/ecosystem.md; None: none)")})
 
     def validate(self) -> None:
         """Cross-field rules (single fields declare their own constraints);
@@ -68,6 +72,8 @@ class RunConfig:
             raise ValueError("--out must name a directory, got ''")
         if self.resume is not None and not self.resume.strip():
             raise ValueError("--resume must name a run directory, got ''")
+        if self.tensorboard is not None and not self.tensorboard.strip():
+            raise ValueError("--tensorboard must name a directory, got ''")
         if self.prefix is not None and not self.prefix.strip():
             raise ValueError("--prefix must not be empty (None: a private one)")
         if not self.link_retry_timeout <= self.link_give_up_timeout:
@@ -92,7 +98,7 @@ class RunConfig:
 # values of these may be resumed (everything else must match).
 RUN_LOCAL_FIELDS = ("out", "resume", "lcm_url", "prefix", "attach", "allow_network", "quiet",
                     "link_retry_timeout", "link_backoff", "link_give_up_timeout",
-                    "pretrain_cache")
+                    "pretrain_cache", "tensorboard")
 
 
 def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:

@@ -9,6 +9,10 @@ Outputs in --out DIR: config.json (resolved config, seed, git revision),
 metrics.csv (one row per interval, rewritten atomically after each), a
 checkpoint after every interval (checkpoint.pt, torch.load(weights_only=True)),
 done.json when the run has finished; plant.pid while a launched plant runs.
+With --tensorboard DIR, TensorBoard scalars in DIR: every PPO update's
+statistics, every interval's metrics, reward terms and steps/s
+(docs/ecosystem.md). A PPO run's policy exports to ONNX with
+python -m ftc.export OUT --out policy.onnx (OUT: the run's --out).
 
 Failures (one line on stderr, "ftc.controller: error: ..."; nothing written
 after the last finished interval, so metrics.csv and checkpoint.pt stay those
@@ -45,7 +49,7 @@ from ftc.learning.ppo import PPOConfig
 TOOL = "ftc.controller"
 # options of a resumed run taken from this command line, not from its config.json
 RESUME_OVERRIDES = ("lcm_url", "prefix", "attach", "allow_network", "quiet",
-                    "link_retry_timeout", "link_backoff", "link_give_up_timeout")
+                    "link_retry_timeout", "link_backoff", "link_give_up_timeout", "tensorboard")
 
 
 def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:

@@ -90,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if cfg.resume:
             run_cfg = read_run_configs(cfg.resume, {"mpc": MPCConfig})["mpc"]
             run_cfg.resume = run_cfg.out = cfg.resume
-            for k in ("lcm_url", "prefix", "attach", "allow_network", "quiet"):
+            for k in ("lcm_url", "prefix", "attach", "allow_network", "quiet", "tensorboard"):
                 setattr(run_cfg, k, getattr(cfg, k))
         MPCController(run_cfg).run()
 

@@ -239,6 +239,7 @@ class PPOAgent(Agent):
         if self.collector.full:
             self.stats.append(self.collector.update(_obs(t.following)))
             check_update(self.ppo.policy, self.stats[-1], f"the PPO update at {self._where}")
+            self.telemetry.update(self.stats[-1]._asdict())
             if self.pending is not None and self.pending[0].done():
                 self._take_pending()
 

@@ -45,6 +45,7 @@ from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import finite_observation
 from ftc.control.config import RunConfig, open_plant
 from ftc.control.metrics import METRIC_COLUMNS, format_cell, progress_line
+from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantGoneError, PlantLink, PlantObservation
 from ftc.plant.reward import reward
@@ -64,6 +65,7 @@ class IntervalRunner:
         self.info: dict[str, Any] = {}
         self.interval = 0
         self.where = "before the first step"  # position in the run, for error messages
+        self.telemetry: Telemetry = NULL_TELEMETRY  # --tensorboard: opened by run()
         self.columns = METRIC_COLUMNS + [c for c in agent.extra_columns
                                          if c not in METRIC_COLUMNS]
 
@@ -91,6 +93,8 @@ class IntervalRunner:
             self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
         start = time.perf_counter()
         try:
+            self.telemetry = self.agent.telemetry = open_telemetry(
+                cfg.tensorboard, cfg.steps_per_interval, self.interval if cfg.resume else None)
             if plant is None:
                 try:
                     plant = open_plant(cfg, self.interval * cfg.steps_per_interval)
@@ -103,6 +107,7 @@ class IntervalRunner:
                                  "--resume continues from them") from None
         finally:
             self.agent.close()
+            self.telemetry.close()
         if self.interval >= cfg.intervals:
             atomic_write_json(self.out / "done.json", {
                 "intervals": self.interval, "wall_time": time.perf_counter() - start}, indent=None)
@@ -131,6 +136,7 @@ class IntervalRunner:
         k = self.interval
         t0 = time.perf_counter()
         self.agent.begin_interval(k)
+        self.telemetry.begin_interval(k)
         online, data = self.online(plant)
         row = {"interval": k, **online, "online_seconds": time.perf_counter() - t0}
         row["eval_reward_per_step"], row["eval_steps"] = (
@@ -142,11 +148,13 @@ class IntervalRunner:
         self.interval += 1
         self.checkpoint()
         self.write_metrics()
+        self.telemetry.end_interval(row)
         self._say(progress_line(row, self.cfg.intervals, self.agent.progress_keys))
 
     def _merge_late_metrics(self) -> None:
         for interval, metrics in self.agent.late_metrics():
             self.rows[interval].update(metrics)
+            self.telemetry.late(interval, metrics)
 
     def _checked(self, o: PlantObservation) -> PlantObservation:
         return finite_observation(o, self.where)
@@ -169,6 +177,7 @@ class IntervalRunner:
             nxt = self._checked(plant.step(u))
             observations.append(nxt)
             rewards[t] = reward(nxt.level, u)
+            self.telemetry.step(nxt.level, u)
             last = t == n - 1
             if last and not nxt.done:
                 raise RunError(f"plant did not end the interval after {t + 1} steps at "

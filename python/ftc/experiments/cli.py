@@ -26,6 +26,8 @@ Run directory (--out):
   trajectories/*.csv     one episode at the highest degradation, from the logs (figure c)
   model_search.csv       the ranked world-model grid (model-search)
   figures/*.png|svg, report.md, report.html
+With --tensorboard TB: TB/EXP/tNN/METHOD/sS/ holds each run's TensorBoard
+scalars (its controller's --tensorboard; docs/ecosystem.md).
 
 A run counts as finished only once its result.json is written (atomically,
 last). --resume skips finished runs and redoes unfinished ones from scratch.
@@ -110,6 +112,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
                         default=0.0,
                         help="kill a run after this many seconds and count it failed (0: never)")
+    parser.add_argument("--tensorboard", type=checked(Path, nonempty=True), default=None,
+                        metavar="DIR",
+                        help="TensorBoard scalars of every run, each in its own subdirectory "
+                             "DIR/EXPERIMENT/tNN/METHOD/sSEED (the controller's --tensorboard; "
+                             "docs/ecosystem.md)")
     parser.add_argument("--model-search", action="store_true",
                         help="with 'all': also run the world-model grid")
     parser.add_argument("--quick", action="store_true",
@@ -159,6 +166,8 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
         parser.error(f"--controller-args: {e}")
     out = args.out or Path("runs") / f"{args.command}-{time.strftime('%Y%m%d-%H%M%S')}"
     ns = SimpleNamespace(**vars(args), out_dir=out, config=None)
+    if args.tensorboard is not None and args.command in ("report", "model-search"):
+        parser.error(f"--tensorboard: the {args.command} command runs no controller")
     if args.command == "report":
         if not (out / "experiment.json").is_file():
             parser.error(f"--out {out} holds no experiment.json")
@@ -166,6 +175,10 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     problem = out_dir_problem(out)
     if problem:  # an unwritable --out is an error before any run starts
         parser.error(f"--out {out}: cannot write there ({problem})")
+    if args.tensorboard is not None:
+        problem = out_dir_problem(args.tensorboard)
+        if problem:
+            parser.error(f"--tensorboard {args.tensorboard}: cannot write there ({problem})")
     if args.command == "model-search":
         return ns
     preset = PRESETS["full" if args.full else "quick"]
@@ -180,7 +193,8 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
         steps_per_interval=(args.steps_per_interval if args.steps_per_interval is not None
                             else preset["steps_per_interval"]),
         controller_args=(("--pretrain",) if args.pretrain else ()) + extra,
-        run_timeout=args.run_timeout)
+        run_timeout=args.run_timeout,
+        tensorboard=None if args.tensorboard is None else str(args.tensorboard.resolve()))
     problem = _controller_args_problem(ns.config.methods, ns.config.controller_args, ns.config,
                                        out)
     if problem:

@@ -15,8 +15,9 @@ class MethodSpec:
     """A compared method: a module run with ``python -m`` and its method arguments.
 
     The module must accept the controller's common options (--scenario, --seed,
-    --out, --intervals, --steps-per-interval, --lcm-url, --prefix) and write
-    OUT/metrics.csv (one row per interval) like ``ftc.controller`` does.
+    --out, --intervals, --steps-per-interval, --lcm-url, --prefix; --tensorboard
+    DIR when ftc.experiments is given one) and write OUT/metrics.csv (one row
+    per interval) like ``ftc.controller`` does.
 
     name: identifier used on the command line and in paths
     label: legend text in figures and tables

@@ -147,7 +147,7 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
             print(f"resume: adding {sorted(set(merged.experiments) - set(stored.experiments))} "
                   f"experiments and {sorted(set(merged.methods) - set(stored.methods))} methods",
                   file=sys.stderr)
-        config = merged
+        config = dataclasses.replace(merged, tensorboard=config.tensorboard)  # this run's
     scenarios = experiment_scenarios(config)
     for exp, trials in scenarios.items():
         for sc in trials:

@@ -107,6 +107,11 @@ def check_log(path: Path) -> dict:
     return {"log_events": traj.events, "log_steps": len(traj), "log_repeats": traj.repeats}
 
 
+def tensorboard_dir(spec: RunSpec, config: ExperimentConfig) -> Path:
+    """A run's TensorBoard directory: --tensorboard DIR / its key (EXP/tNN/METHOD/sS)."""
+    return Path(config.tensorboard) / spec.key
+
+
 def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: Path,
                        out_dir: Path, url: str, prefix: str) -> list[str]:
     """The command line of a run's controller (it starts its own plant)."""
@@ -118,6 +123,8 @@ def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: P
     # link core: the physics runs in the controller's process, no LCM traffic
     cmd += (["--link", "core"] if config.link == "core"
             else ["--lcm-url", url, "--prefix", prefix])
+    if config.tensorboard is not None:
+        cmd += ["--tensorboard", str(tensorboard_dir(spec, config))]
     return cmd + list(config.controller_args)
 
 
@@ -154,6 +161,8 @@ def _execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: Run
     if run_dir.exists():
         stop_leftover_processes(run_dir)
         shutil.rmtree(run_dir)
+    if config.tensorboard is not None:  # a redone run starts its curves again
+        shutil.rmtree(tensorboard_dir(spec, config), ignore_errors=True)
     run_dir.mkdir(parents=True)
     url, prefix = private_lcm_url(), private_prefix()
     scenario_path = (out / "scenarios" / f"{spec.scenario}.toml").resolve()

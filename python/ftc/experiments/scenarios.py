@@ -39,6 +39,9 @@ class ExperimentConfig:
         normal priority, so that it keeps up on a loaded machine)
     link: the controllers' plant link: lcm (a plant process per run, recorded) or
         core (the physics in the controller's process: no plant process, no log)
+    tensorboard: directory of TensorBoard event files, one subdirectory per run
+        (DIR/EXP/tNN/METHOD/sS, the run's key), or None; like jobs it does not
+        change results, and --resume takes it from the command line
     """
 
     experiments: tuple[str, ...] = EXPERIMENTS
@@ -52,6 +55,7 @@ class ExperimentConfig:
     run_timeout: float = 0.0
     nice: int = 5
     link: str = "lcm"
+    tensorboard: str | None = None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
