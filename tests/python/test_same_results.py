@@ -11,9 +11,9 @@ ATen pick AVX2 or AVX-512 code, which sums in another order): on the first
 machine the pre-refactor files in same_results/ hold; on an AVX-512 machine
 the files in same_results/avx512/, written there by the post-refactor code of
 commit 9de25cc (which matched same_results/ on the first machine). Those
-commands run the world model's torch engine (--model-engine torch), the only
-one that existed then; the numpy engine's agreement with it is
-test_small_mlp.py's. Closed, random and the oracle are float64 C++ and NumPy,
+commands run the torch engines of the world model and PPO (--model-engine
+torch, --ppo-engine torch), the only ones that existed then; the numpy
+engines' agreement with them is test_small_mlp.py's and test_ppo_numpy.py's. Closed, random and the oracle are float64 C++ and NumPy,
 the same on both machines.
 The comparison is on metrics.csv's 6-significant-digit text: any change of
 arithmetic (an RNG draw moved, an update reordered) changes some digit of the
@@ -37,12 +37,13 @@ SAVED = REPO / "tests" / "data" / "same_results"
 COMMON = ["--scenario", "scenarios/single.toml", "--seed", "0", "--intervals", "3",
           "--link", "core", "--quiet"]
 TORCH = ["--model-engine", "torch"]
+PPO_TORCH = [*TORCH, "--ppo-engine", "torch"]
 COMMANDS = {
     "closed": ["ftc.controller", "--method", "closed"],
     "random": ["ftc.controller", "--method", "random"],
-    "ppo-offline": ["ftc.controller", "--method", "ppo", *TORCH],
+    "ppo-offline": ["ftc.controller", "--method", "ppo", *PPO_TORCH],
     "ppo-offline-pretrain": ["ftc.controller", "--method", "ppo", "--pretrain",
-                             "--pretrain-cache", "", *TORCH],
+                             "--pretrain-cache", "", *PPO_TORCH],
     "oracle-mpc": ["ftc.mpc", "--method", "oracle"],
     "model-mpc": ["ftc.mpc", "--method", "model", "--pretrain-cache", "", *TORCH],
 }

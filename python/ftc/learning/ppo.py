@@ -30,6 +30,7 @@ from torch import nn
 
 from ftc.common.cli import at_least, between, positive
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM, RolloutBatch, RolloutBuffer
+from ftc.learning.ppo_numpy import numpy_ppo_update
 
 
 @dataclass
@@ -65,6 +66,10 @@ class PPOConfig:
         "shared tanh trunk (paper)")})
     head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"check": at_least(1, 4096), "help": (
         "tanh layers of each of the policy and value heads (paper)")})
+    engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
+        "how updates are computed: numpy (learning/ppo_numpy.py: hand-derived gradients, "
+        "several times faster for these tiny networks) or torch (autograd); the same "
+        "minibatches, loss and Adam, float32 rounding differs; clip_vloss uses torch")})
 
     @classmethod
     def help(cls) -> dict[str, str]:
@@ -277,7 +282,11 @@ class PPO:
         """GAE on the buffer, then the PPO update; leaves the buffer emptied."""
         c = self.config
         buffer.compute_returns_and_advantages(last_values, c.gamma, c.gae_lambda, c.reward_scale)
-        stats = ppo_update(self.policy, self.optimizer, buffer.batch(), c, self.generator)
+        if c.engine == "numpy" and not c.clip_vloss:
+            stats = numpy_ppo_update(self.policy, self.optimizer, buffer.batch(), c,
+                                     self.generator, UpdateStats)
+        else:
+            stats = ppo_update(self.policy, self.optimizer, buffer.batch(), c, self.generator)
         buffer.reset()
         return stats
 
