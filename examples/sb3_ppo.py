@@ -106,7 +106,8 @@ class RolloutLog(BaseCallback):
         self.rollouts.append(r)
         if not self.quiet:
             print(f"steps {r.steps:6d}  mean reward/step {r.mean_reward:.3f}  "
-                  f"valves open {r.open_valves:.0%}  episodes {r.episodes:3d}  {r.steps_per_s:.0f} steps/s", flush=True)
+                  f"valves open {r.open_valves:.0%}  episodes {r.episodes:3d}  "
+                  f"{r.steps_per_s:.0f} steps/s", flush=True)
 
 
 def train(config: Config, quiet: bool = False) -> tuple[PPO, list[Rollout]]:
@@ -120,7 +121,8 @@ def train(config: Config, quiet: bool = False) -> tuple[PPO, list[Rollout]]:
     venv = VecNormalize(venv, norm_obs=False, norm_reward=True, gamma=config.gamma)
     try:
         model = PPO("MlpPolicy", venv, n_steps=config.n_steps, batch_size=config.batch_size,
-                    learning_rate=config.learning_rate, gamma=config.gamma, seed=config.seed, device="cpu", verbose=0)
+                    learning_rate=config.learning_rate, gamma=config.gamma,
+                    seed=config.seed, device="cpu", verbose=0)
         log = RolloutLog(quiet)
         model.learn(total_timesteps=config.steps, callback=log)
     finally:
