@@ -16,7 +16,8 @@ each other and the whole loop ran 10x slower (31 env steps/s instead of
 unless --torch-threads says otherwise; the tiny policy gains nothing from more.
 
 Exit codes: 0 done, 2 bad input (a flag, the scenario), 3 a plant stopped
-answering (or a worker died), 5 the model could not be saved. Errors are one line: ``sb3_ppo: error: ...``.
+answering (or a worker died), 5 the model could not be saved. Errors are one
+line: ``sb3_ppo: error: ...``.
 """
 
 from __future__ import annotations
