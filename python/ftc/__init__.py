@@ -17,3 +17,27 @@ BUILD_DIR = Path(os.environ.get("FTC_BUILD_DIR", REPO_ROOT / "build")).resolve()
 for _generated in (BUILD_DIR / "lcmtypes" / "ftc", BUILD_DIR / "python"):
     if _generated.is_dir() and str(_generated) not in __path__:
         __path__.append(str(_generated))
+
+
+def _register_envs() -> None:
+    """Register the Gymnasium ids (entry-point strings only: the env module, the
+    plant link and matplotlib are imported when an env is made, not here).
+
+    Gymnasium 1.x no longer loads ``gymnasium.envs`` entry-point plugins, so the
+    ids exist once ``ftc`` is imported: by ``import ftc`` (any ftc module), or by
+    gymnasium itself for the module-prefixed id ``"ftc:ftc/FuelTransfer-v0"``.
+    max_episode_steps=512 is the paper's t_online, one degradation interval
+    (scenarios/*.toml: steps_per_interval): the plant cuts off the episode that
+    is running at an interval boundary itself, so no episode is longer, and the
+    time limit is a backstop that never ends an episode the plant would not.
+    """
+    import gymnasium
+
+    for env_id, link in (("ftc/FuelTransfer-v0", "lcm"), ("ftc/FuelTransferCore-v0", "core")):
+        if env_id not in gymnasium.registry:  # a reload of ftc must not warn about overriding
+            gymnasium.register(id=env_id, entry_point="ftc.plant.env:FuelTransferEnv",
+                               kwargs={"scenario": "single", "link": link},
+                               max_episode_steps=512)
+
+
+_register_envs()

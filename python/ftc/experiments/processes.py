@@ -12,7 +12,6 @@ pid and stopping the group stops the plant a controller started too.
 
 from __future__ import annotations
 
-import ctypes
 import errno
 import fcntl
 import json
@@ -28,8 +27,8 @@ from typing import Callable
 from ftc.common.atomic import atomic_write_json
 from ftc.common.build_info import recorder_binary
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE, RunError, StorageError
+from ftc.common.lifetime import die_with_parent
 
-PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 LOCK_NAME = "orchestrator.lock"
 
 
@@ -41,23 +40,6 @@ class OutInUse(RunError):
     """The run directory belongs to an orchestrator that is still running."""
 
     exit_code = EXIT_USAGE
-
-
-def die_with_parent(then: Callable[[], None] | None = None) -> Callable[[], None]:
-    """A ``preexec_fn``: the child gets SIGKILL when the thread that started it
-    ends (PR_SET_PDEATHSIG; the pool threads of the orchestrator live as long as
-    it does), or exits at once if that already happened; then runs ``then``."""
-    parent = os.getpid()
-
-    def preexec() -> None:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-        if os.getppid() != parent:  # the parent died before prctl took effect
-            os._exit(1)
-        if then is not None:
-            then()
-
-    return preexec
 
 
 # The guardian: reads "+gPGID" / "+pPID" lines (a process group, a single

@@ -19,6 +19,7 @@ import numpy as np
 
 from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX, LCM_MULTICAST_GROUP, NUM_TANKS
 from ftc.common.build_info import plant_binary
+from ftc.common.lifetime import die_with_parent
 from ftc.plant.link import PlantError, PlantGoneError, PlantObservation, valves_array
 
 
@@ -243,8 +244,12 @@ def _from_message(msg) -> PlantObservation:
 
 def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = None,
            prefix: str | None = None, extra_args: Sequence[str] = (),
-           config: LinkConfig = LinkConfig()) -> LcmPlant:
+           config: LinkConfig = LinkConfig(), die_with_caller: bool = False) -> LcmPlant:
     """Start ``build/plant`` on a private LCM port and prefix; the link owns it.
+
+    die_with_caller: the plant gets SIGKILL when the calling thread ends (so a
+        worker process that is terminated or crashes, and never runs close(),
+        leaves no plant behind); only for a thread that lives as long as the link.
 
     Raises PlantError with the plant's own message if it refuses to start
     (e.g. a malformed scenario file).
@@ -256,8 +261,9 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
         cmd += ["--scenario", str(scenario)]
     cmd += list(extra_args)
     stderr = tempfile.NamedTemporaryFile(prefix="ftc-plant-", suffix=".log", delete=False)
+    preexec = die_with_parent() if die_with_caller else None
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=stderr)
+                            stderr=stderr, preexec_fn=preexec)
     stderr.close()
     try:
         return LcmPlant(url, prefix, config=config, process=proc, stderr_path=stderr.name)
