@@ -1,0 +1,258 @@
+#!/usr/bin/env python3
+"""Every speed figure of the project in one run (a script, not a timed test).
+
+Prints one line per figure, ``name value unit aim ok|MISSED`` (``info`` where
+there is no aim), or the same as JSON with ``--json``. The machine is shared
+and noisy, so comparisons are ratios of rates measured side by side in
+alternating rounds of this one run, and each figure is the median of its
+rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
+
+  cvode_step_changing_us    in-process CVODE step of 1 s with valves changing every
+                            step (build/bench_core), aim <= 15 us
+  cvode_step_held_us        the same with valves held (CVODE continues)
+  lockstep_plant_over_echo  lockstep steps/s from Python over LCM against the real
+                            plant / against an echo responder (same messages, no
+                            physics), aim >= 0.8
+  online_policy_over_echo   the same with the PPO policy choosing every valve, over
+                            the echo floor, aim >= 0.5
+  offline_model_steps_per_s offline PPO on the world model (16 rollouts, updates
+                            included, as the offline phase runs it), aim >= 50,000
+  offline_numpy_over_torch  that rate with the NumPy PPO update over the torch one
+  refit_s / refit_numpy_over_torch   a warm world-model refit on one interval
+  ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
+                            pretraining cached, in-process / over LCM, aims 10 / 15 s
+  experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
+                            the default benchmark suite at --jobs 2, aims 10 / 45 min
+
+Usage: .venv/bin/python scripts/bench.py [--rounds 3] [--json] [--long] [--only NAME...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ftc import BUILD_DIR
+from ftc.common.build_info import echo_binary
+from ftc.learning.model_env import ModelEnv
+from ftc.learning.offline import pretrained_world_model
+from ftc.learning.ppo import PPO, PPOConfig
+from ftc.learning.rollout import train_on_env
+from ftc.learning.transitions import Transitions
+from ftc.learning.world_model import WorldModel, WorldModelConfig
+from ftc.plant import CorePlant, LcmPlant, launch, private_lcm_url, private_prefix
+
+REPO = Path(__file__).resolve().parents[1]
+SINGLE = str(REPO / "scenarios" / "single.toml")
+
+
+@dataclasses.dataclass
+class Figure:
+    name: str
+    value: float
+    unit: str
+    aim: str = "-"              # e.g. "<= 15"; "-" for information only
+    rounds: list[float] = dataclasses.field(default_factory=list)
+
+    @property
+    def status(self) -> str:
+        if self.aim == "-":
+            return "info"
+        op, bound = self.aim.split()
+        ok = self.value <= float(bound) if op == "<=" else self.value >= float(bound)
+        return "ok" if ok else "MISSED"
+
+    def line(self) -> str:
+        return f"{self.name:28s} {self.value:12.4g} {self.unit:8s} {self.aim:>10s} {self.status}"
+
+
+def _median_rounds(rounds: int, *measures: Callable[[], float]) -> list[list[float]]:
+    """Run the measures in alternating rounds; their values, measure by measure."""
+    out: list[list[float]] = [[] for _ in measures]
+    for _ in range(rounds):
+        for values, measure in zip(out, measures):
+            values.append(measure())
+    return out
+
+
+# -- plant ----------------------------------------------------------------------
+def bench_cvode(steps: int = 20000) -> list[Figure]:
+    out = subprocess.run([str(BUILD_DIR / "bench_core"), str(steps)], capture_output=True,
+                         text=True, check=True).stdout
+    us = {}
+    for line in out.split("\n"):
+        if "median_us=" in line:
+            name, rest = line.split(None, 1)
+            us[name] = float(rest.split("median_us=")[1].split()[0])
+    return [Figure("cvode_step_changing_us", us["valves_changing"], "us", "<= 15"),
+            Figure("cvode_step_held_us", us["valves_held"], "us")]
+
+
+def _start_echo() -> LcmPlant:
+    url, prefix = private_lcm_url(), private_prefix()
+    proc = subprocess.Popen([str(echo_binary()), "--lcm-url", url, "--prefix", prefix])
+    return LcmPlant(url, prefix, process=proc)
+
+
+def _lockstep(link, steps: int, choose: Callable[[np.ndarray], np.ndarray]) -> float:
+    o = link.reset()
+    start = time.perf_counter()
+    for _ in range(steps):
+        o = link.step(choose(np.asarray(o.level)))
+        if o.done:
+            o = link.reset()
+    return steps / (time.perf_counter() - start)
+
+
+def bench_lockstep(rounds: int, steps: int = 2000) -> list[Figure]:
+    rng = np.random.default_rng(0)
+    ppo = PPO(PPOConfig(), seed=0)
+
+    def random_valves(_level: np.ndarray) -> np.ndarray:
+        return rng.integers(0, 2, 6)
+
+    def policy(level: np.ndarray) -> np.ndarray:
+        a, _, _ = ppo.act(torch.as_tensor(level, dtype=torch.float32).unsqueeze(0))
+        return a[0].numpy().astype(np.int8)
+
+    with launch("scenarios/multiple.toml", 0) as plant, _start_echo() as echo:
+        for link in (plant, echo):
+            _lockstep(link, 200, random_valves)  # warm up
+        plant_r, echo_r, policy_r = _median_rounds(
+            rounds, lambda: _lockstep(plant, steps, random_valves),
+            lambda: _lockstep(echo, steps, random_valves),
+            lambda: _lockstep(plant, steps, policy))
+    p, e, q = (statistics.median(r) for r in (plant_r, echo_r, policy_r))
+    return [Figure("lockstep_plant_over_echo", p / e, "ratio", ">= 0.8"),
+            Figure("online_policy_over_echo", q / e, "ratio", ">= 0.5"),
+            Figure("lockstep_echo_steps_per_s", e, "steps/s", rounds=echo_r)]
+
+
+# -- learning ---------------------------------------------------------------------
+def _interval_data() -> Transitions:
+    """One interval (512 steps) of the degraded plant under random valves."""
+    plant = CorePlant(SINGLE, 0, steps_per_interval=512, start_step=512)
+    rng = np.random.default_rng(1)
+    obs = [plant.reset()]
+    for _ in range(512):
+        obs.append(plant.step(rng.integers(0, 2, 6)))
+        if obs[-1].terminal:
+            obs.append(plant.reset())
+    return Transitions.from_observations(obs)
+
+
+def bench_learning(rounds: int) -> list[Figure]:
+    torch.set_num_threads(1)
+    models = {e: pretrained_world_model(50, 0, "~/.cache/ftc/pretrain", e)
+              for e in ("numpy", "torch")}
+    data = _interval_data()
+
+    def refit(engine: str) -> Callable[[], float]:
+        def run() -> float:
+            m = WorldModel(WorldModelConfig(seed=0, engine=engine))
+            m.load_state_dict(models[engine][0].state_dict())
+            start = time.perf_counter()
+            m.fit(data, warm_start=True)
+            return time.perf_counter() - start
+        return run
+
+    def offline(engine: str) -> Callable[[], float]:
+        model, demand, _ = models["numpy"]
+
+        def run() -> float:
+            ppo = PPO(PPOConfig(minibatch_size=64, engine=engine), seed=0)
+            env = ModelEnv(model, 16, demand, max_episode_steps=512, seed=0)
+            start = time.perf_counter()
+            _, _, steps = train_on_env(ppo, env, 2048, 64)
+            return steps / (time.perf_counter() - start)
+        return run
+
+    rn, rt, on, ot = _median_rounds(rounds, refit("numpy"), refit("torch"),
+                                    offline("numpy"), offline("torch"))
+    med = statistics.median
+    return [Figure("offline_model_steps_per_s", med(on), "steps/s", ">= 50000", on),
+            Figure("offline_numpy_over_torch", med(on) / med(ot), "ratio"),
+            Figure("refit_s", med(rn), "s", rounds=rn),
+            Figure("refit_numpy_over_torch", med(rt) / med(rn), "ratio")]
+
+
+# -- whole runs ---------------------------------------------------------------------
+def _run(args: list[str]) -> float:
+    out = tempfile.mkdtemp(prefix="ftc-bench-")
+    start = time.perf_counter()
+    subprocess.run([sys.executable, *args, "--out", out], check=True, cwd=REPO,
+                   stdout=subprocess.DEVNULL)
+    return time.perf_counter() - start
+
+
+def bench_runs(rounds: int) -> list[Figure]:
+    base = ["-m", "ftc.controller", "--method", "ppo", "--pretrain", "--scenario", SINGLE,
+            "--seed", "0", "--quiet"]
+    _run([*base, "--link", "core"])  # fills the pretraining cache if it is cold
+    core, lcm = _median_rounds(rounds, lambda: _run([*base, "--link", "core"]),
+                               lambda: _run([*base, "--link", "lcm"]))
+    return [Figure("ppo_run_core_s", statistics.median(core), "s", "<= 10", core),
+            Figure("ppo_run_lcm_s", statistics.median(lcm), "s", "<= 15", lcm)]
+
+
+def bench_long() -> list[Figure]:
+    full = _run(["-m", "ftc.experiments", "all", "--full", "--jobs", "2"]) / 60
+    suite = _run(["-m", "ftc.experiments", "benchmark", "--jobs", "2"]) / 60
+    return [Figure("experiments_full_min", full, "min", "<= 10"),
+            Figure("benchmark_suite_min", suite, "min", "<= 45")]
+
+
+GROUPS: dict[str, Callable[[int], list[Figure]]] = {
+    "cvode": lambda rounds: bench_cvode(), "lockstep": bench_lockstep,
+    "learning": bench_learning, "runs": bench_runs}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="\n\n".join(__doc__.split("\n\n")[1:]))
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per figure")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--long", action="store_true",
+                        help="also time the paper's protocol and the benchmark suite (an hour)")
+    parser.add_argument("--only", nargs="+", choices=sorted(GROUPS), metavar="GROUP",
+                        help=f"run only these groups ({', '.join(sorted(GROUPS))})")
+    args = parser.parse_args()
+    if args.rounds < 1:
+        parser.error("--rounds must be >= 1")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    figures: list[Figure] = []
+    for name, group in GROUPS.items():
+        if args.only and name not in args.only:
+            continue
+        new = group(args.rounds)
+        figures += new
+        if not args.json:
+            for f in new:
+                print(f.line(), flush=True)
+    if args.long:
+        new = bench_long()
+        figures += new
+        if not args.json:
+            for f in new:
+                print(f.line(), flush=True)
+    if args.json:
+        print(json.dumps([{**dataclasses.asdict(f), "status": f.status} for f in figures],
+                         indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
