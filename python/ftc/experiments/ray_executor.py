@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from ftc.common.atomic import atomic_write_bytes
+from ftc.common.atomic import atomic_write_bytes, atomic_write_json
 from ftc.common.build_info import git_revision
 from ftc.common.cli import checked
 from ftc.common.errors import StorageError, UsageError
@@ -277,6 +277,7 @@ def run_task(spec: RunSpec, config: ExperimentConfig, scenario_toml: str, identi
             record = execute_with_retries(spec, config, tmp, handle, attempts, log,
                                           lambda: False)
             record.update(node=here["host"], executor="ray")
+            atomic_write_json(handle.directory / RESULT, record)  # says where it ran
             outcome = {"status": "ok", "record": record}
         except StorageError:
             raise
