@@ -172,7 +172,7 @@ def test_killed_driver_leaves_finished_runs_and_resume_on_ray_skips_them(head, t
     args = [*EXPERIMENT[:2], "closed", "open", "--seeds", "0", "1", *EXPERIMENT[7:],
             "--executor", "ray", "--ray-address", head["address"], "--jobs", "1",
             "--out", str(out)]
-    args[args.index("--steps-per-interval") + 1] = "256"  # long enough to be caught running
+    args[args.index("--steps-per-interval") + 1] = "128"  # long enough to be caught running
     proc = subprocess.Popen([sys.executable, "-m", "ftc.experiments", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=head["env"],
                             cwd=REPO)

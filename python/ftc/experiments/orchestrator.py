@@ -221,7 +221,9 @@ def executor_line(jobs: int | None, ray: RaySession | None) -> str:
     if ray is None:
         return f"jobs {jobs}"
     d = ray.describe()
-    return (f"executor ray at {d['address']} ({len(d['nodes'])} nodes, {d['cpus']:g} CPUs"
+    nodes = len(d["nodes"])
+    return (f"executor ray at {d['address']} ({nodes} node{'s' * (nodes != 1)}, "
+            f"{d['cpus']:g} CPUs"
             + (f", at most {ray.jobs} runs at a time)" if ray.jobs else ")"))
 
 
