@@ -192,11 +192,15 @@ def test_killed_driver_leaves_finished_runs_and_resume_on_ray_skips_them(head, t
     while set(running) & set(_task_processes()):
         assert time.monotonic() < deadline, f"left running: {running}"
         time.sleep(0.2)
+    left = [d for d in Path(tempfile.gettempdir()).glob("ftc-ray-run-*")
+            if any(str(d) in cmd for cmd in running.values())]
+    assert left, "the killed tasks' directories should still be there"
     done = _cli(["--resume", *args], head["env"])
     assert done.returncode == 0, done.stderr[-3000:]
     assert f"({len(finished)} already finished)" in done.stderr
     assert {d: _digest(d) for d in finished} == before
     assert sum(is_finished(d) for d in runs.glob("*/s*")) == 4
+    assert not any(d.exists() for d in left), "a later task removes a dead task's directory"
 
 
 def test_a_failing_task_is_reported_like_a_failing_local_run(head, tmp_path):

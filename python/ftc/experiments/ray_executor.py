@@ -155,6 +155,11 @@ def connect(address: str | None, jobs: int | None,
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     if address is None or _loopback(address):
         os.environ[LOCAL_ONLY_ENV] = "0"
+    if address is None and "RAY_AUTH_MODE" not in os.environ:
+        # A token of this instance only, in the environment its processes inherit
+        # (not in ~/.ray, where Ray would put one); read when ray is first imported.
+        os.environ["RAY_AUTH_MODE"] = "token"
+        os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
     try:
         import ray
     except ImportError:
@@ -166,9 +171,6 @@ def connect(address: str | None, jobs: int | None,
     where = f"--ray-address {address}" if address else "--executor ray"
     try:
         if address is None:
-            if "RAY_AUTH_MODE" not in os.environ:  # a token of this instance only, in the
-                os.environ["RAY_AUTH_MODE"] = "token"  # environment its workers inherit;
-                os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)  # not in ~/.ray
             session.temp_dir = tempfile.mkdtemp(prefix="ftc-ray-")
             ray.init(address="local", num_cpus=jobs or os.cpu_count() or 1,
                      include_dashboard=False, object_store_memory=object_store_bytes,
@@ -251,6 +253,18 @@ def _files(root: Path, under: list[Path]) -> dict[str, bytes]:
             for p in sorted(d.rglob("*")) if p.is_file() and p.name != "processes.json"}
 
 
+def _task_dir(kind: str) -> Path:
+    """A new temporary directory for a task, named with this worker's pid; the
+    directories of tasks whose worker is gone (killed with its driver, so no
+    cleanup ran) are removed first. A live pid's are left alone."""
+    root = Path(tempfile.gettempdir())
+    for old in root.glob(f"ftc-ray-{kind}-*-*"):
+        pid = old.name.split("-")[3]
+        if pid.isdigit() and not Path(f"/proc/{pid}").exists():
+            shutil.rmtree(old, ignore_errors=True)
+    return Path(tempfile.mkdtemp(prefix=f"ftc-ray-{kind}-{os.getpid()}-"))
+
+
 def run_task(spec: RunSpec, config: ExperimentConfig, scenario_toml: str, identity: dict,
              attempts: int, board: Any, out: str) -> dict:
     """One run on this node, in a temporary directory laid out like OUT; returns
@@ -263,7 +277,7 @@ def run_task(spec: RunSpec, config: ExperimentConfig, scenario_toml: str, identi
     problem = identity_problem(identity, here)
     if problem:
         raise RunFailed(problem)
-    tmp = Path(tempfile.mkdtemp(prefix="ftc-ray-run-"))
+    tmp = _task_dir("run")
     guardian = Guardian()
     handle = RunHandle(spec.key, spec.directory(tmp), guardian=guardian)
     stop = threading.Event()
@@ -298,7 +312,7 @@ def baseline_task(stem: str, scenario: str | None, age: int, policy: str,
     problem = identity_problem(identity, node_identity())
     if problem:
         raise RunFailed(problem)
-    tmp = Path(tempfile.mkdtemp(prefix="ftc-ray-baseline-"))
+    tmp = _task_dir("baseline")
     log = io.StringIO()
     try:
         if scenario is not None:
