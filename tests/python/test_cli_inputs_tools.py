@@ -86,7 +86,7 @@ CASES = [(tool, flag, value) for tool, module in TOOLS.items()
 
 def test_every_option_is_walked():
     walked = {(t, f) for t, f, _ in CASES}
-    assert len(walked) == 11 + 6 + 4 + 6 + 2, sorted(walked)
+    assert len(walked) == 13 + 6 + 4 + 6 + 2, sorted(walked)
     for tool, flag in ACCEPTED:
         assert tool == "plant" or (tool, flag) in walked, (tool, flag)
 

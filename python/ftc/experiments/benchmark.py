@@ -43,9 +43,11 @@ from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report
 from ftc.experiments.methods import METHODS
-from ftc.experiments.orchestrator import provenance, run_on_pool
+from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
 from ftc.experiments.processes import Guardian, OrchestratorLock, OutInUse, check_out_free
 from ftc.experiments.progress import Progress
+from ftc.experiments.ray_executor import (RaySession, add_executor_options,
+                                         check_executor_options, connect, run_on_ray)
 from ftc.experiments.runs import RunSpec, is_finished
 from ftc.experiments.scenarios import ExperimentConfig, Scenario
 from ftc.experiments.suite import default_suite
@@ -136,9 +138,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=checked(int, SEED), nargs="+", default=None,
                         help="controller seeds; every scenario and method runs each "
                              "(default: 0 1 2)")
-    parser.add_argument("--jobs", type=checked(int, at_least(1, MAX_JOBS)),
-                        default=os.cpu_count() or 1,
-                        help="runs in parallel (default: number of cores)")
+    parser.add_argument("--jobs", type=checked(int, at_least(1, MAX_JOBS)), default=None,
+                        help="runs in parallel (default: number of cores; with --executor ray: "
+                             "at most this many runs in flight, default as many as the "
+                             "cluster's CPUs, one per run)")
+    add_executor_options(parser)
     parser.add_argument("--out", type=checked(Path, nonempty=True), default=None,
                         help="run directory (default: runs/benchmark-<date-time>)")
     parser.add_argument("--intervals", type=checked(int, at_least(1, MAX_INTERVALS)),
@@ -193,6 +197,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     ``texts`` (stem -> (source, TOML) of the scenario files to write) resolved."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    check_executor_options(parser, args)
     unknown = [m for m in args.methods or () if m not in METHODS]
     if unknown:
         parser.error(f"--methods: unknown methods {unknown}; registered: {', '.join(METHODS)}")
@@ -305,14 +310,16 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
     atomic_write_json(meta_path, {
         **provenance(config, config.methods, previous),
         "scenarios": scenarios,
-        **{k: previous[k] for k in ("wall_time_s", "jobs") if k in previous},
+        **{k: previous[k] for k in ("wall_time_s", "jobs", "executor") if k in previous},
     })
 
 
-def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int,
-                  texts: dict[str, tuple[str, str]], stream: TextIO = sys.stderr) -> int:
+def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
+                  texts: dict[str, tuple[str, str]], stream: TextIO = sys.stderr,
+                  ray: RaySession | None = None) -> int:
     """Run (or complete) the benchmark in ``out``, then write results.csv,
     fractions.csv, the figure and the report. Returns the number of failed runs.
+    ``ray``: run them as tasks of that Ray session (else on the local pool).
 
     Raises OutInUse if an orchestrator is running on ``out``, StorageError if a
     file cannot be written."""
@@ -325,7 +332,7 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int,
     guardian = Guardian()
     try:
         prepare_directory(out, config, texts)
-        failed = _run_all(out, config, jobs, stream, guardian)
+        failed = _run_all(out, config, jobs, stream, guardian, ray)
     finally:
         guardian.close()
         lock.release()
@@ -337,21 +344,26 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int,
     return len(failed)
 
 
-def _run_all(out: Path, config: BenchmarkConfig, jobs: int, stream: TextIO,
-             guardian: Guardian) -> list[str]:
+def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextIO,
+             guardian: Guardian, ray: RaySession | None) -> list[str]:
     """The unfinished runs on the orchestrator's pool; returns the failed keys."""
     runs = plan_benchmark(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
     todo = [r for r in runs if r.key not in finished]
     print(f"{TOOL}: {len(runs)} runs ({len(config.scenarios)} scenarios x "
           f"{len(config.methods)} methods x {len(config.seeds)} seeds) in {out} "
-          f"({len(finished)} already finished), link {config.link}, jobs {jobs}", file=stream)
+          f"({len(finished)} already finished), link {config.link}, {executor_line(jobs, ray)}",
+          file=stream)
     progress = Progress(runs, finished, config.intervals, stream)
-    results = run_on_pool(out, config.run_config(), todo, [], progress, jobs, guardian, stream,
-                          TOOL)
+    if ray is None:
+        results = run_on_pool(out, config.run_config(), todo, [], progress, jobs, guardian,
+                              stream, TOOL)
+    else:
+        results = run_on_ray(ray, out, config.run_config(), todo, [], progress, stream, TOOL)
     meta = json.loads((out / "benchmark.json").read_text())
     meta["wall_time_s"] = time.time() - progress.start
     meta["jobs"] = jobs
+    meta["executor"] = ray.describe() if ray is not None else {"kind": "local", "jobs": jobs}
     atomic_write_json(out / "benchmark.json", meta)
     return [k for k, v in results.items() if v["status"] != "ok"]
 
@@ -390,8 +402,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Exit codes: 0 done; 1 some runs failed (named on the last line); 2 bad
     input, or --out in use; 5 a file could not be written."""
     args = parse_args(argv)
+    ray = None
     try:
-        return 1 if run_benchmark(args.out_dir, args.config, args.jobs, args.texts) else 0
+        # connected (and every node's code checked) before anything is written
+        ray = connect(args.ray_address, args.jobs) if args.executor == "ray" else None
+        return 1 if run_benchmark(args.out_dir, args.config, args.jobs, args.texts,
+                                  ray=ray) else 0
     except RunError as e:
         print(f"{TOOL}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code
+    finally:
+        if ray is not None:
+            ray.close()

@@ -252,8 +252,12 @@ def build_blocks(run_dir: Path) -> list[Block]:
                          rows=[[m, str(len(v)), f"{np.mean(v):.1f}", f"{np.max(v):.1f}",
                                 f"{np.sum(v):.1f}"] for m, v in per.items()])]
         if meta.get("wall_time_s"):
-            blocks.append(Block("p", f"The last session took {meta['wall_time_s']:.0f} s at "
-                                     f"--jobs {meta.get('jobs', '?')}."))
+            executor = meta.get("executor", {})
+            where = (f"on Ray at {executor.get('address')} ({len(executor.get('nodes', []))} "
+                     f"nodes)" if executor.get("kind") == "ray"
+                     else f"at --jobs {meta.get('jobs', '?')}")
+            blocks.append(Block("p", f"The last session took {meta['wall_time_s']:.0f} s "
+                                     f"{where}."))
     return blocks
 
 

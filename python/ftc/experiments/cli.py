@@ -57,6 +57,8 @@ from ftc.experiments.methods import DEFAULT_METHODS, METHODS
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
 from ftc.experiments.processes import OutInUse, check_out_free
+from ftc.experiments.ray_executor import (RaySession, add_executor_options,
+                                         check_executor_options, connect)
 from ftc.experiments.scenarios import EXPERIMENTS, PRESETS, ExperimentConfig
 
 TOOL = "ftc.experiments"
@@ -86,9 +88,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--full", action="store_true",
                         help="the paper's protocol (20 aggregate trials); default: a short run "
                              f"({PRESETS['quick']['trials']} aggregate trials)")
-    parser.add_argument("--jobs", type=checked(int, at_least(1, MAX_JOBS)),
-                        default=os.cpu_count() or 1,
-                        help="runs in parallel (default: number of cores)")
+    parser.add_argument("--jobs", type=checked(int, at_least(1, MAX_JOBS)), default=None,
+                        help="runs in parallel (default: number of cores; with --executor ray: "
+                             "at most this many runs in flight, default as many as the "
+                             "cluster's CPUs, one per run)")
+    add_executor_options(parser)
     parser.add_argument("--trials", type=checked(int, at_least(1, MAX_TRIALS)), default=None,
                         help="aggregate trials")
     parser.add_argument("--seeds", type=checked(int, SEED), nargs="+", default=None,
@@ -157,6 +161,10 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     ``config`` (the ExperimentConfig)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    check_executor_options(parser, args)
+    if args.executor == "ray" and args.command in ("model-search", "report"):
+        parser.error(f"--executor ray: {args.command} runs on this machine (it has no runs to "
+                     "distribute)")
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
         parser.error(f"--methods: unknown methods {unknown}; registered: {', '.join(METHODS)}")
@@ -216,7 +224,7 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     return ns
 
 
-def _run(args: SimpleNamespace) -> int:
+def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
     out = args.out_dir
     if args.command == "report":
         collect(out)
@@ -229,9 +237,9 @@ def _run(args: SimpleNamespace) -> int:
             report.write_report(out)
         print(f"model search table at {out / 'model_search.csv'}")
         return 0
-    if args.command == "all" and args.model_search:
-        model_search(out, ModelSearchConfig(), args.jobs)
-    failed = run_experiments(out, args.config, args.jobs, args.resume)
+    if args.command == "all" and args.model_search:  # on this machine, also with --executor ray
+        model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
+    failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray)
     return 1 if failed else 0
 
 
@@ -244,8 +252,14 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["benchmark"]:  # its own options: ftc.experiments.benchmark
         return benchmark.main(argv[1:])
     args = parse_args(argv)
+    ray = None
     try:
-        return _run(args)
+        # connected (and every node's code checked) before anything is written
+        ray = connect(args.ray_address, args.jobs) if args.executor == "ray" else None
+        return _run(args, ray)
     except RunError as e:
         print(f"{TOOL}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code
+    finally:
+        if ray is not None:
+            ray.close()

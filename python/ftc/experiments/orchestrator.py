@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 import signal
 import sys
 import threading
@@ -32,8 +31,9 @@ from ftc.experiments.collect import collect
 from ftc.experiments.methods import METHODS
 from ftc.experiments.processes import Guardian, OrchestratorLock, RunFailed, RunHandle
 from ftc.experiments.progress import Progress
-from ftc.experiments.runs import (IncompleteLog, RunSpec, baseline_specs, execute_run,
-                                  is_finished, plan_runs, run_baseline_episode)
+from ftc.experiments.ray_executor import RaySession, run_on_ray
+from ftc.experiments.runs import (RunSpec, baseline_specs, execute_with_retries, is_finished,
+                                  plan_runs, run_baseline_episode)
 from ftc.experiments.scenarios import ExperimentConfig, experiment_scenarios
 
 
@@ -71,22 +71,8 @@ class Orchestrator:
                 raise RunFailed("cancelled")
             self.handles[spec.key] = handle
         try:
-            attempt = 1
-            while True:
-                try:
-                    return execute_run(spec, config, out, handle)
-                except IncompleteLog as e:
-                    handle.release()
-                    if attempt >= self.attempts or self.stopping:
-                        raise
-                    # Kept for diagnosis, outside the results tree.
-                    keep = out / "failed_attempts" / f"{spec.key.replace('/', '_')}-{attempt}"
-                    keep.parent.mkdir(parents=True, exist_ok=True)
-                    shutil.rmtree(keep, ignore_errors=True)
-                    handle.directory.rename(keep)
-                    progress.stream.write(f"\n{spec.key}: {e}; running it again "
-                                          f"(attempt kept in {keep})\n")
-                    attempt += 1
+            return execute_with_retries(spec, config, out, handle, self.attempts,
+                                        progress.stream, lambda: self.stopping)
         finally:
             handle.release()
             with self._lock:
@@ -167,10 +153,11 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
     return config
 
 
-def run_experiments(out: Path, config: ExperimentConfig, jobs: int, resume: bool,
-                    stream: TextIO = sys.stderr) -> int:
+def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resume: bool,
+                    stream: TextIO = sys.stderr, ray: RaySession | None = None) -> int:
     """Run (or complete) the configured experiments into ``out``; then collect and
-    write the figures and report. Returns the number of failed runs.
+    write the figures and report. Returns the number of failed runs. ``ray``: run
+    them as tasks of that Ray session (else on the local pool of ``jobs``).
 
     Raises OutInUse if another orchestrator is running on ``out``, StorageError
     if a file cannot be written."""
@@ -189,7 +176,7 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int, resume: bool
         tmp.unlink(missing_ok=True)
     guardian = Guardian()
     try:
-        return _run_locked(out, config, jobs, resume, stream, guardian)
+        return _run_locked(out, config, jobs, resume, stream, guardian, ray)
     finally:
         guardian.close()
         lock.release()
@@ -229,24 +216,41 @@ def run_on_pool(out: Path, config: ExperimentConfig, todo: list, baselines: list
             signal.signal(s, h)
 
 
-def _run_locked(out: Path, config: ExperimentConfig, jobs: int, resume: bool, stream: TextIO,
-                guardian: Guardian) -> int:
+def executor_line(jobs: int | None, ray: RaySession | None) -> str:
+    """How the runs are executed, for the first line of output."""
+    if ray is None:
+        return f"jobs {jobs}"
+    d = ray.describe()
+    nodes = len(d["nodes"])
+    return (f"executor ray at {d['address']} ({nodes} node{'s' * (nodes != 1)}, "
+            f"{d['cpus']:g} CPUs"
+            + (f", at most {ray.jobs} runs at a time)" if ray.jobs else ")"))
+
+
+def _run_locked(out: Path, config: ExperimentConfig, jobs: int | None, resume: bool,
+                stream: TextIO, guardian: Guardian, ray: RaySession | None) -> int:
     config = prepare_directory(out, config, resume)
     runs = plan_runs(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
     todo = [r for r in runs if r.key not in finished]
-    baselines = [(f"baseline {s[0]}", (lambda s=s: run_baseline_episode(out, *s)))
-                 for s in baseline_specs(config)
+    baselines = [s for s in baseline_specs(config)
                  if not (out / "baselines" / f"{s[0]}.csv").is_file()]
     print(f"ftc.experiments: {len(runs)} runs in {out} ({len(finished)} already finished), "
-          f"{len(baselines)} baseline episodes, jobs {jobs}", file=stream)
+          f"{len(baselines)} baseline episodes, {executor_line(jobs, ray)}", file=stream)
     progress = Progress(runs, finished, config.intervals, stream)
-    results = run_on_pool(out, config, todo, baselines, progress, jobs, guardian, stream,
-                          "ftc.experiments")
+    if ray is None:
+        tasks = [(f"baseline {s[0]}", (lambda s=s: run_baseline_episode(out, *s)))
+                 for s in baselines]
+        results = run_on_pool(out, config, todo, tasks, progress, jobs, guardian, stream,
+                              "ftc.experiments")
+    else:
+        results = run_on_ray(ray, out, config, todo, baselines, progress, stream,
+                             "ftc.experiments")
     failed = [k for k, v in results.items() if v["status"] != "ok"]
     meta = json.loads((out / "experiment.json").read_text())
     meta["wall_time_s"] = time.time() - progress.start
     meta["jobs"] = jobs
+    meta["executor"] = ray.describe() if ray is not None else {"kind": "local", "jobs": jobs}
     atomic_write_json(out / "experiment.json", meta)
     collect(out)
     report.write_report(out)

@@ -58,13 +58,24 @@ class Progress:
     def _work(self, keys: Iterable[str]) -> float:
         return sum(self._cost(k) * self.intervals for k in keys)
 
+    def due(self, final: bool = False) -> bool:
+        """Whether a line is to be drawn now (always on a terminal, else every 10 s)."""
+        return self.tty or final or time.time() - self._last_line >= 10.0
+
     def show(self, running: dict[str, RunHandle], final: bool = False) -> None:
+        """The line for runs whose processes run here (their metrics.csv is read)."""
+        if not self.due(final):
+            return
+        self.show_counts({k: count_rows(h.directory / "controller" / "metrics.csv")
+                          for k, h in running.items()}, final)
+
+    def show_counts(self, partial: dict[str, int], final: bool = False) -> None:
+        """The line, given each running run's finished intervals (``partial``:
+        key -> intervals done; the Ray executor's tasks report them)."""
         now = time.time()
-        if not (self.tty or final or now - self._last_line >= 10.0):
+        if not self.due(final):
             return
         self._last_line = now
-        partial = {k: count_rows(h.directory / "controller" / "metrics.csv")
-                   for k, h in running.items()}
         work = self._work(self.done) + sum(self._cost(k) * n for k, n in partial.items())
         rate = (work - self.done_at_start) / max(now - self.start, 1e-9)
         eta = (self.total - work) / rate if rate > 0 else math.inf

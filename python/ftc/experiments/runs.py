@@ -23,6 +23,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, TextIO
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json
 from ftc.common.errors import EXIT_STORAGE, StorageError
@@ -226,6 +227,28 @@ def _execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: Run
     atomic_write_json(run_dir / "result.json", record)  # last: marks the run finished
     (run_dir / "processes.json").unlink(missing_ok=True)
     return record
+
+
+def execute_with_retries(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunHandle,
+                         attempts: int, stream: TextIO, stopping: Callable[[], bool]) -> dict:
+    """:func:`execute_run`, redone (up to ``attempts`` times) when its log misses
+    messages; each failed attempt is kept in OUT/failed_attempts/ (outside the
+    results tree) and announced on ``stream``. ``stopping``: true once the
+    executor is being stopped (no attempt is then started again)."""
+    attempt = 1
+    while True:
+        try:
+            return execute_run(spec, config, out, handle)
+        except IncompleteLog as e:
+            handle.release()
+            if attempt >= attempts or stopping():
+                raise
+            keep = out / "failed_attempts" / f"{spec.key.replace('/', '_')}-{attempt}"
+            keep.parent.mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(keep, ignore_errors=True)
+            handle.directory.rename(keep)
+            stream.write(f"\n{spec.key}: {e}; running it again (attempt kept in {keep})\n")
+            attempt += 1
 
 
 # ---------------------------------------------------------------------------
