@@ -21,6 +21,7 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
   refit_s / refit_numpy_over_torch   a warm world-model refit on one interval
   ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
                             pretraining cached, in-process / over LCM, aims 10 / 15 s
+                            (and *_numpy_ppo_s: the same with --ppo-engine numpy)
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -123,6 +124,12 @@ def bench_lockstep(rounds: int, steps: int = 2000) -> list[Figure]:
     def random_valves(_level: np.ndarray) -> np.ndarray:
         return rng.integers(0, 2, 6)
 
+    numpy_ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+
+    def numpy_policy(level: np.ndarray) -> np.ndarray:
+        a, _, _ = numpy_ppo.act(torch.as_tensor(level, dtype=torch.float32).unsqueeze(0))
+        return a[0].numpy().astype(np.int8)
+
     def policy(level: np.ndarray) -> np.ndarray:
         a, _, _ = ppo.act(torch.as_tensor(level, dtype=torch.float32).unsqueeze(0))
         return a[0].numpy().astype(np.int8)
@@ -130,13 +137,14 @@ def bench_lockstep(rounds: int, steps: int = 2000) -> list[Figure]:
     with launch("scenarios/multiple.toml", 0) as plant, _start_echo() as echo:
         for link in (plant, echo):
             _lockstep(link, 200, random_valves)  # warm up
-        plant_r, echo_r, policy_r = _median_rounds(
+        plant_r, echo_r, policy_r, numpy_r = _median_rounds(
             rounds, lambda: _lockstep(plant, steps, random_valves),
             lambda: _lockstep(echo, steps, random_valves),
-            lambda: _lockstep(plant, steps, policy))
-    p, e, q = (statistics.median(r) for r in (plant_r, echo_r, policy_r))
+            lambda: _lockstep(plant, steps, policy), lambda: _lockstep(plant, steps, numpy_policy))
+    p, e, q, n = (statistics.median(r) for r in (plant_r, echo_r, policy_r, numpy_r))
     return [Figure("lockstep_plant_over_echo", p / e, "ratio", ">= 0.8"),
             Figure("online_policy_over_echo", q / e, "ratio", ">= 0.5"),
+            Figure("online_numpy_policy_over_echo", n / e, "ratio", ">= 0.5"),
             Figure("lockstep_echo_steps_per_s", e, "steps/s", rounds=echo_r)]
 
 
@@ -201,10 +209,16 @@ def bench_runs(rounds: int) -> list[Figure]:
     base = ["-m", "ftc.controller", "--method", "ppo", "--pretrain", "--scenario", SINGLE,
             "--seed", "0", "--quiet"]
     _run([*base, "--link", "core"])  # fills the pretraining cache if it is cold
-    core, lcm = _median_rounds(rounds, lambda: _run([*base, "--link", "core"]),
-                               lambda: _run([*base, "--link", "lcm"]))
-    return [Figure("ppo_run_core_s", statistics.median(core), "s", "<= 10", core),
-            Figure("ppo_run_lcm_s", statistics.median(lcm), "s", "<= 15", lcm)]
+    numpy = ["--ppo-engine", "numpy"]
+    core, lcm, core_np, lcm_np = _median_rounds(
+        rounds, lambda: _run([*base, "--link", "core"]), lambda: _run([*base, "--link", "lcm"]),
+        lambda: _run([*base, "--link", "core", *numpy]),
+        lambda: _run([*base, "--link", "lcm", *numpy]))
+    med = statistics.median
+    return [Figure("ppo_run_core_s", med(core), "s", "<= 10", core),
+            Figure("ppo_run_lcm_s", med(lcm), "s", "<= 15", lcm),
+            Figure("ppo_run_core_numpy_ppo_s", med(core_np), "s", "<= 10", core_np),
+            Figure("ppo_run_lcm_numpy_ppo_s", med(lcm_np), "s", "<= 15", lcm_np)]
 
 
 def bench_long() -> list[Figure]:

@@ -105,8 +105,7 @@ def test_target_kl_stops_both_after_the_same_epoch():
 
 
 def test_value_clipping_uses_the_torch_update():
-    ppo = PPO(PPOConfig(clip_vloss=True), seed=0)
-    assert ppo.config.engine == "numpy"  # the default, yet clip_vloss falls back:
+    ppo = PPO(PPOConfig(clip_vloss=True, engine="numpy"), seed=0)  # clip_vloss falls back:
     from ftc.learning.buffer import RolloutBuffer
     buffer = RolloutBuffer(8, 1)
     for _ in range(8):
@@ -116,3 +115,34 @@ def test_value_clipping_uses_the_torch_update():
                    torch.tensor([False]))
     stats = ppo.update(buffer, torch.zeros(1))
     assert np.isfinite(stats.value_loss)
+
+
+def test_numpy_acting_draws_the_same_valves_as_torch():
+    # the same generator stream and probabilities equal to ~1e-7: a uniform draw
+    # would have to fall within 1e-7 of p to flip a valve (none in 6,000 here)
+    torch_ppo = PPO(PPOConfig(engine="torch"), seed=4)
+    numpy_ppo = PPO(PPOConfig(engine="numpy"), seed=4)
+    ppo_update(torch_ppo.policy, torch_ppo.optimizer, _batch(6), torch_ppo.config,
+               torch_ppo.generator)  # trained weights, not the init's near-0.5 probabilities
+    numpy_ppo.load_state_dict(torch_ppo.state_dict())
+    obs_gen = torch.Generator().manual_seed(7)
+    for n in (1, 16):
+        for deterministic in (False, True):
+            for _ in range(25):
+                obs = torch.rand(n, 6, generator=obs_gen)
+                at, lt, vt = torch_ppo.act(obs, deterministic)
+                an, ln, vn = numpy_ppo.act(obs, deterministic)
+                assert torch.equal(at, an)
+                torch.testing.assert_close(ln, lt, atol=1e-5, rtol=1e-5)
+                torch.testing.assert_close(vn, vt, atol=1e-6, rtol=1e-5)
+
+
+def test_numpy_acting_sees_weights_loaded_later():
+    ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+    obs = torch.rand(4, 6, generator=torch.Generator().manual_seed(1))
+    before = ppo.act(obs, deterministic=True)[2]
+    other = PPO(PPOConfig(engine="torch"), seed=1)
+    ppo.load_state_dict(other.state_dict())
+    after = ppo.act(obs, deterministic=True)[2]
+    torch.testing.assert_close(after, other.policy.value(obs).detach(), atol=1e-6, rtol=1e-5)
+    assert not torch.allclose(before, after)

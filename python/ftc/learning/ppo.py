@@ -30,7 +30,7 @@ from torch import nn
 
 from ftc.common.cli import at_least, between, positive
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM, RolloutBatch, RolloutBuffer
-from ftc.learning.ppo_numpy import numpy_ppo_update
+from ftc.learning.ppo_numpy import NumpyActor, numpy_ppo_update
 
 
 @dataclass
@@ -66,10 +66,13 @@ class PPOConfig:
         "shared tanh trunk (paper)")})
     head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"check": at_least(1, 4096), "help": (
         "tanh layers of each of the policy and value heads (paper)")})
-    engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
-        "how updates are computed: numpy (learning/ppo_numpy.py: hand-derived gradients, "
-        "several times faster for these tiny networks) or torch (autograd); the same "
-        "minibatches, loss and Adam, float32 rounding differs; clip_vloss uses torch")})
+    engine: str = field(default="torch", metadata={"choices": ("numpy", "torch"), "help": (
+        "how acting and updates are computed: torch (autograd) or numpy "
+        "(learning/ppo_numpy.py: hand-derived gradients, 2-3x faster for these tiny "
+        "networks; the same minibatches, loss, Adam and sampling stream, float32 "
+        "rounding differs and PPO amplifies it: not the default until the benchmark "
+        "suite shows its results within seed noise, docs/benchmarks.md); clip_vloss "
+        "uses torch")})
 
     @classmethod
     def help(cls) -> dict[str, str]:
@@ -261,6 +264,8 @@ class PPO:
         self.policy = ActorCritic(config.trunk_sizes, config.head_sizes)
         self.generator = torch.Generator().manual_seed(seed)
         self.optimizer = self.new_optimizer()
+        self._actor: NumpyActor | None = None  # NumPy views of self.policy (engine numpy)
+        self._actor_of: ActorCritic | None = None
 
     def new_optimizer(self) -> torch.optim.Adam:
         return torch.optim.Adam(self.policy.parameters(), lr=self.config.learning_rate, eps=1e-5)
@@ -272,6 +277,10 @@ class PPO:
     def act(self, obs: torch.Tensor, deterministic: bool = False
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Actions (N, 6), log-probs (N,), values (N,) for obs (N, 6)."""
+        if self.config.engine == "numpy" and not obs.requires_grad:
+            if self._actor is None or self._actor_of is not self.policy:
+                self._actor, self._actor_of = NumpyActor(self.policy), self.policy
+            return self._actor.act(obs, self.generator, deterministic)
         return self.policy.act(obs, self.generator, deterministic)
 
     @torch.no_grad()

@@ -230,3 +230,48 @@ def numpy_ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batc
                       entropy=float(entropy_all.mean()), approx_kl=float(np.mean(kls)),
                       clipfrac=float(np.mean(clipfracs)), explained_variance=explained,
                       open_fraction=float(_sigmoid(logits).mean()), gradient_steps=steps)
+
+
+class NumpyActor:
+    """The actor-critic's forward pass for acting, on NumPy views that share
+    memory with the torch parameters (so it always sees the current weights:
+    updates, ``load_state_dict`` and optimiser steps all write in place).
+
+    Sampling draws from the PPO's torch generator with ``torch.bernoulli``, as
+    :meth:`ActorCritic.act` does, so the generator's stream is unchanged; the
+    probabilities, log-probabilities and values are float32 NumPy results
+    (rounding differs from torch's, ~1e-7).
+    """
+
+    def __init__(self, policy: ActorCritic) -> None:
+        def views(module: nn.Module) -> list[tuple[np.ndarray, np.ndarray]]:
+            return [(m.weight.detach().numpy(), m.bias.detach().numpy())
+                    for m in module.modules() if isinstance(m, nn.Linear)]
+
+        self.trunk, self.pi, self.v = (views(policy.trunk), views(policy.policy_head),
+                                       views(policy.value_head))
+
+    @staticmethod
+    def _mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]],
+             tanh_last: bool) -> np.ndarray:
+        for i, (w, b) in enumerate(layers):
+            x = x @ w.T + b
+            if tanh_last or i < len(layers) - 1:
+                x = np.tanh(x)
+        return x
+
+    def act(self, obs: torch.Tensor, generator: torch.Generator | None,
+            deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As :meth:`ActorCritic.act`: actions (N, 6), log-probs (N,), values (N,)."""
+        x = obs.numpy().astype(np.float32, copy=False)
+        h = self._mlp(2.0 * x - 1.0, self.trunk, tanh_last=True)
+        logits = self._mlp(h, self.pi, tanh_last=False)
+        value = self._mlp(h, self.v, tanh_last=False)[:, 0]
+        if deterministic:
+            actions = (logits > 0).astype(np.float32)
+        else:
+            probs = torch.from_numpy(_sigmoid(logits))
+            actions = torch.bernoulli(probs, generator=generator).numpy()
+        logprob, _ = log_prob_entropy(logits, actions)
+        return (torch.from_numpy(actions), torch.from_numpy(logprob.astype(np.float32)),
+                torch.from_numpy(value.astype(np.float32)))
