@@ -4,7 +4,9 @@
 #   2. a virtual environment .venv with the pinned Python dependencies
 #      (requirements.txt, then the interoperability ones in requirements-extra.txt) and the
 #      ftc package installed in editable mode;
-#   3. CMake configure and build into build/ (plant, tests, Python bindings,
+#   3. SUNDIALS' CVODE built optimised from Debian's source into build/sundials
+#      (Debian's library is built -O0; see below);
+#   4. CMake configure and build into build/ (plant, tests, Python bindings,
 #      generated LCM types).
 # Each step is skipped quickly when it is already done. Safe to re-run.
 set -euo pipefail
@@ -12,7 +14,7 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
 apt_packages=(libsundials-dev libeigen3-dev libcli11-dev libgtest-dev libtomlplusplus-dev
-              cmake g++ make iproute2)
+              cmake g++ make iproute2 curl xz-utils)
 missing=()
 for p in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -56,10 +58,58 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "$want" > "$stamp"
 fi
 
+# SUNDIALS, optimised. Debian's libsundials 6.4.1 is built without optimisation
+# (-O0): a CVODE step with the valves changing costs ~3x what the same source
+# costs at -O2/-O3 (scripts/bench.py: cvode_step_changing_us; docs/benchmarks.md).
+# So CVODE (and its serial vector and fixed-point solver) is built from Debian's
+# own source of that package, checked against the checksum in its .dsc, into
+# build/sundials. Without network the Debian library is used (slower, same
+# results to the tolerances).
+sundials_version="6.4.1+dfsg1"
+sundials_sha256="c61157f1d4be06c704bea40cb131eb63ba2dada161989071604d0a0959cdf04a"
+sundials_prefix="$root/build/sundials"
+sundials_dir="$sundials_prefix/lib/cmake/sundials"
+if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ]; then
+  mkdir -p build/sundials-src
+  tarball="build/sundials-src/sundials_${sundials_version}.orig.tar.xz"
+  if [ ! -f "$tarball" ]; then
+    echo "setup: fetching SUNDIALS ${sundials_version} source from Debian's archive"
+    curl -fsSL --retry 2 -o "$tarball.part" \
+      "http://deb.debian.org/debian/pool/main/s/sundials/sundials_${sundials_version}.orig.tar.xz" \
+      && mv "$tarball.part" "$tarball" || rm -f "$tarball.part"
+  fi
+  if [ -f "$tarball" ] && echo "$sundials_sha256  $tarball" | sha256sum -c --quiet - 2>/dev/null; then
+    echo "setup: building CVODE (Release) into build/sundials"
+    rm -rf build/sundials-src/src build/sundials-src/build
+    mkdir -p build/sundials-src/src
+    tar -xJf "$tarball" -C build/sundials-src/src --strip-components=1
+    if cmake -S build/sundials-src/src -B build/sundials-src/build -DCMAKE_BUILD_TYPE=Release \
+         -DCMAKE_INSTALL_PREFIX="$sundials_prefix" -DBUILD_CVODE=ON -DBUILD_ARKODE=OFF \
+         -DBUILD_CVODES=OFF -DBUILD_IDA=OFF -DBUILD_IDAS=OFF -DBUILD_KINSOL=OFF \
+         -DBUILD_SHARED_LIBS=ON -DBUILD_STATIC_LIBS=OFF -DEXAMPLES_ENABLE_C=OFF \
+         -DEXAMPLES_INSTALL=OFF > build/sundials-src/build.log 2>&1 \
+       && cmake --build build/sundials-src/build -j"$(nproc)" >> build/sundials-src/build.log 2>&1 \
+       && cmake --install build/sundials-src/build >> build/sundials-src/build.log 2>&1; then
+      rm -rf build/sundials-src/src build/sundials-src/build
+    else
+      echo "setup: note: building SUNDIALS failed (build/sundials-src/build.log); using Debian's" >&2
+      rm -rf "$sundials_prefix"
+    fi
+  else
+    rm -f "$tarball"
+    echo "setup: note: SUNDIALS source unavailable or checksum mismatch; using Debian's library" >&2
+  fi
+fi
+sundials_flag=()
+[ -f "$sundials_dir/SUNDIALSConfig.cmake" ] && sundials_flag=(-DSUNDIALS_DIR="$sundials_dir")
+
 lcm_cmake="$(.venv/bin/python -c 'import lcm, os; print(os.path.join(os.path.dirname(os.path.dirname(lcm.__file__)), "lib", "lcm", "cmake"))')"
 pybind_cmake="$(.venv/bin/python -m pybind11 --cmakedir)"
-if [ ! -f build/Makefile ]; then
-  cmake -S . -B build -DCMAKE_BUILD_TYPE=Release \
+# (re)configure when there is no build yet or it was configured with another SUNDIALS
+want_sundials="${sundials_flag[0]:-}"; want_sundials="${want_sundials#-DSUNDIALS_DIR=}"
+have_sundials="$(sed -n 's/^SUNDIALS_DIR:[A-Z]*=//p' build/CMakeCache.txt 2>/dev/null || true)"
+if [ ! -f build/Makefile ] || { [ -n "$want_sundials" ] && [ "$have_sundials" != "$want_sundials" ]; }; then
+  cmake -S . -B build -DCMAKE_BUILD_TYPE=Release "${sundials_flag[@]}" \
     -Dlcm_DIR="$lcm_cmake" -Dpybind11_DIR="$pybind_cmake" \
     -DPython_EXECUTABLE="$root/.venv/bin/python" >/dev/null
 fi
