@@ -16,6 +16,7 @@ import os
 import struct
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -111,27 +112,44 @@ def _ranges(values: list[int]) -> str:
     return f"{values[0]}..{values[-1]} ({len(values)})" if len(values) > 3 else str(values)
 
 
+# fd 2 is one per process: captures from several threads (the experiments read
+# finished runs' logs in worker threads) must not interleave, or one restores
+# the other's temporary file as fd 2 for good
+_FD2_LOCK = threading.Lock()
+
+
 class _CStderr:
     """Captures what C code prints on file descriptor 2 (liblcm reports a bad
-    event header there), so an error stays one line; ``text`` is it joined."""
+    event header there), so an error stays one line; ``text`` is it joined.
+    One capture at a time per process (other threads' fd-2 output during one
+    lands in it too: keep the captured block short)."""
 
     def __init__(self) -> None:
         self.text = ""
         self._saved: int | None = None
 
     def __enter__(self) -> "_CStderr":
-        sys.stderr.flush()
-        self._file = tempfile.TemporaryFile()
-        self._saved = os.dup(2)
-        os.dup2(self._file.fileno(), 2)
+        _FD2_LOCK.acquire()
+        try:
+            sys.stderr.flush()
+            self._file = tempfile.TemporaryFile()
+            self._saved = os.dup(2)
+            os.dup2(self._file.fileno(), 2)
+        except BaseException:
+            _FD2_LOCK.release()
+            raise
         return self
 
     def __exit__(self, *exc) -> None:
         if self._saved is None:
             return
-        os.dup2(self._saved, 2)
-        os.close(self._saved)
-        self._saved = None
+        try:
+            sys.stderr.flush()
+            os.dup2(self._saved, 2)
+            os.close(self._saved)
+        finally:
+            self._saved = None
+            _FD2_LOCK.release()
         self._file.seek(0)
         self.text = "; ".join(line.strip() for line in
                               self._file.read().decode(errors="replace").splitlines()
