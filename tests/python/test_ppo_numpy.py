@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from ftc.learning.buffer import RolloutBatch
+from ftc.learning.distill import distill
 from ftc.learning.ppo import PPO, PPOConfig, UpdateStats, ppo_update
 from ftc.learning.ppo_numpy import numpy_ppo_update
 
@@ -146,3 +147,23 @@ def test_numpy_acting_sees_weights_loaded_later():
     after = ppo.act(obs, deterministic=True)[2]
     torch.testing.assert_close(after, other.policy.value(obs).detach(), atol=1e-6, rtol=1e-5)
     assert not torch.allclose(before, after)
+
+
+@pytest.mark.parametrize("max_grad_norm", [0.5, 0.01])
+def test_distillation_matches_torch(max_grad_norm):
+    # behaviour cloning of planner labels (ppo-robust): the same minibatches,
+    # BCE, norm clip (0.01: active on every step) and Adam; the value head
+    # is not touched by either
+    g = torch.Generator().manual_seed(8)
+    states = torch.rand(300, 6, generator=g)
+    labels = (states[:, :1] > states[:, 1:2]).float().expand(-1, 6).contiguous()
+    a = PPO(PPOConfig(engine="torch", max_grad_norm=max_grad_norm), seed=2)
+    b = PPO(PPOConfig(engine="numpy", max_grad_norm=max_grad_norm), seed=2)
+    value_before = {k: v.clone() for k, v in b.policy.value_head.state_dict().items()}
+    ra = distill(a, states, labels, epochs=3, seed=5)
+    rb = distill(b, states, labels, epochs=3, seed=5)
+    _assert_same_policy(a, b)
+    assert rb["distill_loss"] == pytest.approx(ra["distill_loss"], rel=1e-4)
+    assert rb["distill_agreement"] == ra["distill_agreement"]
+    for k, v in b.policy.value_head.state_dict().items():
+        assert torch.equal(v, value_before[k]), k

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ftc.learning.ppo import PPO
+from ftc.learning.ppo_numpy import numpy_distill
 
 
 def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: int = 30,
@@ -17,6 +18,11 @@ def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: in
     optimiser state is kept). Returns the final loss and the share of valve
     decisions the deterministic policy (open iff p > 0.5) now agrees on."""
     generator = torch.Generator().manual_seed(seed)
+    if ppo.config.engine == "numpy":  # the same fit without torch's per-step overhead
+        loss_value = numpy_distill(ppo.policy, states, actions, epochs=epochs,
+                                   minibatch=minibatch, lr=lr,
+                                   max_grad_norm=ppo.config.max_grad_norm, generator=generator)
+        return {"distill_loss": loss_value, "distill_agreement": _agreement(ppo, states, actions)}
     optimizer = torch.optim.Adam(ppo.policy.parameters(), lr=lr, eps=1e-5)
     loss_fn = nn.BCEWithLogitsLoss()
     n = len(states)
@@ -31,7 +37,12 @@ def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: in
             loss.backward()
             nn.utils.clip_grad_norm_(ppo.policy.parameters(), ppo.config.max_grad_norm)
             optimizer.step()
-    with torch.no_grad():
-        logits, _ = ppo.policy(states)
-        agree = float(((logits > 0).float() == actions).float().mean())
-    return {"distill_loss": float(loss.detach()), "distill_agreement": agree}
+    return {"distill_loss": float(loss.detach()),
+            "distill_agreement": _agreement(ppo, states, actions)}
+
+
+@torch.no_grad()
+def _agreement(ppo: PPO, states: torch.Tensor, actions: torch.Tensor) -> float:
+    """Share of valve decisions the deterministic policy (open iff p > 0.5) agrees on."""
+    logits, _ = ppo.policy(states)
+    return float(((logits > 0).float() == actions).float().mean())

@@ -275,3 +275,46 @@ class NumpyActor:
         logprob, _ = log_prob_entropy(logits, actions)
         return (torch.from_numpy(actions), torch.from_numpy(logprob.astype(np.float32)),
                 torch.from_numpy(value.astype(np.float32)))
+
+
+def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
+                  epochs: int, minibatch: int, lr: float, max_grad_norm: float,
+                  generator: torch.Generator) -> float:
+    """:func:`ftc.learning.distill.distill`'s fit in NumPy: binary cross-entropy
+    of the policy's logits against ``actions`` (mean over samples and valves),
+    the global norm clip over the trunk and policy head (the value head gets no
+    gradient, as in torch, where its parameters have none), a fresh Adam
+    (eps 1e-5). Returns the last minibatch's loss."""
+    net = _Net(policy)
+    n_trunk, n_pi = 2 * len(net.layers["trunk"]), 2 * len(net.layers["pi"])
+    params = net.params[:n_trunk + n_pi]  # trunk then policy head, as backward orders them
+    m = [np.zeros_like(p) for p in params]
+    v = [np.zeros_like(p) for p in params]
+    x_all = states.detach().numpy().astype(np.float32, copy=False)
+    y_all = actions.detach().numpy().astype(np.float32, copy=False)
+    n, t, loss = len(x_all), 0, float("nan")
+    for _ in range(epochs):
+        order = torch.randperm(n, generator=generator).numpy()
+        for start in range(0, n, minibatch):
+            idx = order[start:start + minibatch]
+            logits, value, cache = net.forward(x_all[idx])
+            y = y_all[idx]
+            # BCE with logits: softplus(l) - y l; its slope sigmoid(l) - y
+            loss = float(np.mean(np.logaddexp(0.0, logits) - y * logits))
+            d_logits = ((_sigmoid(logits) - y) / logits.size).astype(np.float32)
+            grads = net.backward(cache, d_logits, np.zeros_like(value))[:n_trunk + n_pi]
+            norm = math.sqrt(sum(float(np.sum(g * g)) for g in grads))
+            scale = max_grad_norm / (norm + 1e-6)
+            if scale < 1.0:
+                grads = [g * np.float32(scale) for g in grads]
+            t += 1
+            step_size = lr / (1.0 - 0.9 ** t)
+            root_correction = math.sqrt(1.0 - 0.999 ** t)
+            for p, g, mi, vi in zip(params, grads, m, v):
+                mi *= 0.9
+                mi += 0.1 * g
+                vi *= 0.999
+                vi += 0.001 * (g * g)
+                p -= step_size * (mi / (np.sqrt(vi) / root_correction + 1e-5))
+    net.store()
+    return loss
