@@ -21,3 +21,28 @@ def repo() -> Path:
 @pytest.fixture
 def scenarios() -> Path:
     return SCENARIOS
+
+
+def _write_state_log(path: Path, steps: int, drop_per_step: float = 0.01) -> None:
+    """An LCM log of ``steps`` + 1 plant states on channel T_STATE (levels
+    falling by ``drop_per_step`` per step, valves closed), written by liblcm."""
+    import lcm
+
+    from ftc.plant_state_t import plant_state_t
+
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    for k in range(steps + 1):
+        m = plant_state_t()
+        m.seq, m.command_seq, m.episode, m.step = k + 1, k, 0, k
+        m.num_tanks, m.num_engines = 6, 2
+        m.level = m.true_level = [1.0 - drop_per_step * k] * 6
+        m.valve = [0] * 6
+        m.deficit = [0.0, 0.0]
+        log.write_event(1000 + k, "T_STATE", m.encode())
+    log.close()
+
+
+@pytest.fixture
+def write_state_log():
+    """The function that writes a small plant-state log (see _write_state_log)."""
+    return _write_state_log

@@ -285,26 +285,9 @@ def test_unknown_method_is_refused():
     assert proc.returncode == 2 and "unknown methods" in proc.stderr
 
 
-def _write_log(path: Path, steps: int) -> None:
-    import lcm
-
-    from ftc.plant_state_t import plant_state_t
-
-    log = lcm.EventLog(str(path), "w", overwrite=True)
-    for k in range(steps + 1):
-        m = plant_state_t()
-        m.seq, m.command_seq, m.episode, m.step = k + 1, k, 0, k
-        m.num_tanks, m.num_engines = 6, 2
-        m.level = m.true_level = [1.0 - 0.01 * k] * 6
-        m.valve = [0] * 6
-        m.deficit = [0.0, 0.0]
-        log.write_event(1000 + k, "T_STATE", m.encode())
-    log.close()
-
-
-def test_replay_summary_and_truncated_log_error(tmp_path):
+def test_replay_summary_and_truncated_log_error(tmp_path, write_state_log):
     good = tmp_path / "good.lcmlog"
-    _write_log(good, 5)
+    write_state_log(good, 5)
     traj = read_log(good)
     assert len(traj) == 5 and traj.reward_per_interval()[0] == pytest.approx(
         float(np.mean(traj.reward)))

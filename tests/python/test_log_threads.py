@@ -9,31 +9,12 @@ from __future__ import annotations
 
 import os
 import threading
-from pathlib import Path
-
 from ftc.plant.log import read_log
 
 
-def _write_log(path: Path, steps: int) -> None:
-    import lcm
-
-    from ftc.plant_state_t import plant_state_t
-
-    log = lcm.EventLog(str(path), "w", overwrite=True)
-    for k in range(steps + 1):
-        m = plant_state_t()
-        m.seq, m.command_seq, m.episode, m.step = k + 1, k, 0, k
-        m.num_tanks, m.num_engines = 6, 2
-        m.level = m.true_level = [1.0 - 0.001 * k] * 6
-        m.valve = [0] * 6
-        m.deficit = [0.0, 0.0]
-        log.write_event(1000 + k, "T_STATE", m.encode())
-    log.close()
-
-
-def test_concurrent_reads_leave_fd_2_alone(tmp_path):
+def test_concurrent_reads_leave_fd_2_alone(tmp_path, write_state_log):
     path = tmp_path / "run.lcmlog"
-    _write_log(path, 200)
+    write_state_log(path, 200, drop_per_step=0.001)
     before = os.fstat(2)
     errors: list[BaseException] = []
 
