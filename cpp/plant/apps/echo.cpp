@@ -61,6 +61,11 @@ int main(int argc, char** argv) {
     std::cerr << "lcm_echo: error: cannot open LCM at '" << url << "'\n";
     return 1;
   }
+  if (lcm.getFileno() < 0) {  // the receive socket (opened on first use) failed
+    std::cerr << "lcm_echo: error: cannot receive on '" << url
+              << "' (its port is taken by another socket)\n";
+    return 1;
+  }
   Echo echo(&lcm, prefix);
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);

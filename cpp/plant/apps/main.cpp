@@ -139,6 +139,13 @@ int Run(const Options& options) {
     std::cerr << "plant: error: cannot open LCM at '" << options.lcm_url << "'\n";
     return kExitRuntime;
   }
+  // liblcm opens the receive socket on first use; when the port is taken by a
+  // socket that does not share it, the subscriptions it leaves crash: ask now
+  if (lcm.getFileno() < 0) {
+    std::cerr << "plant: error: cannot receive on '" << options.lcm_url
+              << "' (its port is taken by another socket)\n";
+    return kExitRuntime;
+  }
 
   ftc::Plant plant(scenario, options.seed);
   if (options.start_step > 0) plant.SetOperatingSteps(options.start_step);

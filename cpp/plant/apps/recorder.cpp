@@ -94,6 +94,14 @@ int main(int argc, char** argv) {
       std::cerr << "lcm_recorder: error: cannot open LCM at '" << url << "'\n";
       return 1;
     }
+    // liblcm opens the receive socket on first use and, when that fails (the
+    // port taken by a socket that does not share it), leaves subscriptions
+    // that crash: open it now and say so instead
+    if (lcm.getFileno() < 0) {
+      std::cerr << "lcm_recorder: error: cannot receive on '" << url
+                << "' (its port is taken by another socket)\n";
+      return 1;
+    }
     Recorder recorder(log.get());
     lcm::Subscription* sub = lcm.subscribe(channel, &Recorder::OnMessage, &recorder);
     sub->setQueueCapacity(0);  // unbounded: see the file comment

@@ -42,9 +42,26 @@ class LinkConfig:
     backoff: float = 1.0
 
 
+def private_port_range(path: str = "/proc/sys/net/ipv4/ip_local_port_range") -> range:
+    """Ports for private LCM URLs: from 20000 up to the kernel's ephemeral range.
+
+    An LCM receive socket shares its port with other LCM sockets (SO_REUSEADDR),
+    but not with a socket the kernel gave that port to as an ephemeral one (any
+    process's outgoing socket, LCM's own send sockets included): the bind then
+    fails ("bind: Address already in use"), which a CI run of the experiments
+    hit with ports drawn from 20000-59999 (Linux's ephemeral range is
+    32768-60999)."""
+    try:
+        with open(path) as f:
+            low = int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return range(20000, low) if low >= 20000 + 4096 else range(20000, 32768)
+
+
 def private_lcm_url(port: int | None = None) -> str:
     """A loopback-only multicast URL on a random (or given) port, for one run."""
-    port = port if port is not None else random.SystemRandom().randrange(20000, 60000)
+    port = port if port is not None else random.SystemRandom().choice(private_port_range())
     return f"udpm://{LCM_MULTICAST_GROUP}:{port}?ttl=0"
 
 
