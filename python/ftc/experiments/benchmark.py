@@ -3,7 +3,7 @@ results.csv and a report of each method's reward as a fraction of the oracle MPC
 
     python -m ftc.experiments benchmark --out runs/bench --jobs 2
     python -m ftc.experiments benchmark --scenarios scenarios/single.toml \\
-        --methods closed balance --seeds 0 --intervals 2 --steps-per-interval 64 --out DIR
+        --methods closed balance --seeds 0 --intervals 2 --steps-per-interval 128 --out DIR
 
 Without --scenarios the suite's default scenarios (ftc.experiments.suite: the
 paper's single and multiple faults and 20 random ones) are written and run.
