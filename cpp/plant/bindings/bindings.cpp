@@ -205,6 +205,41 @@ py::object RunRollout(ftc::BatchRollout* rollout, const py::object& x0,
   return RolloutToPython(r, k, l, details);
 }
 
+// (T, 6) states and (T, 6) 0/1 valves, one step each -> (T, 6) next levels (NaN: refused).
+py::array_t<double> StepEach(ftc::BatchRollout* rollout, const py::object& x,
+                             const py::object& valves, const py::dict& params, double dt) {
+  const auto xa = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(x);
+  const auto ua = py::array_t<long long, py::array::c_style | py::array::forcecast>::ensure(valves);
+  if (!xa || xa.ndim() != 2 || xa.shape(1) != kTanks)
+    throw py::value_error("x must be an array of shape (T, 6)");
+  if (!ua || ua.ndim() != 2 || ua.shape(1) != kTanks || ua.shape(0) != xa.shape(0))
+    throw py::value_error("valves must be an array of shape (T, 6), as x");
+  const std::size_t rows = static_cast<std::size_t>(xa.shape(0));
+  std::vector<ftc::Vec6> states(rows);
+  std::vector<ftc::Valves> settings(rows);
+  const double* xd = xa.data();
+  const long long* ud = ua.data();
+  for (std::size_t n = 0; n < rows; ++n) {
+    for (int i = 0; i < kTanks; ++i) {
+      states[n][i] = xd[n * kTanks + i];
+      const long long v = ud[n * kTanks + i];
+      if (v != 0 && v != 1) throw py::value_error("valves must be 0 or 1");
+      settings[n][i] = static_cast<int>(v);
+    }
+  }
+  const ftc::PlantParams p = ParamsFromDict(params);
+  std::vector<ftc::Vec6> next;
+  {
+    py::gil_scoped_release release;
+    next = rollout->StepEach(states, settings, p, dt);
+  }
+  py::array_t<double> out({static_cast<py::ssize_t>(rows), static_cast<py::ssize_t>(kTanks)});
+  double* od = out.mutable_data();
+  for (std::size_t n = 0; n < rows; ++n)
+    for (int i = 0; i < kTanks; ++i) od[n * kTanks + i] = next[n][i];
+  return out;
+}
+
 // Events <-> Python: a list of dicts as in the TOML file ({"at_step": 2600,
 // "tank": 4, "factor": 2.0}, {"at_step": 3100, "stuck_valve": 2, "state": "open"};
 // indices 1-based), validated by the file parser itself so both accept the same.
@@ -468,7 +503,13 @@ PYBIND11_MODULE(_core, m) {
            py::arg("atol") = ftc::IntegratorOptions{}.atol,
            "rtol/atol: CVODE tolerances of the rollouts (default: the plant's)")
       .def("run", &RunRollout, py::arg("x0"), py::arg("sequences"), py::arg("params"),
-           py::arg("dt") = 1.0, py::arg("details") = false, rollout_doc);
+           py::arg("dt") = 1.0, py::arg("details") = false, rollout_doc)
+      .def("step_each", &StepEach, py::arg("x"), py::arg("valves"), py::arg("params"),
+           py::arg("dt") = 1.0,
+           "Levels (T, 6) m after one step of dt s from each row of x (T, 6) with the row's "
+           "valves (T, 6) of 0/1, under params (one dict); no episode rule. A row the "
+           "integrator refuses (chattering) is NaN; rows run in order, as T one-step run() "
+           "calls would (bit-identical).");
   m.def(
       "batch_rollout",
       [](const py::object& x0, const py::object& sequences, const py::object& params, double dt,

@@ -15,6 +15,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <limits>
 #include <numeric>
 #include <stdexcept>
 #include <string>
@@ -157,6 +158,27 @@ RolloutResult BatchRollout::Run(const Vec6& x0, const std::vector<Valves>& seque
     }
     out.total[k] = cum[l_count];
     previous = k;
+  }
+  return out;
+}
+
+std::vector<Vec6> BatchRollout::StepEach(const std::vector<Vec6>& x, const std::vector<Valves>& u,
+                                         const PlantParams& params, double dt, long* refused) {
+  if (x.size() != u.size())
+    throw std::invalid_argument("BatchRollout::StepEach: " + std::to_string(x.size()) +
+                                " states for " + std::to_string(u.size()) + " valve settings");
+  for (const Valves& v : u)
+    if (((v.array() != 0) && (v.array() != 1)).any())
+      throw std::invalid_argument("BatchRollout::StepEach: valves must be 0 or 1");
+  std::vector<Vec6> out(x.size());
+  RolloutResult counts;  // StepOnce's step counters; not reported here
+  for (std::size_t n = 0; n < x.size(); ++n) {
+    try {
+      out[n] = StepOnce(x[n], u[n], params, dt, &counts).x;
+    } catch (const std::runtime_error&) {
+      out[n].setConstant(std::numeric_limits<double>::quiet_NaN());
+      if (refused != nullptr) ++*refused;
+    }
   }
   return out;
 }

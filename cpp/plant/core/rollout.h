@@ -51,6 +51,15 @@ class BatchRollout final {
   RolloutResult Run(const Vec6& x0, const std::vector<Valves>& sequences, int num_candidates,
                     int horizon, const std::vector<PlantParams>& params, double dt = 1.0);
 
+  // One step of dt seconds from each of many states, row n from x[n] with
+  // valves u[n] (no episode rule: the levels after the step). A row the
+  // integrator refuses (e.g. chattering under estimated parameters) is NaN
+  // in every entry and counted in *refused (when given); the others go on.
+  // Rows are stepped in order, so consecutive rows that continue one another
+  // continue CVODE warm exactly as separate Run calls of one step would.
+  std::vector<Vec6> StepEach(const std::vector<Vec6>& x, const std::vector<Valves>& u,
+                             const PlantParams& params, double dt = 1.0, long* refused = nullptr);
+
  private:
   StepResult StepOnce(const Vec6& x, const Valves& u, const PlantParams& p, double dt,
                       RolloutResult* result);

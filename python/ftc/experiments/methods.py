@@ -55,6 +55,8 @@ register_method(MethodSpec("ppo-online", "PPO online", ("--method", "ppo", "--no
                            cost=3.0, learns=True))
 register_method(MethodSpec("ppo-offline", "PPO online + offline",
                            ("--method", "ppo", "--offline"), cost=8.0, learns=True))
+register_method(MethodSpec("ppo-pretrained", "PPO online + offline, pretrained",
+                           ("--method", "ppo", "--offline", "--pretrain"), cost=8.0, learns=True))
 register_method(MethodSpec("oracle-mpc", "MPC, faults known (oracle)", ("--method", "oracle"),
                            module="ftc.mpc", cost=1.5))
 register_method(MethodSpec("model-mpc", "MPC on the learned model", ("--method", "model"),

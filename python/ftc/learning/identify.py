@@ -89,17 +89,8 @@ class Identifier:
                 ) -> np.ndarray:
         """Next levels (T, 6) of rows (level (T, 6), valves (T, 6)) under ``params``;
         NaN for a row the integrator refuses under these parameters (chattering)."""
-        core = params.as_core()
-        out = np.empty_like(level, dtype=np.float64)
-        for t in range(len(level)):
-            try:
-                r = self.rollout.run(level[t],
-                                     valves[t].reshape(1, 1, NUM_TANKS).astype(np.int64),
-                                     core, details=True)
-                out[t] = r["levels"][0, 0]
-            except RuntimeError:
-                out[t] = np.nan
-        return out
+        return self.rollout.step_each(np.asarray(level, np.float64),
+                                      np.asarray(valves, np.int64), params.as_core())
 
     def fit(self, level: np.ndarray, valves: np.ndarray, next_level: np.ndarray,
             deficit: np.ndarray, prior: PlantParameters, max_iterations: int = 20
