@@ -11,6 +11,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+# One BLAS thread, as one torch thread (control/ppo_agent.py): the networks here are
+# tiny, and OpenBLAS's second thread spins against the other runs on a shared
+# machine (measured: a policy's forward + backward pass on 128 states 1.6 ms with
+# one thread, 8.9 ms with two beside a 2-job benchmark). It also makes results
+# independent of the core count (sgemm's sums are split by thread). Set before
+# NumPy is first imported; an explicit OPENBLAS_NUM_THREADS wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 BUILD_DIR = Path(os.environ.get("FTC_BUILD_DIR", REPO_ROOT / "build")).resolve()
 

@@ -92,3 +92,30 @@ def test_adaptive_plans_as_well_as_the_oracle(tmp_path, scenarios):
     # measured: within 0.1% of the oracle in every interval; all closed loses 9-19%
     assert all(a >= 0.99 * o for a, o in zip(adaptive, oracle)), (adaptive, oracle)
     assert all(a > c + 0.1 for a, c in zip(adaptive[1:], closed[1:]))
+
+
+def test_step_each_equals_one_step_runs_bit_for_bit_and_marks_refused_rows(tmp_path):
+    """The identifier's predictions come from BatchRollout.step_each; it must give
+    exactly what one-step run() calls give, row by row (consecutive rows that
+    continue one another continue CVODE warm in both), and NaN for a row the
+    integrator refuses, without stopping the others."""
+    (x, u, y, d), true = _data(tmp_path, 0.3)
+    params = {k: true[k] for k in ("pump", "resistance", "demand")}
+    one = _core.BatchRollout(rtol=1e-6, atol=1e-8)
+    expected = np.array([one.run(x[t], u[t].reshape(1, 1, 6).astype(np.int64), params,
+                                 details=True)["levels"][0, 0] for t in range(len(x))])
+    got = _core.BatchRollout(rtol=1e-6, atol=1e-8).step_each(x, u, params)
+    assert got.shape == x.shape
+    assert np.array_equal(got, expected)  # bit-identical, not merely close
+    assert np.abs(got - y).max() < 1e-6  # and the plant's own next levels (its tolerances)
+    # a row CVODE refuses (its right-hand side fails on a NaN level; run() raises)
+    bad, valves = np.full((3, 6), 0.5), np.tile([1, 1, 0, 0, 0, 0], (3, 1))
+    bad[1, 0] = np.nan
+    with pytest.raises(RuntimeError, match="CVode"):
+        _core.BatchRollout().run(bad[1], valves[1].reshape(1, 1, 6), params)
+    out = _core.BatchRollout().step_each(bad, valves, params)
+    assert np.isnan(out[1]).all() and np.isfinite(out[[0, 2]]).all()
+    with pytest.raises(ValueError, match="valves must be an array of shape"):
+        _core.BatchRollout().step_each(x[:3], u[:2], params)
+    with pytest.raises(ValueError, match="valves must be 0 or 1"):
+        _core.BatchRollout().step_each(x[:1], np.full((1, 6), 2), params)

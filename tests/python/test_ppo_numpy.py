@@ -167,3 +167,21 @@ def test_distillation_matches_torch(max_grad_norm):
     assert rb["distill_agreement"] == ra["distill_agreement"]
     for k, v in b.policy.value_head.state_dict().items():
         assert torch.equal(v, value_before[k]), k
+
+
+@pytest.mark.parametrize("engine", ["torch", "numpy"])
+def test_distillation_stops_once_an_epoch_is_below_the_stop_loss(engine):
+    # a label that is one valve's own input threshold: learnable; the epoch-mean
+    # BCE starts near log 2 = 0.69 (a fresh policy opens with p ~ 0.5)
+    g = torch.Generator().manual_seed(8)
+    states = torch.rand(256, 6, generator=g)
+    labels = (states > 0.5).float()
+    runs = {}
+    for stop in (0.0, 0.6, 1.0):
+        ppo = PPO(PPOConfig(engine=engine), seed=2)
+        runs[stop] = distill(ppo, states, labels, epochs=40, seed=5, stop_loss=stop)
+    assert runs[0.0]["distill_epochs"] == 40           # 0: never stops early
+    assert runs[1.0]["distill_epochs"] == 1            # above any epoch's loss: one epoch
+    assert 1 < runs[0.6]["distill_epochs"] < 40        # stops when it crosses 0.6
+    assert runs[0.6]["distill_loss"] > runs[0.0]["distill_loss"]
+    assert runs[0.0]["distill_agreement"] > 0.8  # learnt (chance: 0.5)

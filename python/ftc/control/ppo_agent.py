@@ -94,7 +94,10 @@ class ControllerConfig(RunConfig):
     teacher_refits: int = field(default=2, metadata={"check": at_least(0, 1000), "help": (
         "ppo-robust: refits of the policy within an interval when the plant is seen to change")})
     teacher_epochs: int = field(default=100, metadata={"check": at_least(1, 10_000), "help": (
-        "ppo-robust: epochs of each fit to the labels")})
+        "ppo-robust: epochs of each fit to the labels (at most; see --teacher-stop-loss)")})
+    teacher_stop_loss: float = field(default=0.002, metadata={"check": between(0.0, 10.0), "help": (
+        "ppo-robust: end a fit early after an epoch whose mean cross-entropy per valve "
+        "is below this (0: always --teacher-epochs; docs/controller.md)")})
     branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
         "ppo-robust: steps of a branched offline rollout")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (

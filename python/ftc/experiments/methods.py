@@ -64,8 +64,9 @@ register_method(MethodSpec("model-mpc", "MPC on the learned model", ("--method",
 register_method(MethodSpec("balance", "rule: balance the wings", ("--method", "balance"),
                            cost=1.0))
 register_method(MethodSpec("ppo-robust", "PPO online + guided offline (robust)",
-                           ("--method", "ppo-robust", "--pretrain", "--offline-steps", "0"),
-                           cost=8.0, learns=True))
+                           ("--method", "ppo-robust", "--pretrain", "--offline-steps", "0",
+                            "--ppo-engine", "numpy"),
+                           cost=30.0, learns=True))
 register_method(MethodSpec("adaptive", "MPC on identified physics (adaptive)",
                            ("--method", "adaptive"), module="ftc.mpc", cost=2.0, learns=True))
 PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")

@@ -12,23 +12,30 @@ from ftc.learning.ppo_numpy import numpy_distill
 
 
 def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: int = 30,
-            minibatch: int = 128, lr: float = 1e-3, seed: int = 0) -> dict[str, float]:
+            minibatch: int = 128, lr: float = 1e-3, seed: int = 0,
+            stop_loss: float = 0.0) -> dict[str, float]:
     """Fit the policy's valve-open probabilities to ``actions`` (N, 6) in {0, 1}
     at ``states`` (N, 6) by binary cross-entropy (a fresh Adam; PPO's own
-    optimiser state is kept). Returns the final loss and the share of valve
-    decisions the deterministic policy (open iff p > 0.5) now agrees on."""
+    optimiser state is kept), for ``epochs`` epochs or until an epoch's mean
+    minibatch loss is below ``stop_loss`` (0: never). Returns the final loss,
+    the epochs run and the share of valve decisions the deterministic policy
+    (open iff p > 0.5) now agrees on."""
     generator = torch.Generator().manual_seed(seed)
     if ppo.config.engine == "numpy":  # the same fit without torch's per-step overhead
-        loss_value = numpy_distill(ppo.policy, states, actions, epochs=epochs,
-                                   minibatch=minibatch, lr=lr,
-                                   max_grad_norm=ppo.config.max_grad_norm, generator=generator)
-        return {"distill_loss": loss_value, "distill_agreement": _agreement(ppo, states, actions)}
+        loss_value, ran = numpy_distill(ppo.policy, states, actions, epochs=epochs,
+                                        minibatch=minibatch, lr=lr,
+                                        max_grad_norm=ppo.config.max_grad_norm,
+                                        generator=generator, stop_loss=stop_loss)
+        return {"distill_loss": loss_value, "distill_epochs": ran,
+                "distill_agreement": _agreement(ppo, states, actions)}
     optimizer = torch.optim.Adam(ppo.policy.parameters(), lr=lr, eps=1e-5)
     loss_fn = nn.BCEWithLogitsLoss()
     n = len(states)
     loss = torch.tensor(float("nan"))
-    for _ in range(epochs):
+    ran = 0
+    while ran < epochs:
         order = torch.randperm(n, generator=generator)
+        total = 0.0
         for start in range(0, n, minibatch):
             idx = order[start:start + minibatch]
             logits, _ = ppo.policy(states[idx])
@@ -37,7 +44,11 @@ def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: in
             loss.backward()
             nn.utils.clip_grad_norm_(ppo.policy.parameters(), ppo.config.max_grad_norm)
             optimizer.step()
-    return {"distill_loss": float(loss.detach()),
+            total += float(loss.detach())
+        ran += 1
+        if total / -(-n // minibatch) < stop_loss:
+            break
+    return {"distill_loss": float(loss.detach()), "distill_epochs": ran,
             "distill_agreement": _agreement(ppo, states, actions)}
 
 

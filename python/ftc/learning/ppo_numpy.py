@@ -279,12 +279,13 @@ class NumpyActor:
 
 def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
                   epochs: int, minibatch: int, lr: float, max_grad_norm: float,
-                  generator: torch.Generator) -> float:
+                  generator: torch.Generator, stop_loss: float = 0.0) -> tuple[float, int]:
     """:func:`ftc.learning.distill.distill`'s fit in NumPy: binary cross-entropy
     of the policy's logits against ``actions`` (mean over samples and valves),
     the global norm clip over the trunk and policy head (the value head gets no
     gradient, as in torch, where its parameters have none), a fresh Adam
-    (eps 1e-5). Returns the last minibatch's loss."""
+    (eps 1e-5); it stops early after an epoch whose mean minibatch loss is below
+    ``stop_loss``. Returns the last minibatch's loss and the epochs run."""
     net = _Net(policy)
     n_trunk, n_pi = 2 * len(net.layers["trunk"]), 2 * len(net.layers["pi"])
     params = net.params[:n_trunk + n_pi]  # trunk then policy head, as backward orders them
@@ -292,15 +293,17 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
     v = [np.zeros_like(p) for p in params]
     x_all = states.detach().numpy().astype(np.float32, copy=False)
     y_all = actions.detach().numpy().astype(np.float32, copy=False)
-    n, t, loss = len(x_all), 0, float("nan")
-    for _ in range(epochs):
+    n, t, loss, ran = len(x_all), 0, float("nan"), 0
+    while ran < epochs:
         order = torch.randperm(n, generator=generator).numpy()
+        total = 0.0
         for start in range(0, n, minibatch):
             idx = order[start:start + minibatch]
             logits, value, cache = net.forward(x_all[idx])
             y = y_all[idx]
             # BCE with logits: softplus(l) - y l; its slope sigmoid(l) - y
             loss = float(np.mean(np.logaddexp(0.0, logits) - y * logits))
+            total += loss
             d_logits = ((_sigmoid(logits) - y) / logits.size).astype(np.float32)
             grads = net.backward(cache, d_logits, np.zeros_like(value))[:n_trunk + n_pi]
             norm = math.sqrt(sum(float(np.sum(g * g)) for g in grads))
@@ -316,5 +319,8 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
                 vi *= 0.999
                 vi += 0.001 * (g * g)
                 p -= step_size * (mi / (np.sqrt(vi) / root_correction + 1e-5))
+        ran += 1
+        if total / -(-n // minibatch) < stop_loss:
+            break
     net.store()
-    return loss
+    return loss, ran
