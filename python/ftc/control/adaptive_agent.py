@@ -50,7 +50,8 @@ class AdaptiveAgent(MPCAgent):
     """MPC on identified physics; see the module docstring."""
 
     extra_columns = (*MPCAgent.extra_columns, "identify_seconds", "identified_pump_min",
-                     "identified_demand_max", "refused_rollouts", "detected_changes")
+                     "identified_demand_max", "refused_rollouts", "detected_changes",
+                     "mispredicted_steps")
 
     def __init__(self, cfg: MPCConfig) -> None:
         super().__init__(cfg)
@@ -97,6 +98,7 @@ class AdaptiveAgent(MPCAgent):
         refused, self.evaluator_.refused = self.evaluator_.refused, 0
         return {"model_one_step_rmse": rms, "identify_seconds": ident.seconds,
                 "refused_rollouts": refused, "detected_changes": ident.changes,
+                "mispredicted_steps": ident.mispredicted,
                 "identified_pump_min": float(params.pump.min()),
                 "identified_demand_max": float(params.demand.max())}
 

@@ -47,7 +47,8 @@ class RobustPPOAgent(PPOAgent):
     name = "ppo-robust"
     extra_columns = ("distill_loss", "distill_agreement", "distill_epochs", "teacher_labels",
                      "teacher_plans", "teach_seconds",
-                     "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes")
+                     "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
+                     "mispredicted_steps")
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         from ftc import _core  # native: the plant's integrator for the teacher's rollouts
@@ -128,6 +129,7 @@ class RobustPPOAgent(PPOAgent):
                 "teach_seconds": teach_seconds,
                 "offline_seconds": time.perf_counter() - start, "policy_swaps": 0,
                 "guided_refits": self.refits, "detected_changes": self.online_id.changes,
+                "mispredicted_steps": self.online_id.mispredicted,
                 "offline_model_errors": errors}
 
     def _guided_fit(self, observed: np.ndarray, interval: int) -> dict[str, Any]:

@@ -216,17 +216,26 @@ class OnlineIdentification:
     and the parameters are re-identified from the rows since as soon as there
     are TRIGGER_ROWS of them (and every ``every`` rows, 0: never). ``end``
     fits the interval's rows once more and keeps the estimate.
+
+    ``mispredicted`` counts the interval's steps whose one-step prediction was
+    off by more than ``tolerance`` (m) under the parameters in force at the
+    time (checked whether or not a trigger is set): how long the model stayed
+    wrong, the measure of how fast relearning recovers from a change.
     """
 
-    def __init__(self, identifier: Identifier, trigger: float = 1e-4, every: int = 64) -> None:
+    def __init__(self, identifier: Identifier, trigger: float = 1e-4, every: int = 64,
+                 tolerance: float = 1e-4) -> None:
         self.identifier, self.trigger, self.every = identifier, trigger, every
+        self.tolerance = tolerance
         self.history: list[PlantParameters] = []
         self.params = self.prior = PlantParameters.nominal()
         self.rows: list[tuple[np.ndarray, ...]] = []
         self.change_at, self.pending, self.changes, self.seconds = 0, False, 0, 0.0
+        self.mispredicted = 0
 
     def begin(self) -> None:
         self.rows, self.change_at, self.pending, self.changes, self.seconds = [], 0, False, 0, 0.0
+        self.mispredicted = 0
         if len(self.history) >= 2:
             self.prior = self.history[-1].extrapolate(self.history[-2])
         elif self.history:
@@ -237,9 +246,11 @@ class OnlineIdentification:
             deficit: np.ndarray) -> bool:
         """One observed step; True when the parameters were re-identified."""
         self.rows.append((level, valves, next_level, deficit))
-        if self.trigger:
+        if self.trigger or self.tolerance:
             predicted = self.identifier.predict(self.params, level[None], valves[None])[0]
-            wrong = not np.all(np.abs(predicted - next_level) <= self.trigger)  # NaN: wrong
+            error = float(np.max(np.abs(predicted - next_level)))  # NaN: refused, wrong
+            self.mispredicted += int(not error <= self.tolerance)
+            wrong = bool(self.trigger) and not error <= self.trigger
             if wrong and not self.pending:
                 self.change_at, self.pending = len(self.rows) - 1, True
                 self.changes += 1
