@@ -200,11 +200,15 @@ def test_the_report_names_the_worst_interval_seed_and_scenario(bench):
         k = min(per_interval, key=lambda j: (per_interval[j], str(j)))
         s = min(per_seed, key=lambda j: (per_seed[j], str(j)))
         sc = min(per_scenario, key=lambda j: (per_scenario[j], j))
+        per_cell = {(a, b): np.mean([v for key, v in f.items() if (key[0], key[2]) == (a, b)])
+                    for a in ("random-00", "single") for b in (0, 1)}
+        c = min(per_cell, key=lambda j: (per_cell[j], str(j)))
         cells = _summary_row(report, method)
         assert cells[1] == f"{np.mean(list(f.values())):.3f}"
         assert cells[2] == f"{per_interval[k]:.3f} (interval {k})"
         assert cells[3] == f"{per_seed[s]:.3f} (seed {s})"
         assert cells[4] == f"{per_scenario[sc]:.3f} ({sc})"
+        assert cells[5] == f"{per_cell[c]:.3f} ({c[0]}, interval {c[1]})"
     assert _summary_row(report, "oracle-mpc")[1] == "1.000"
     assert "### single: engine E1 D_E=20.00" in report
     assert re.search(r"\| closed \| 1\.000 \| 0\.\d{3} \|", report)  # per-scenario table

@@ -71,7 +71,8 @@ def read_fractions(path: Path) -> list[dict]:
 class MethodSummary:
     """One method's fractions of the oracle: per-interval means (over scenarios and
     seeds), the mean over every cell, and the worst interval, seed and scenario
-    (lowest mean over that interval's, seed's or scenario's cells)."""
+    (lowest mean over that interval's, seed's or scenario's cells); the worst
+    cell is the lowest (scenario, interval), mean over seeds."""
 
     method: str
     per_interval: dict[int, float]
@@ -79,6 +80,7 @@ class MethodSummary:
     worst_interval: tuple[int, float]
     worst_seed: tuple[int, float]
     worst_scenario: tuple[str, float]
+    worst_cell: tuple[tuple[str, int], float]
     cells: int
 
 
@@ -96,13 +98,15 @@ def summarise(fractions: Sequence[dict], methods: Sequence[str]) -> list[MethodS
             continue
         by: dict[str, dict] = {"interval": defaultdict(list), "seed": defaultdict(list),
                                "scenario": defaultdict(list)}
+        by_cell: dict = defaultdict(list)
         for r in cells:
             for k in by:
                 by[k][r[k]].append(r["fraction"])
+            by_cell[(r["scenario"], r["interval"])].append(r["fraction"])
         out.append(MethodSummary(
             m, {k: float(np.mean(v)) for k, v in sorted(by["interval"].items())},
             float(np.mean([r["fraction"] for r in cells])), _worst(by["interval"]),
-            _worst(by["seed"]), _worst(by["scenario"]), len(cells)))
+            _worst(by["seed"]), _worst(by["scenario"]), _worst(by_cell), len(cells)))
     return out
 
 
@@ -179,11 +183,13 @@ def summary_blocks(summaries: Sequence[MethodSummary], labels: dict[str, str],
     name = lambda m: f"{m} ({labels.get(m, m)})"  # noqa: E731
     return [
         Block("table", header=["method", "mean fraction", "worst interval", "worst seed",
-                               "worst scenario", "cells"],
+                               "worst scenario", "worst scenario-interval", "cells"],
               rows=[[name(s.method), _f(s.mean),
                      f"{_f(s.worst_interval[1])} (interval {s.worst_interval[0]})",
                      f"{_f(s.worst_seed[1])} (seed {s.worst_seed[0]})",
-                     f"{_f(s.worst_scenario[1])} ({s.worst_scenario[0]})", str(s.cells)]
+                     f"{_f(s.worst_scenario[1])} ({s.worst_scenario[0]})",
+                     f"{_f(s.worst_cell[1])} ({s.worst_cell[0][0]}, interval {s.worst_cell[0][1]})",
+                     str(s.cells)]
                     for s in summaries]),
         Block("p", "Fraction of the oracle per interval (mean over scenarios and seeds)."),
         Block("table", header=["method", *[str(k) for k in range(intervals)], "mean"],
@@ -230,7 +236,8 @@ def build_blocks(run_dir: Path) -> list[Block]:
                    "fraction is exactly 1. *Mean*: over every cell; *worst interval*: the "
                    "lowest per-interval mean (over scenarios and seeds); *worst seed*: the "
                    "lowest mean over one seed's cells; *worst scenario*: the lowest mean over "
-                   "one scenario's cells."
+                   "one scenario's cells; *worst scenario-interval*: the lowest mean over "
+                   "seeds of one scenario's interval."
                    + (f" {missing} cells have no fraction (oracle run missing or its reward "
                       "not positive)." if missing else ""))]
     summaries = summarise(fractions, methods)
