@@ -22,6 +22,12 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
   ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
                             pretraining cached, in-process / over LCM, aims 10 / 15 s
                             (and *_numpy_ppo_s: the same with --ppo-engine numpy)
+  blas_two_over_one_thread  a policy forward + backward pass on 128 states (distillation's
+                            step) with two OpenBLAS threads over one (ftc pins one)
+  step_each_over_run        the identifier's one-step predictions of 512 rows, one
+                            _core.run call per row over one step_each call
+  robust_run_3_intervals_s  ppo-robust (its benchmark arguments), 3 intervals, cached
+                            pretraining, in process
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -196,6 +202,59 @@ def bench_learning(rounds: int) -> list[Figure]:
             Figure("refit_numpy_over_torch", med(rt) / med(rn), "ratio")]
 
 
+# -- ppo-robust's pieces ---------------------------------------------------------------
+BLAS_PASS = """
+import time, numpy as np
+from ftc.learning.ppo import ActorCritic
+from ftc.learning.ppo_numpy import _Net
+net, x = _Net(ActorCritic()), np.random.default_rng(0).random((128, 6)).astype(np.float32)
+start = time.perf_counter()
+for _ in range(300):
+    logits, value, cache = net.forward(x)
+    net.backward(cache, logits, value)
+print((time.perf_counter() - start) / 300)
+"""
+
+
+def _blas_pass(threads: int) -> float:
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": str(threads)}
+    out = subprocess.run([sys.executable, "-c", BLAS_PASS], check=True, cwd=REPO, env=env,
+                         capture_output=True, text=True).stdout
+    return float(out.split()[-1])
+
+
+def bench_robust(rounds: int) -> list[Figure]:
+    from ftc import _core
+    from ftc.experiments.methods import METHODS
+
+    rng = np.random.default_rng(0)
+    x, u = rng.uniform(0.0, 1.0, (512, 6)), rng.integers(0, 2, (512, 6))
+    params = {"pump": np.full(6, 0.07), "resistance": np.full(6, 130.0)}
+    rollout = _core.BatchRollout(rtol=1e-6, atol=1e-8)
+
+    def per_row() -> float:
+        start = time.perf_counter()
+        for t in range(len(x)):
+            rollout.run(x[t], u[t].reshape(1, 1, 6), params, details=True)
+        return time.perf_counter() - start
+
+    def each() -> float:
+        start = time.perf_counter()
+        rollout.step_each(x, u, params)
+        return time.perf_counter() - start
+
+    two, one, rows, batch = _median_rounds(rounds, lambda: _blas_pass(2), lambda: _blas_pass(1),
+                                           per_row, each)
+    robust = ["-m", "ftc.controller", *METHODS["ppo-robust"].args, "--scenario", SINGLE,
+              "--seed", "0", "--intervals", "3", "--link", "core", "--quiet"]
+    _run(robust)  # fills the pretraining cache if it is cold
+    run = [_run(robust) for _ in range(rounds)]
+    med = statistics.median
+    return [Figure("blas_two_over_one_thread", med(two) / med(one), "ratio"),
+            Figure("step_each_over_run", med(rows) / med(batch), "ratio"),
+            Figure("robust_run_3_intervals_s", med(run), "s", rounds=run)]
+
+
 # -- whole runs ---------------------------------------------------------------------
 def _run(args: list[str]) -> float:
     out = tempfile.mkdtemp(prefix="ftc-bench-")
@@ -230,7 +289,7 @@ def bench_long() -> list[Figure]:
 
 GROUPS: dict[str, Callable[[int], list[Figure]]] = {
     "cvode": lambda rounds: bench_cvode(), "lockstep": bench_lockstep,
-    "learning": bench_learning, "runs": bench_runs}
+    "learning": bench_learning, "robust": bench_robust, "runs": bench_runs}
 
 
 def main() -> int:
