@@ -3,6 +3,7 @@
 // included), and the caches (shared prefixes, closed form) against plain runs.
 #include <gtest/gtest.h>
 
+#include <limits>
 #include <random>
 #include <vector>
 
@@ -124,6 +125,41 @@ TEST(BatchRollout, PerStepParamsApplyToTheirStep) {
   EXPECT_NEAR(r.levels[0].sum(), 6.0 - 0.1, 1e-9);
   EXPECT_NEAR(r.levels[2].sum(), 6.0 - 0.1 - 2 * 0.2, 1e-9);
   EXPECT_THROW(rollout.Run(Vec6::Ones(), seq, 1, 3, {p, p}), std::invalid_argument);
+}
+
+TEST(BatchRollout, StepEachEqualsOneStepRunsAndMarksRefusedRows) {
+  // Rows of a trajectory (each continuing the last, so CVODE continues warm) and
+  // unrelated rows; every row bit-identical to a one-step Run on a fresh
+  // object fed the same rows in the same order. A NaN level makes CVODE's
+  // right-hand side fail: that row is NaN and counted, the next goes on.
+  const PlantParams p = DegradedParams(PlantParams{}, SingleFault(), 3.0);
+  std::mt19937_64 rng(5);
+  std::vector<Vec6> x;
+  std::vector<Valves> u;
+  Vec6 level = Vec6::Constant(0.9);
+  BatchRollout stepper;
+  for (int t = 0; t < 40; ++t) {
+    const Valves v = FromCode(t < 20 ? 0b000110 : static_cast<int>(rng() % 64));
+    x.push_back(t % 3 == 2 ? Vec6::Constant(0.5) : level);
+    u.push_back(v);
+    level = stepper.Run(x.back(), {v}, 1, 1, {p}).levels[0];
+  }
+  x.push_back(Vec6::Constant(std::numeric_limits<double>::quiet_NaN()));
+  u.push_back(FromCode(0b000011));
+  x.push_back(Vec6::Constant(0.5));
+  u.push_back(FromCode(0b000011));
+  BatchRollout reference, batch;
+  long refused = 0;
+  const std::vector<Vec6> got = batch.StepEach(x, u, p, 1.0, &refused);
+  ASSERT_EQ(got.size(), x.size());
+  for (std::size_t n = 0; n + 2 < x.size(); ++n) {
+    const Vec6 want = reference.Run(x[n], {u[n]}, 1, 1, {p}).levels[0];
+    EXPECT_TRUE((got[n].array() == want.array()).all()) << "row " << n;
+  }
+  EXPECT_TRUE(got[x.size() - 2].array().isNaN().all());
+  EXPECT_TRUE(got.back().allFinite());
+  EXPECT_EQ(refused, 1);
+  EXPECT_THROW(batch.StepEach(x, {u[0]}, p), std::invalid_argument);
 }
 
 }  // namespace
