@@ -26,7 +26,8 @@ ACCEPTED = {
     ("--ppo-vf-coef", "0"), ("--ppo-gamma", "0"), ("--ppo-gae-lambda", "0"),
     ("--pretrain-open-fraction", "0"), ("--cem-smoothing", "0"), ("--ppo-target-kl", "1e18"),
     ("--branch-fraction", "0"), ("--teacher-rounds", "0"), ("--teacher-refits", "0"),
-    ("--identify-every", "0"), ("--identify-trigger", "0"),  # 0: that part switched off
+    ("--identify-every", "0"), ("--identify-trigger", "0"), ("--teacher-stop-loss", "0"),
+    # 0: that part switched off
     ("--scenario", ""),                       # the nominal plant
     ("--prefix", "0"), ("--prefix", "-1"), ("--prefix", "nan"), ("--prefix", "inf"),
     ("--prefix", "1e18"), ("--prefix", "abc"),  # any non-empty channel prefix
