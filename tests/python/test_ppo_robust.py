@@ -9,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -55,5 +54,4 @@ def test_each_distinct_level_is_planned_once(runs):
 def test_a_stop_loss_ends_the_fits_early(runs):
     # 0.5 nats per valve is crossed within a few epochs (a fresh policy: log 2 = 0.69)
     assert all(int(r["distill_epochs"]) < 60 for r in runs["early"])
-    assert np.mean([float(r["teach_seconds"]) for r in runs["early"]]) < \
-        np.mean([float(r["teach_seconds"]) for r in runs["full"]])
+    # (its speed is a benchmark's: scripts/bench.py --only robust)
