@@ -31,6 +31,9 @@ from torch import nn
 from ftc.common.cli import at_least, between, positive
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM, RolloutBatch, RolloutBuffer
 from ftc.learning.ppo_numpy import NumpyActor, numpy_ppo_update
+from ftc.learning.torch_startup import skip_dynamo_import
+
+skip_dynamo_import()  # 2 s of start-up: nothing here is compiled
 
 
 @dataclass
