@@ -185,3 +185,46 @@ def test_distillation_stops_once_an_epoch_is_below_the_stop_loss(engine):
     assert 1 < runs[0.6]["distill_epochs"] < 40        # stops when it crosses 0.6
     assert runs[0.6]["distill_loss"] > runs[0.0]["distill_loss"]
     assert runs[0.0]["distill_agreement"] > 0.8  # learnt (chance: 0.5)
+
+
+@pytest.mark.parametrize("engine", ["torch", "numpy"])
+def test_distinct_rows_weighted_by_count_are_the_same_objective(engine):
+    # 40 distinct states, each repeated 1-5 times (as an interval's episodes repeat
+    # levels): with one minibatch holding all the rows, a step on the repeated rows
+    # and a step on the distinct ones weighted by their counts have the same loss
+    # and gradient, so two epochs leave the same policy (float32 rounding of the
+    # sums in another order: 1e-5 on the weights, measured ~1e-7)
+    from ftc.learning.distill import distinct
+
+    g = torch.Generator().manual_seed(3)
+    base = torch.rand(40, 6, generator=g)
+    repeats = torch.randint(1, 6, (40,), generator=g)
+    states = base.repeat_interleave(repeats, dim=0)
+    labels = (states > 0.4).float()
+    rows, acts, counts = distinct(states.numpy(), labels.numpy())
+    assert len(rows) == 40 and float(counts.sum()) == len(states)
+    full = PPO(PPOConfig(engine=engine), seed=2)
+    weighted = PPO(PPOConfig(engine=engine), seed=2)
+    ra = distill(full, states, labels, epochs=2, minibatch=len(states), seed=5)
+    rb = distill(weighted, rows, acts, epochs=2, minibatch=len(states), seed=5, weights=counts)
+    assert rb["distill_loss"] == pytest.approx(ra["distill_loss"], rel=1e-5)
+    assert rb["distill_agreement"] == pytest.approx(ra["distill_agreement"], abs=1e-6)
+    for (k, va), vb in zip(full.policy.state_dict().items(), weighted.policy.state_dict().values()):
+        torch.testing.assert_close(vb, va, rtol=0, atol=1e-5, msg=k)
+
+
+def test_weighted_distillation_matches_torch():
+    g = torch.Generator().manual_seed(8)
+    states = torch.rand(300, 6, generator=g)
+    labels = (states[:, :1] > states[:, 1:2]).float().expand(-1, 6).contiguous()
+    weights = torch.randint(1, 9, (300,), generator=g).float()
+    a = PPO(PPOConfig(engine="torch"), seed=2)
+    b = PPO(PPOConfig(engine="numpy"), seed=2)
+    ra = distill(a, states, labels, epochs=3, seed=5, weights=weights)
+    rb = distill(b, states, labels, epochs=3, seed=5, weights=weights)
+    _assert_same_policy(a, b)
+    assert rb["distill_loss"] == pytest.approx(ra["distill_loss"], rel=1e-4)
+    # a logit within rounding of 0 may fall either side: at most one valve decision
+    # (weight <= 8 of the 6 x sum(weights) weighted decisions) may differ
+    one_decision = 8.0 / (6 * float(weights.sum()))
+    assert rb["distill_agreement"] == pytest.approx(ra["distill_agreement"], abs=one_decision)

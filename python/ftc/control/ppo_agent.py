@@ -98,6 +98,10 @@ class ControllerConfig(RunConfig):
     teacher_stop_loss: float = field(default=0.002, metadata={"check": between(0.0, 10.0), "help": (
         "ppo-robust: end a fit early after an epoch whose mean cross-entropy per valve "
         "is below this (0: always --teacher-epochs; docs/controller.md)")})
+    teacher_distinct: bool = field(default=False, metadata={"help": (
+        "ppo-robust: fit to the distinct (level, label) pairs, each weighted by how often "
+        "it was labelled (the same objective in fewer rows: an interval's episodes "
+        "repeat their levels), instead of to every labelled level")})
     branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
         "ppo-robust: steps of a branched offline rollout")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (

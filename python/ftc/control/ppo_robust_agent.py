@@ -34,7 +34,7 @@ from ftc.control.agent import Transition
 from ftc.control.checkpoint import check_finite_state
 from ftc.control.planners import HoldPlanner, ParamsEvaluator
 from ftc.control.ppo_agent import ControllerConfig, PPOAgent
-from ftc.learning.distill import distill
+from ftc.learning.distill import distill, distinct
 from ftc.learning.identify import Identifier, OnlineIdentification
 from ftc.learning.physics_env import PhysicsEnv
 from ftc.learning.ppo import PPOConfig
@@ -162,10 +162,13 @@ class RobustPPOAgent(PPOAgent):
             visited = np.array(visited)
             states = np.concatenate([states, visited])[-cfg.teacher_states:]
             labels = np.concatenate([labels, self._labels(visited, plans)])[-cfg.teacher_states:]
-            metrics = distill(self.ppo, torch.as_tensor(states, dtype=torch.float32),
-                              torch.as_tensor(labels, dtype=torch.float32),
-                              epochs=cfg.teacher_epochs, seed=seed,
-                              stop_loss=cfg.teacher_stop_loss)
+            if cfg.teacher_distinct:
+                rows, acts, counts = distinct(states, labels)
+            else:
+                rows, acts, counts = (torch.as_tensor(states, dtype=torch.float32),
+                                      torch.as_tensor(labels, dtype=torch.float32), None)
+            metrics = distill(self.ppo, rows, acts, epochs=cfg.teacher_epochs, seed=seed,
+                              stop_loss=cfg.teacher_stop_loss, weights=counts)
         metrics["teacher_labels"], metrics["teacher_plans"] = len(states), len(plans)
         # Adam's moments belong to the weights before the fit: carried over, they make
         # the next online update jump (measured: approx-KL 0.8-3.8 per update)

@@ -279,13 +279,15 @@ class NumpyActor:
 
 def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
                   epochs: int, minibatch: int, lr: float, max_grad_norm: float,
-                  generator: torch.Generator, stop_loss: float = 0.0) -> tuple[float, int]:
+                  generator: torch.Generator, stop_loss: float = 0.0,
+                  weights: torch.Tensor | None = None) -> tuple[float, int]:
     """:func:`ftc.learning.distill.distill`'s fit in NumPy: binary cross-entropy
     of the policy's logits against ``actions`` (mean over samples and valves),
     the global norm clip over the trunk and policy head (the value head gets no
     gradient, as in torch, where its parameters have none), a fresh Adam
     (eps 1e-5); it stops early after an epoch whose mean minibatch loss is below
-    ``stop_loss``. Returns the last minibatch's loss and the epochs run."""
+    ``stop_loss``; ``weights`` (N,) weight the rows' losses as distill's do.
+    Returns the last minibatch's loss and the epochs run."""
     net = _Net(policy)
     n_trunk, n_pi = 2 * len(net.layers["trunk"]), 2 * len(net.layers["pi"])
     params = net.params[:n_trunk + n_pi]  # trunk then policy head, as backward orders them
@@ -293,6 +295,7 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
     v = [np.zeros_like(p) for p in params]
     x_all = states.detach().numpy().astype(np.float32, copy=False)
     y_all = actions.detach().numpy().astype(np.float32, copy=False)
+    w_all = None if weights is None else weights.detach().numpy().astype(np.float32)
     n, t, loss, ran = len(x_all), 0, float("nan"), 0
     while ran < epochs:
         order = torch.randperm(n, generator=generator).numpy()
@@ -302,9 +305,15 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
             logits, value, cache = net.forward(x_all[idx])
             y = y_all[idx]
             # BCE with logits: softplus(l) - y l; its slope sigmoid(l) - y
-            loss = float(np.mean(np.logaddexp(0.0, logits) - y * logits))
+            bce = np.logaddexp(0.0, logits) - y * logits
+            if w_all is None:
+                loss = float(np.mean(bce))
+                d_logits = ((_sigmoid(logits) - y) / logits.size).astype(np.float32)
+            else:  # the weighted mean over rows of the mean over valves
+                w = w_all[idx, None] / (w_all[idx].sum() * logits.shape[1])
+                loss = float(np.sum(w * bce))
+                d_logits = (w * (_sigmoid(logits) - y)).astype(np.float32)
             total += loss
-            d_logits = ((_sigmoid(logits) - y) / logits.size).astype(np.float32)
             grads = net.backward(cache, d_logits, np.zeros_like(value))[:n_trunk + n_pi]
             norm = math.sqrt(sum(float(np.sum(g * g)) for g in grads))
             scale = max_grad_norm / (norm + 1e-6)
