@@ -28,8 +28,14 @@ def _run(tmp_path: Path, name: str, *extra: str) -> list[dict]:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("robust")
-    return {"full": _run(tmp, "full", "--teacher-epochs", "60", "--teacher-stop-loss", "0"),
-            "early": _run(tmp, "early", "--teacher-epochs", "60", "--teacher-stop-loss", "0.5")}
+    # "full" and "early": one fit's DAgger (deterministic rollouts, no memory of
+    # earlier fits); "memory": the defaults (sampled rollouts, memory of earlier fits)
+    single_fit = ("--no-teacher-sample", "--teacher-memory", "0")
+    return {"full": _run(tmp, "full", "--teacher-epochs", "60", "--teacher-stop-loss", "0",
+                         *single_fit),
+            "early": _run(tmp, "early", "--teacher-epochs", "60", "--teacher-stop-loss", "0.5",
+                          *single_fit),
+            "memory": _run(tmp, "memory", "--teacher-epochs", "20", "--teacher-memory", "100")}
 
 
 def test_the_guided_fit_makes_a_fresh_policy_act_as_the_planner(runs):
@@ -55,3 +61,35 @@ def test_a_stop_loss_ends_the_fits_early(runs):
     # 0.5 nats per valve is crossed within a few epochs (a fresh policy: log 2 = 0.69)
     assert all(int(r["distill_epochs"]) < 60 for r in runs["early"])
     # (its speed is a benchmark's: scripts/bench.py --only robust)
+
+
+def test_each_fit_keeps_a_bounded_memory_of_the_levels_earlier_fits_labelled(runs):
+    memory = [int(r["teacher_memory"]) for r in runs["memory"]]
+    assert memory[0] == 0          # the first fit has no earlier one
+    assert memory[1] == 100        # then the 100 most recent distinct levels (the limit)
+    assert all(int(r["teacher_memory"]) == 0 for r in runs["full"])  # --teacher-memory 0
+
+
+def test_recent_distinct_keeps_the_last_occurrences_most_recent_last():
+    import numpy as np
+
+    from ftc.control.ppo_robust_agent import _recent_distinct
+
+    a, b, c, d = (np.full(6, v) for v in (0.1, 0.2, 0.3, 0.4))
+    rows = np.array([a, b, a, c, d, c])
+    np.testing.assert_array_equal(_recent_distinct(rows, 10), [b, a, d, c])
+    np.testing.assert_array_equal(_recent_distinct(rows, 2), [d, c])
+    assert _recent_distinct(rows, 0).shape == (0, 6)
+
+
+def test_the_memory_survives_a_checkpoint():
+    import numpy as np
+
+    from ftc.control.controller_cli import make_agent, parse_args
+
+    cfg, ppo = parse_args(["--method", "ppo-robust", "--link", "core", "--out", "unused"])
+    agent = make_agent(cfg, ppo)
+    agent.memory = np.random.default_rng(0).random((7, 6))
+    again = make_agent(cfg, ppo)
+    again.load_state_dict(agent.state_dict())
+    np.testing.assert_array_equal(again.memory, agent.memory)

@@ -98,6 +98,15 @@ class ControllerConfig(RunConfig):
     teacher_stop_loss: float = field(default=0.002, metadata={"check": between(0.0, 10.0), "help": (
         "ppo-robust: end a fit early after an epoch whose mean cross-entropy per valve "
         "is below this (0: always --teacher-epochs; docs/controller.md)")})
+    teacher_memory: int = field(default=1024, metadata={"check": at_least(0, 1_000_000), "help": (
+        "ppo-robust: distinct levels labelled in earlier fits that each fit keeps, "
+        "relabelled by the planner on the current parameters (DAgger's aggregated data: "
+        "without it a fit forgets what earlier ones taught where it has no labels, e.g. "
+        "fuel stranded behind a dead pump; 0: every fit starts afresh)")})
+    teacher_sample: bool = field(default=True, metadata={"help": (
+        "ppo-robust: the policy's DAgger rollouts on the identified physics sample "
+        "its actions, as it acts on the plant, so the labels cover the levels a "
+        "sampled slip leads to (off: the deterministic policy)")})
     teacher_distinct: bool = field(default=False, metadata={"help": (
         "ppo-robust: fit to the distinct (level, label) pairs, each weighted by how often "
         "it was labelled (the same objective in fewer rows: an interval's episodes "
