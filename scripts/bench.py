@@ -28,6 +28,12 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             _core.run call per row over one step_each call
   robust_run_3_intervals_s  ppo-robust (its benchmark arguments), 3 intervals, cached
                             pretraining, in process
+  ppo_build_s               building a (NumPy-engine) PPO in a fresh process: its torch
+                            optimiser no longer imports torch._dynamo (torch_startup.py)
+  ppo_build_with_dynamo_s   the same with torch._dynamo imported first, as torch.optim
+                            did before: the difference is what every PPO process paid
+  model_mpc_decision_ms     one decision of the model MPC (64 candidates x 10 steps
+                            through the world model in NumPy)
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -255,6 +261,48 @@ def bench_robust(rounds: int) -> list[Figure]:
             Figure("robust_run_3_intervals_s", med(run), "s", rounds=run)]
 
 
+# -- start-up and the model MPC's decisions -----------------------------------------------
+PPO_BUILD = """
+import sys, time
+import torch
+from ftc.learning.ppo import PPO, PPOConfig
+start = time.perf_counter()
+if sys.argv[1] == "dynamo":
+    import torch._dynamo  # what torch.optim's first use imported before torch_startup.py
+PPO(PPOConfig(engine="numpy"), seed=0)
+print(time.perf_counter() - start)
+"""
+
+MODEL_DECISION = """
+import time, numpy as np
+from ftc.control.planners import HoldPlanner, ModelEvaluator
+from ftc.learning.offline import pretrained_world_model
+model, demand, _ = pretrained_world_model(50, 0, "~/.cache/ftc/pretrain", "numpy")
+planner, x = HoldPlanner(3, 10), np.array([0.9, 0.8, 0.7, 0.7, 0.8, 0.9])
+start = time.perf_counter()
+for _ in range(200):
+    planner.plan(ModelEvaluator(model, demand), x)
+print((time.perf_counter() - start) / 200)
+"""
+
+
+def _python(code: str, *args: str) -> float:
+    out = subprocess.run([sys.executable, "-c", code, *args], check=True, cwd=REPO,
+                         capture_output=True, text=True).stdout
+    return float(out.split()[-1])
+
+
+def bench_startup(rounds: int) -> list[Figure]:
+    _python(MODEL_DECISION)  # fills the pretraining cache if it is cold
+    marked, imported, decision = _median_rounds(
+        rounds, lambda: _python(PPO_BUILD, "marked"), lambda: _python(PPO_BUILD, "dynamo"),
+        lambda: _python(MODEL_DECISION))
+    med = statistics.median
+    return [Figure("ppo_build_s", med(marked), "s", rounds=marked),
+            Figure("ppo_build_with_dynamo_s", med(imported), "s", rounds=imported),
+            Figure("model_mpc_decision_ms", 1e3 * med(decision), "ms", rounds=decision)]
+
+
 # -- whole runs ---------------------------------------------------------------------
 def _run(args: list[str]) -> float:
     out = tempfile.mkdtemp(prefix="ftc-bench-")
@@ -289,7 +337,8 @@ def bench_long() -> list[Figure]:
 
 GROUPS: dict[str, Callable[[int], list[Figure]]] = {
     "cvode": lambda rounds: bench_cvode(), "lockstep": bench_lockstep,
-    "learning": bench_learning, "robust": bench_robust, "runs": bench_runs}
+    "learning": bench_learning, "robust": bench_robust, "startup": bench_startup,
+    "runs": bench_runs}
 
 
 def main() -> int:
