@@ -27,6 +27,7 @@ ACCEPTED = {
     ("--pretrain-open-fraction", "0"), ("--cem-smoothing", "0"), ("--ppo-target-kl", "1e18"),
     ("--branch-fraction", "0"), ("--teacher-rounds", "0"), ("--teacher-refits", "0"),
     ("--identify-every", "0"), ("--identify-trigger", "0"), ("--teacher-stop-loss", "0"),
+    ("--teacher-memory", "0"), ("--teacher-check-every", "0"), ("--teacher-check-regret", "0"),
     # 0: that part switched off
     ("--scenario", ""),                       # the nominal plant
     ("--prefix", "0"), ("--prefix", "-1"), ("--prefix", "nan"), ("--prefix", "inf"),

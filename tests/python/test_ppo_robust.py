@@ -93,3 +93,29 @@ def test_the_memory_survives_a_checkpoint():
     again = make_agent(cfg, ppo)
     again.load_state_dict(agent.state_dict())
     np.testing.assert_array_equal(again.memory, agent.memory)
+
+
+def test_the_check_prices_a_policy_that_strands_fuel_behind_a_dead_pump():
+    # tank 5's pump dead, the others empty: with every valve closed the fuel never
+    # reaches an engine and the reward is 0 per step for good; the planner opens
+    # valves to move it (measured: 19 of reward over its 10 steps). At full tanks
+    # closing everything is the planner's own choice: no regret.
+    import numpy as np
+    import torch
+
+    from ftc.control.controller_cli import make_agent, parse_args
+
+    cfg, ppo = parse_args(["--method", "ppo-robust", "--link", "core", "--out", "unused"])
+    agent = make_agent(cfg, ppo)
+    agent.teacher_eval.params = {"pump": np.array([0.1, 0.1, 0.1, 0.1, 0.0, 0.1]),
+                                 "resistance": np.full(6, 100.0),
+                                 "demand": np.array([0.07, 0.07])}
+    with torch.no_grad():  # a policy that closes every valve everywhere
+        last = [m for m in agent.ppo.policy.modules() if isinstance(m, torch.nn.Linear)]
+        head = [m for m in last if m.out_features == 6][-1]
+        head.weight.zero_()
+        head.bias.fill_(-10.0)
+    stranded = agent._regret(np.array([0.0, 0.0, 0.0, 0.0, 0.163, 0.0]))
+    assert stranded > cfg.teacher_check_regret
+    assert stranded == pytest.approx(18.96, abs=0.05)
+    assert agent._regret(np.full(6, 1.0)) == 0.0

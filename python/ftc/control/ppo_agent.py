@@ -98,6 +98,16 @@ class ControllerConfig(RunConfig):
     teacher_stop_loss: float = field(default=0.002, metadata={"check": between(0.0, 10.0), "help": (
         "ppo-robust: end a fit early after an epoch whose mean cross-entropy per valve "
         "is below this (0: always --teacher-epochs; docs/controller.md)")})
+    teacher_check_every: int = field(default=32, metadata={"check": at_least(0, 1_000_000), "help": (
+        "ppo-robust: every this many steps on the plant, ask the planner (on the "
+        "identified physics) what the policy's choice at the current level costs; above "
+        "--teacher-check-regret, refit the policy at once (at most --teacher-refits "
+        "times per interval; 0: never check)")})
+    teacher_check_regret: float = field(default=2.0, metadata={"check": between(0.0, 1e6), "help": (
+        "ppo-robust: summed reward over the planner's horizon (L = 10 steps, about 25 "
+        "at full tanks) that the policy's choice may lose against the planner's "
+        "before a refit. Measured: a policy closing every valve with fuel stranded "
+        "behind a dead pump loses 19; ordinary disagreements lose 0.06-0.5")})
     teacher_memory: int = field(default=1024, metadata={"check": at_least(0, 1_000_000), "help": (
         "ppo-robust: distinct levels labelled in earlier fits that each fit keeps, "
         "relabelled by the planner on the current parameters (DAgger's aggregated data: "

@@ -48,7 +48,7 @@ class RobustPPOAgent(PPOAgent):
     extra_columns = ("distill_loss", "distill_agreement", "distill_epochs", "teacher_labels",
                      "teacher_plans", "teacher_memory", "teach_seconds",
                      "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
-                     "mispredicted_steps")
+                     "mispredicted_steps", "checks", "check_refits")
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         from ftc import _core  # native: the plant's integrator for the teacher's rollouts
@@ -81,20 +81,51 @@ class RobustPPOAgent(PPOAgent):
         self.online_id.begin()
         self.refits = 0
         self.interval = interval
+        self.steps, self.checks, self.check_refits = 0, 0, 0
 
     def observe(self, t: Transition) -> None:
         super().observe(t)
+        cfg = self.cfg
+        self.steps += 1
         changed = self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
                                      t.next_obs.deficit)  # the valves the plant applied
-        if changed and self.refits < self.cfg.teacher_refits:
+        if changed and self.refits < cfg.teacher_refits:
             # the plant changed (the interval boundary, an abrupt fault): fit the policy
             # to the planner on the plant as it is now, at once; the partial rollout was
             # collected by the old policy, so it is dropped rather than used off-policy
             self.refits += 1
             self.teacher_eval.params = self.online_id.params.as_core()
-            observed = np.array([r[2] for r in self.online_id.rows])
-            self._guided_fit(observed, self.interval * 1000 + self.refits)
-            self.collector.buffer.reset()
+            self._refit(self.interval * 1000 + self.refits)
+        elif (cfg.teacher_check_every and self.steps % cfg.teacher_check_every == 0
+              and self.check_refits < cfg.teacher_refits
+              and self.teacher_eval.params is not None):  # identified at least once
+            # the policy where the plant is, checked against the planner: a level no
+            # fit labelled can be one the policy never leaves (fuel stranded behind a
+            # dead pump with every valve closed earns 0 per step for good)
+            self.checks += 1
+            if self._regret(np.asarray(t.following.level, np.float64)) > cfg.teacher_check_regret:
+                self.check_refits += 1
+                # one DAgger round: what it must learn is at the levels already seen
+                self._refit(self.interval * 1000 + 100 + self.check_refits, rounds=1)
+
+    def _refit(self, fit_id: int, rounds: int | None = None) -> None:
+        """A guided fit within the interval, from the levels observed in it so far."""
+        observed = np.array([r[2] for r in self.online_id.rows])
+        self._guided_fit(observed, fit_id, rounds)
+        self.collector.buffer.reset()
+
+    def _regret(self, level: np.ndarray) -> float:
+        """Summed reward over the planner's horizon that the policy's deterministic
+        choice at ``level`` loses against the planner's best (hold-then-close
+        candidates on the current parameters; 0 when they agree)."""
+        candidates = self.teacher.candidates(self.teacher.horizon)
+        totals = self.teacher_eval(level, candidates)
+        with torch.no_grad():
+            mine, _, _ = self.ppo.act(torch.as_tensor(level, dtype=torch.float32)[None],
+                                      deterministic=True)
+        row = int(np.flatnonzero((candidates[:, 0] == mine[0].numpy()).all(axis=1))[0])
+        regret = float(np.max(totals) - totals[row])
+        return regret if np.isfinite(regret) else 0.0
 
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
         cfg, start = self.cfg, time.perf_counter()
@@ -132,9 +163,11 @@ class RobustPPOAgent(PPOAgent):
                 "offline_seconds": time.perf_counter() - start, "policy_swaps": 0,
                 "guided_refits": self.refits, "detected_changes": self.online_id.changes,
                 "mispredicted_steps": self.online_id.mispredicted,
+                "checks": self.checks, "check_refits": self.check_refits,
                 "offline_model_errors": errors}
 
-    def _guided_fit(self, observed: np.ndarray, interval: int) -> dict[str, Any]:
+    def _guided_fit(self, observed: np.ndarray, interval: int,
+                    rounds: int | None = None) -> dict[str, Any]:
         """DAgger with the planner as the expert: start from a sample of the levels
         observed on the plant; each round, run the current (deterministic) policy
         on the identified physics for an interval, add the levels it visits, have
@@ -165,7 +198,7 @@ class RobustPPOAgent(PPOAgent):
                          seed=seed)
         generator_state = self.ppo.generator.get_state()  # the online sampling stream
         self.ppo.generator.manual_seed(seed)
-        for _ in range(cfg.teacher_rounds):
+        for _ in range(cfg.teacher_rounds if rounds is None else rounds):
             obs, visited = env.reset(), []
             with torch.no_grad():
                 for _ in range(cfg.steps_per_interval):
