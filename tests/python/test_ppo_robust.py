@@ -115,7 +115,12 @@ def test_the_check_prices_a_policy_that_strands_fuel_behind_a_dead_pump():
         head = [m for m in last if m.out_features == 6][-1]
         head.weight.zero_()
         head.bias.fill_(-10.0)
-    stranded = agent._regret(np.array([0.0, 0.0, 0.0, 0.0, 0.163, 0.0]))
+    from ftc.control.ppo_robust_agent import regret
+
+    def price(level):
+        return regret(agent.ppo, agent.teacher, agent.teacher_eval, level)
+
+    stranded = price(np.array([0.0, 0.0, 0.0, 0.0, 0.163, 0.0]))
     assert stranded > cfg.teacher_check_regret
     assert stranded == pytest.approx(18.96, abs=0.05)
-    assert agent._regret(np.full(6, 1.0)) == 0.0
+    assert price(np.full(6, 1.0)) == 0.0

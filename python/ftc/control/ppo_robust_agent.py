@@ -103,7 +103,8 @@ class RobustPPOAgent(PPOAgent):
             # fit labelled can be one the policy never leaves (fuel stranded behind a
             # dead pump with every valve closed earns 0 per step for good)
             self.checks += 1
-            if self._regret(np.asarray(t.following.level, np.float64)) > cfg.teacher_check_regret:
+            level = np.asarray(t.following.level, np.float64)
+            if regret(self.ppo, self.teacher, self.teacher_eval, level) > cfg.teacher_check_regret:
                 self.check_refits += 1
                 # one DAgger round: what it must learn is at the levels already seen
                 self._refit(self.interval * 1000 + 100 + self.check_refits, rounds=1)
@@ -113,19 +114,6 @@ class RobustPPOAgent(PPOAgent):
         observed = np.array([r[2] for r in self.online_id.rows])
         self._guided_fit(observed, fit_id, rounds)
         self.collector.buffer.reset()
-
-    def _regret(self, level: np.ndarray) -> float:
-        """Summed reward over the planner's horizon that the policy's deterministic
-        choice at ``level`` loses against the planner's best (hold-then-close
-        candidates on the current parameters; 0 when they agree)."""
-        candidates = self.teacher.candidates(self.teacher.horizon)
-        totals = self.teacher_eval(level, candidates)
-        with torch.no_grad():
-            mine, _, _ = self.ppo.act(torch.as_tensor(level, dtype=torch.float32)[None],
-                                      deterministic=True)
-        row = int(np.flatnonzero((candidates[:, 0] == mine[0].numpy()).all(axis=1))[0])
-        regret = float(np.max(totals) - totals[row])
-        return regret if np.isfinite(regret) else 0.0
 
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
         cfg, start = self.cfg, time.perf_counter()
@@ -258,3 +246,16 @@ def _recent_distinct(states: np.ndarray, limit: int) -> np.ndarray:
         last[x.tobytes()] = n
     keep = sorted(last.values())[-limit:]
     return states[keep]
+
+
+def regret(ppo: Any, planner: HoldPlanner, evaluate: ParamsEvaluator, level: np.ndarray) -> float:
+    """Summed reward over the planner's horizon that the policy's deterministic
+    choice at ``level`` loses against the planner's best (its hold-then-close
+    candidates on ``evaluate``'s parameters; 0 when they agree)."""
+    candidates = planner.candidates(planner.horizon)
+    totals = evaluate(level, candidates)
+    with torch.no_grad():
+        mine, _, _ = ppo.act(torch.as_tensor(level, dtype=torch.float32)[None], deterministic=True)
+    row = int(np.flatnonzero((candidates[:, 0] == mine[0].numpy()).all(axis=1))[0])
+    loss = float(np.max(totals) - totals[row])
+    return loss if np.isfinite(loss) else 0.0
