@@ -153,7 +153,7 @@ def draw_figure(run_dir: Path, methods: Sequence[str], labels: dict[str, str]) -
         left.set_ylabel("reward per step / oracle's")
         left.set_title("Fraction of the oracle (mean over scenarios and seeds)")
         left.xaxis.set_major_locator(plt.MaxNLocator(integer=True))
-        left.legend(loc="lower left")
+        left.legend(loc="upper center", bbox_to_anchor=(0.5, -0.3), frameon=False, ncol=2)
         right.boxplot(spread, showfliers=False, widths=0.5)
         rng = np.random.default_rng(0)  # jitter only
         for i, values in enumerate(spread):
