@@ -157,8 +157,9 @@ class RobustPPOAgent(PPOAgent):
     def _guided_fit(self, observed: np.ndarray, interval: int,
                     rounds: int | None = None) -> dict[str, Any]:
         """DAgger with the planner as the expert: start from a sample of the levels
-        observed on the plant; each round, run the current (deterministic) policy
-        on the identified physics for an interval, add the levels it visits, have
+        observed on the plant; each round, run the current policy (its actions
+        sampled, or greedy with --no-teacher-sample) on the identified physics for
+        an interval (``rounds`` rounds if given), add the levels it visits, have
         the planner label the new ones, and fit the policy to all labels (the last
         ``teacher_states``, plus up to ``teacher_memory`` distinct levels of earlier
         fits, relabelled for the current parameters). Measured on the single fault
