@@ -81,12 +81,11 @@ class RobustPPOAgent(PPOAgent):
         self.online_id.begin()
         self.refits = 0
         self.interval = interval
-        self.steps, self.checks, self.check_refits = 0, 0, 0
+        self.checks, self.check_refits = 0, 0
 
     def observe(self, t: Transition) -> None:
         super().observe(t)
         cfg = self.cfg
-        self.steps += 1
         changed = self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
                                      t.next_obs.deficit)  # the valves the plant applied
         if changed and self.refits < cfg.teacher_refits:
@@ -96,7 +95,7 @@ class RobustPPOAgent(PPOAgent):
             self.refits += 1
             self.teacher_eval.params = self.online_id.params.as_core()
             self._refit(self.interval * 1000 + self.refits)
-        elif (cfg.teacher_check_every and self.steps % cfg.teacher_check_every == 0
+        elif (cfg.teacher_check_every and len(self.online_id.rows) % cfg.teacher_check_every == 0
               and self.check_refits < cfg.teacher_refits
               and self.teacher_eval.params is not None):  # identified at least once
             # the policy where the plant is, checked against the planner: a level no
