@@ -228,3 +228,34 @@ def test_weighted_distillation_matches_torch():
     # (weight <= 8 of the 6 x sum(weights) weighted decisions) may differ
     one_decision = 8.0 / (6 * float(weights.sum()))
     assert rb["distill_agreement"] == pytest.approx(ra["distill_agreement"], abs=one_decision)
+
+
+def test_flat_parameters_are_the_layers_and_the_norm_is_summed_per_layer():
+    """_Net keeps every weight in one flat vector (so Adam and the clip are
+    whole-vector calls): the layers must be views of it in parameter order,
+    backward must fill the flat gradient, and the clip's norm must be the
+    per-layer float32 sums added in order, bit for bit, as before the flat
+    layout (a different summation order would change results in the 7th digit)."""
+    from ftc.learning.ppo_numpy import _Net
+
+    ppo = PPO(PPOConfig(engine="numpy"), seed=4)
+    net = _Net(ppo.policy)
+    for view, p in zip(net.params, ppo.policy.parameters()):
+        assert np.shares_memory(view, net.flat)
+        np.testing.assert_array_equal(view, p.detach().numpy().T if p.dim() == 2
+                                      else p.detach().numpy())
+    x = np.random.default_rng(0).random((32, 6)).astype(np.float32)
+    logits, value, cache = net.forward(x)
+    grad = net.backward(cache, np.ones_like(logits) / logits.size, value / len(value))
+    assert grad is net.grad and np.all(np.isfinite(grad)) and np.count_nonzero(grad) > 0.9 * grad.size
+    per_layer = sum(float(np.sum(g * g)) for g in (a.copy() for a in net.grads))
+    assert net.norm(len(grad)) == np.sqrt(per_layer)
+    # the policy-only pass leaves the value head's gradient alone and gives the
+    # trunk the policy head's gradient alone (what a zero value gradient gives)
+    before_v = net.grad[net.size("trunk", "pi"):].copy()
+    net.backward(cache, np.ones_like(logits) / logits.size, None)
+    only_pi = net.grad.copy()
+    np.testing.assert_array_equal(only_pi[net.size("trunk", "pi"):], before_v)
+    net.backward(cache, np.ones_like(logits) / logits.size, np.zeros_like(value))
+    k = net.size("trunk", "pi")
+    np.testing.assert_array_equal(only_pi[:k], net.grad[:k])

@@ -33,11 +33,17 @@ if TYPE_CHECKING:  # ppo.py imports this module; these are for annotations only
 
 
 class _Net:
-    """Float32 NumPy views of the actor-critic's layers, in parameter order.
+    """Float32 NumPy copies of the actor-critic's layers, in parameter order.
 
     Each part is a list of (W (in, out), b (out,)); every layer but the last
-    of each head is followed by tanh, as is every trunk layer.
+    of each head is followed by tanh, as is every trunk layer. The weights are
+    views into one flat vector, :attr:`flat`, and :meth:`backward` writes the
+    gradients into views of another, :attr:`grad`, so an optimiser step and the
+    gradient-norm clip are a few NumPy calls on whole vectors instead of a few
+    per layer: elementwise, so the arithmetic is the same (scripts/bench.py).
     """
+
+    PARTS = ("trunk", "pi", "v")
 
     def __init__(self, policy: ActorCritic) -> None:
         def linears(module: nn.Module) -> list[nn.Linear]:
@@ -49,10 +55,37 @@ class _Net:
                              for layer in part for p in (layer.weight, layer.bias)]
         if len(self.torch_params) != len(list(policy.parameters())):
             raise ValueError("the NumPy PPO update supports Linear + tanh actor-critics only")
-        self.layers = {name: [[layer.weight.detach().numpy().T.copy(),
-                               layer.bias.detach().numpy().copy()] for layer in part]
-                       for name, part in self.modules.items()}
-        self.params = [p for part in self.layers.values() for layer in part for p in layer]
+        shapes = [p.shape[::-1] if p.dim() == 2 else p.shape for p in self.torch_params]
+        sizes = [math.prod(shape) for shape in shapes]
+        #: [start, end) of each parameter in the flat vectors, in parameter order
+        self.bounds = [(sum(sizes[:i]), sum(sizes[:i + 1])) for i in range(len(sizes))]
+        self.flat = np.empty(sum(sizes), np.float32)
+        self.grad = np.zeros_like(self.flat)
+        self.params = [self.flat[a:b].reshape(shape) for (a, b), shape in zip(self.bounds, shapes)]
+        self.grads = [self.grad[a:b].reshape(shape) for (a, b), shape in zip(self.bounds, shapes)]
+        for view, p in zip(self.params, self.torch_params):
+            view[...] = p.detach().numpy().T if p.dim() == 2 else p.detach().numpy()
+        self.layers, self.layer_grads, i = {}, {}, 0
+        for name, part in self.modules.items():
+            self.layers[name] = [[self.params[i + 2 * k], self.params[i + 2 * k + 1]]
+                                 for k in range(len(part))]
+            self.layer_grads[name] = [[self.grads[i + 2 * k], self.grads[i + 2 * k + 1]]
+                                      for k in range(len(part))]
+            i += 2 * len(part)
+
+    def size(self, *parts: str) -> int:
+        """Length of the leading stretch of :attr:`flat` that holds ``parts``
+        (a prefix of trunk, pi, v)."""
+        if parts != self.PARTS[:len(parts)]:
+            raise ValueError(f"parts must be a prefix of {self.PARTS}, not {parts}")
+        n = sum(2 * len(self.modules[name]) for name in parts)
+        return self.bounds[n - 1][1]
+
+    def norm(self, n: int) -> float:
+        """The global L2 norm of the first ``n`` entries of :attr:`grad` (whole
+        parameters), summed per parameter in float32 as the per-layer arrays were."""
+        sq = self.grad[:n] * self.grad[:n]
+        return math.sqrt(sum(float(np.sum(sq[a:b])) for a, b in self.bounds if b <= n))
 
     def store(self) -> None:
         """Write the weights back into the torch modules."""
@@ -61,14 +94,16 @@ class _Net:
                 layer.weight.data.copy_(torch.from_numpy(np.ascontiguousarray(w.T)))
                 layer.bias.data.copy_(torch.from_numpy(b))
 
-    def forward(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
-        """logits (B, 6), value (B,), and the activations the backward pass needs."""
+    def forward(self, obs: np.ndarray, value: bool = True
+                ) -> tuple[np.ndarray, np.ndarray | None, dict]:
+        """logits (B, 6), value (B,) (None unless ``value``), and the activations
+        the backward pass needs."""
         h = [2.0 * obs - 1.0]
         for w, b in self.layers["trunk"]:
             h.append(np.tanh(h[-1] @ w + b))
         cache = {"trunk": h}
         outs = []
-        for name in ("pi", "v"):
+        for name in ("pi", "v") if value else ("pi",):
             a = [h[-1]]
             layers = self.layers[name]
             for i, (w, b) in enumerate(layers):
@@ -76,35 +111,40 @@ class _Net:
                 a.append(np.tanh(z) if i < len(layers) - 1 else z)
             cache[name] = a
             outs.append(a[-1])
-        return outs[0], outs[1][:, 0], cache
+        return outs[0], outs[1][:, 0] if value else None, cache
 
-    def backward(self, cache: dict, d_logits: np.ndarray, d_value: np.ndarray
-                 ) -> list[np.ndarray]:
-        """Gradients of the loss, in :attr:`params` order, from its gradients
-        with respect to the logits (B, 6) and the value (B,)."""
-        grads: dict[str, list[list[np.ndarray]]] = {}
+    def backward(self, cache: dict, d_logits: np.ndarray, d_value: np.ndarray | None
+                 ) -> np.ndarray:
+        """Gradients of the loss into :attr:`grad` (returned), from its gradients
+        with respect to the logits (B, 6) and the value (B,); ``d_value`` None: the
+        loss does not depend on the value (the value head's gradients are left
+        as they were, and the trunk's are the policy head's alone, as they would
+        be with a zero ``d_value``)."""
+        heads = (("pi", d_logits),) if d_value is None else (("pi", d_logits),
+                                                              ("v", d_value[:, None]))
         d_trunk_out = 0.0
-        for name, d_out in (("pi", d_logits), ("v", d_value[:, None])):
-            grads[name], d_in = _backward_mlp(self.layers[name], cache[name], d_out)
+        for name, d_out in heads:
+            d_in = _backward_mlp(self.layers[name], cache[name], d_out, self.layer_grads[name])
             d_trunk_out = d_trunk_out + d_in
-        grads["trunk"], _ = _backward_mlp(self.layers["trunk"], cache["trunk"],
-                                          d_trunk_out, tanh_last=True)
-        return [g for name in ("trunk", "pi", "v") for layer in grads[name] for g in layer]
+        _backward_mlp(self.layers["trunk"], cache["trunk"], d_trunk_out,
+                      self.layer_grads["trunk"], tanh_last=True)
+        return self.grad
 
 
 def _backward_mlp(layers: list[list[np.ndarray]], acts: list[np.ndarray], d_out: np.ndarray,
-                  tanh_last: bool = False) -> tuple[list[list[np.ndarray]], np.ndarray]:
+                  grads: list[list[np.ndarray]], tanh_last: bool = False) -> np.ndarray:
     """Backprop through x -> tanh(x W1 + b1) -> ... -> x Wn + bn (tanh too if
-    ``tanh_last``); ``acts`` = [input, output of each layer]. Returns the
-    [dW, db] of each layer and the gradient with respect to the input."""
-    grads: list[list[np.ndarray]] = [[] for _ in layers]
+    ``tanh_last``); ``acts`` = [input, output of each layer]. Writes each
+    layer's [dW, db] into ``grads`` and returns the gradient with respect to
+    the input."""
     d = d_out
     for i in range(len(layers) - 1, -1, -1):
         if i < len(layers) - 1 or tanh_last:
             d = d * (1.0 - acts[i + 1] * acts[i + 1])
-        grads[i] = [acts[i].T @ d, d.sum(axis=0)]
+        np.matmul(acts[i].T, d, out=grads[i][0])
+        np.sum(d, axis=0, out=grads[i][1])
         d = d @ layers[i][0].T
-    return grads, d
+    return d
 
 
 def _logsigmoid(x: np.ndarray) -> np.ndarray:
@@ -134,39 +174,39 @@ class _Adam:
             raise ValueError("the NumPy PPO update supports plain Adam only")
         self.optimizer, self.net = optimizer, net
         self.lr, (self.beta1, self.beta2), self.eps = group["lr"], group["betas"], group["eps"]
-        self.m, self.v, self.t = [], [], 0
-        for p in net.torch_params:
+        # the moments as flat vectors laid out as net.flat, so a step is whole-vector calls
+        self.m, self.v, self.t = np.zeros_like(net.flat), np.zeros_like(net.flat), 0
+        for p, (a, b) in zip(net.torch_params, net.bounds):
             state = optimizer.state.get(p, {})
             if state:
-                self.m.append(state["exp_avg"].numpy().T.copy() if p.dim() == 2
-                              else state["exp_avg"].numpy().copy())
-                self.v.append(state["exp_avg_sq"].numpy().T.copy() if p.dim() == 2
-                              else state["exp_avg_sq"].numpy().copy())
+                self.m[a:b] = (state["exp_avg"].numpy().T if p.dim() == 2
+                               else state["exp_avg"].numpy()).ravel()
+                self.v[a:b] = (state["exp_avg_sq"].numpy().T if p.dim() == 2
+                               else state["exp_avg_sq"].numpy()).ravel()
                 self.t = int(state["step"])
-            else:
-                self.m.append(np.zeros(p.shape[::-1] if p.dim() == 2 else p.shape, np.float32))
-                self.v.append(np.zeros_like(self.m[-1]))
 
-    def step(self, grads: list[np.ndarray]) -> None:
+    def step(self, grad: np.ndarray) -> None:
+        """One Adam step of every parameter from the flat gradient ``grad``."""
         self.t += 1
         step_size = self.lr / (1.0 - self.beta1 ** self.t)
         root_correction = math.sqrt(1.0 - self.beta2 ** self.t)
-        for p, g, m, v in zip(self.net.params, grads, self.m, self.v):
-            m *= self.beta1
-            m += (1.0 - self.beta1) * g
-            v *= self.beta2
-            v += (1.0 - self.beta2) * (g * g)
-            p -= step_size * (m / (np.sqrt(v) / root_correction + self.eps))
+        m, v = self.m, self.v
+        m *= self.beta1
+        m += (1.0 - self.beta1) * grad
+        v *= self.beta2
+        v += (1.0 - self.beta2) * (grad * grad)
+        self.net.flat -= step_size * (m / (np.sqrt(v) / root_correction + self.eps))
 
     def store(self) -> None:
         """Write the moments and step count back into the torch optimiser."""
         if self.t == 0:
             return
-        for p, m, v in zip(self.net.torch_params, self.m, self.v):
-            def back(a: np.ndarray) -> torch.Tensor:
-                return torch.from_numpy(np.ascontiguousarray(a.T if p.dim() == 2 else a))
+        for p, (a, b) in zip(self.net.torch_params, self.net.bounds):
+            def back(flat: np.ndarray) -> torch.Tensor:
+                x = flat[a:b].reshape(p.shape[::-1] if p.dim() == 2 else p.shape)
+                return torch.from_numpy(np.ascontiguousarray(x.T if p.dim() == 2 else x))
             self.optimizer.state[p] = {"step": torch.tensor(float(self.t)),
-                                       "exp_avg": back(m), "exp_avg_sq": back(v)}
+                                       "exp_avg": back(self.m), "exp_avg_sq": back(self.v)}
 
 
 def numpy_ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batch,
@@ -209,13 +249,11 @@ def numpy_ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batc
             d_logits = d_logprob[:, None] * (a - sig) \
                 + (config.ent_coef / n) * sig * (1.0 - sig) * logits
             d_value = config.vf_coef * (value - returns[idx]) / n
-            grads = net.backward(cache, d_logits.astype(np.float32),
-                                 d_value.astype(np.float32))
-            norm = math.sqrt(sum(float(np.sum(g * g)) for g in grads))
-            scale = config.max_grad_norm / (norm + 1e-6)
+            grad = net.backward(cache, d_logits.astype(np.float32), d_value.astype(np.float32))
+            scale = config.max_grad_norm / (net.norm(len(grad)) + 1e-6)
             if scale < 1.0:
-                grads = [g * np.float32(scale) for g in grads]
-            opt.step(grads)
+                grad *= np.float32(scale)
+            opt.step(grad)
             steps += 1
         if config.target_kl is not None and np.mean(kls[-math.ceil(B / mb):]) > config.target_kl:
             break
@@ -245,36 +283,39 @@ class NumpyActor:
 
     def __init__(self, policy: ActorCritic) -> None:
         def views(module: nn.Module) -> list[tuple[np.ndarray, np.ndarray]]:
-            return [(m.weight.detach().numpy(), m.bias.detach().numpy())
+            # W.T as a view (no copy): the same operands x @ W.T always saw
+            return [(m.weight.detach().numpy().T, m.bias.detach().numpy())
                     for m in module.modules() if isinstance(m, nn.Linear)]
 
         self.trunk, self.pi, self.v = (views(policy.trunk), views(policy.policy_head),
                                        views(policy.value_head))
 
     @staticmethod
-    def _mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]],
-             tanh_last: bool) -> np.ndarray:
-        for i, (w, b) in enumerate(layers):
-            x = x @ w.T + b
-            if tanh_last or i < len(layers) - 1:
-                x = np.tanh(x)
-        return x
+    def _head(h: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        for w, b in layers[:-1]:
+            h = np.tanh(h @ w + b)
+        w, b = layers[-1]
+        return h @ w + b
 
     def act(self, obs: torch.Tensor, generator: torch.Generator | None,
             deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """As :meth:`ActorCritic.act`: actions (N, 6), log-probs (N,), values (N,)."""
-        x = obs.numpy().astype(np.float32, copy=False)
-        h = self._mlp(2.0 * x - 1.0, self.trunk, tanh_last=True)
-        logits = self._mlp(h, self.pi, tanh_last=False)
-        value = self._mlp(h, self.v, tanh_last=False)[:, 0]
+        """As :meth:`ActorCritic.act`: actions (N, 6), log-probs (N,), values (N,).
+        Acting is once per plant step, so this is the fewest NumPy calls that
+        compute it (no entropy, no copies): ``scripts/bench.py``'s
+        ``online_numpy_policy_over_echo``."""
+        h = 2.0 * obs.numpy().astype(np.float32, copy=False) - 1.0
+        for w, b in self.trunk:
+            h = np.tanh(h @ w + b)
+        logits = self._head(h, self.pi)
+        value = self._head(h, self.v)[:, 0]
         if deterministic:
             actions = (logits > 0).astype(np.float32)
         else:
             probs = torch.from_numpy(_sigmoid(logits))
             actions = torch.bernoulli(probs, generator=generator).numpy()
-        logprob, _ = log_prob_entropy(logits, actions)
-        return (torch.from_numpy(actions), torch.from_numpy(logprob.astype(np.float32)),
-                torch.from_numpy(value.astype(np.float32)))
+        logprob = (actions * _logsigmoid(logits) + (1.0 - actions) * _logsigmoid(-logits)).sum(-1)
+        return (torch.from_numpy(actions), torch.from_numpy(logprob.astype(np.float32, copy=False)),
+                torch.from_numpy(value.astype(np.float32, copy=False)))
 
 
 def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
@@ -289,10 +330,9 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
     ``stop_loss``; ``weights`` (N,) weight the rows' losses as distill's do.
     Returns the last minibatch's loss and the epochs run."""
     net = _Net(policy)
-    n_trunk, n_pi = 2 * len(net.layers["trunk"]), 2 * len(net.layers["pi"])
-    params = net.params[:n_trunk + n_pi]  # trunk then policy head, as backward orders them
-    m = [np.zeros_like(p) for p in params]
-    v = [np.zeros_like(p) for p in params]
+    k = net.size("trunk", "pi")  # the trunk then the policy head lead the flat vectors
+    params, grad = net.flat[:k], net.grad[:k]
+    m, v = np.zeros_like(params), np.zeros_like(params)
     x_all = states.detach().numpy().astype(np.float32, copy=False)
     y_all = actions.detach().numpy().astype(np.float32, copy=False)
     w_all = None if weights is None else weights.detach().numpy().astype(np.float32)
@@ -302,7 +342,7 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
         total = 0.0
         for start in range(0, n, minibatch):
             idx = order[start:start + minibatch]
-            logits, value, cache = net.forward(x_all[idx])
+            logits, _, cache = net.forward(x_all[idx], value=False)
             y = y_all[idx]
             # BCE with logits: softplus(l) - y l; its slope sigmoid(l) - y
             bce = np.logaddexp(0.0, logits) - y * logits
@@ -314,20 +354,18 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
                 loss = float(np.sum(w * bce))
                 d_logits = (w * (_sigmoid(logits) - y)).astype(np.float32)
             total += loss
-            grads = net.backward(cache, d_logits, np.zeros_like(value))[:n_trunk + n_pi]
-            norm = math.sqrt(sum(float(np.sum(g * g)) for g in grads))
-            scale = max_grad_norm / (norm + 1e-6)
+            net.backward(cache, d_logits, None)
+            scale = max_grad_norm / (net.norm(k) + 1e-6)
             if scale < 1.0:
-                grads = [g * np.float32(scale) for g in grads]
+                grad *= np.float32(scale)
             t += 1
             step_size = lr / (1.0 - 0.9 ** t)
             root_correction = math.sqrt(1.0 - 0.999 ** t)
-            for p, g, mi, vi in zip(params, grads, m, v):
-                mi *= 0.9
-                mi += 0.1 * g
-                vi *= 0.999
-                vi += 0.001 * (g * g)
-                p -= step_size * (mi / (np.sqrt(vi) / root_correction + 1e-5))
+            m *= 0.9
+            m += 0.1 * grad
+            v *= 0.999
+            v += 0.001 * (grad * grad)
+            params -= step_size * (m / (np.sqrt(v) / root_correction + 1e-5))
         ran += 1
         if total / -(-n // minibatch) < stop_loss:
             break
