@@ -85,7 +85,12 @@ class _Net:
         """The global L2 norm of the first ``n`` entries of :attr:`grad` (whole
         parameters), summed per parameter in float32 as the per-layer arrays were."""
         sq = self.grad[:n] * self.grad[:n]
-        return math.sqrt(sum(float(np.sum(sq[a:b])) for a, b in self.bounds if b <= n))
+        total, add = 0.0, np.add.reduce  # np.sum's own reduction, without its wrapper
+        for a, b in self.bounds:
+            if b > n:
+                break
+            total += float(add(sq[a:b]))
+        return math.sqrt(total)
 
     def store(self) -> None:
         """Write the weights back into the torch modules."""
@@ -127,24 +132,26 @@ class _Net:
             d_in = _backward_mlp(self.layers[name], cache[name], d_out, self.layer_grads[name])
             d_trunk_out = d_trunk_out + d_in
         _backward_mlp(self.layers["trunk"], cache["trunk"], d_trunk_out,
-                      self.layer_grads["trunk"], tanh_last=True)
+                      self.layer_grads["trunk"], tanh_last=True, input_grad=False)
         return self.grad
 
 
 def _backward_mlp(layers: list[list[np.ndarray]], acts: list[np.ndarray], d_out: np.ndarray,
-                  grads: list[list[np.ndarray]], tanh_last: bool = False) -> np.ndarray:
+                  grads: list[list[np.ndarray]], tanh_last: bool = False,
+                  input_grad: bool = True) -> np.ndarray | None:
     """Backprop through x -> tanh(x W1 + b1) -> ... -> x Wn + bn (tanh too if
     ``tanh_last``); ``acts`` = [input, output of each layer]. Writes each
     layer's [dW, db] into ``grads`` and returns the gradient with respect to
-    the input."""
+    the input (None unless ``input_grad``)."""
     d = d_out
     for i in range(len(layers) - 1, -1, -1):
         if i < len(layers) - 1 or tanh_last:
             d = d * (1.0 - acts[i + 1] * acts[i + 1])
         np.matmul(acts[i].T, d, out=grads[i][0])
-        np.sum(d, axis=0, out=grads[i][1])
-        d = d @ layers[i][0].T
-    return d
+        np.add.reduce(d, axis=0, out=grads[i][1])  # np.sum's reduction, without its wrapper
+        if i or input_grad:
+            d = d @ layers[i][0].T
+    return d if input_grad else None
 
 
 def _logsigmoid(x: np.ndarray) -> np.ndarray:
