@@ -316,10 +316,11 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
 
 def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
                   texts: dict[str, tuple[str, str]], stream: TextIO = sys.stderr,
-                  ray: RaySession | None = None) -> int:
+                  ray: RaySession | None = None, fork_server: bool = True) -> int:
     """Run (or complete) the benchmark in ``out``, then write results.csv,
     fractions.csv, the figure and the report. Returns the number of failed runs.
-    ``ray``: run them as tasks of that Ray session (else on the local pool).
+    ``ray``: run them as tasks of that Ray session (else on the local pool, each
+    run forked from a fork server unless ``fork_server`` is false).
 
     Raises OutInUse if an orchestrator is running on ``out``, StorageError if a
     file cannot be written."""
@@ -332,7 +333,7 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
     guardian = Guardian()
     try:
         prepare_directory(out, config, texts)
-        failed = _run_all(out, config, jobs, stream, guardian, ray)
+        failed = _run_all(out, config, jobs, stream, guardian, ray, fork_server)
     finally:
         guardian.close()
         lock.release()
@@ -345,7 +346,8 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
 
 
 def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextIO,
-             guardian: Guardian, ray: RaySession | None) -> list[str]:
+             guardian: Guardian, ray: RaySession | None, fork_server: bool = True
+             ) -> list[str]:
     """The unfinished runs on the orchestrator's pool; returns the failed keys."""
     runs = plan_benchmark(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
@@ -357,7 +359,7 @@ def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextI
     progress = Progress(runs, finished, config.intervals, stream)
     if ray is None:
         results = run_on_pool(out, config.run_config(), todo, [], progress, jobs, guardian,
-                              stream, TOOL)
+                              stream, TOOL, fork_server)
     else:
         results = run_on_ray(ray, out, config.run_config(), todo, [], progress, stream, TOOL)
     meta = json.loads((out / "benchmark.json").read_text())
@@ -407,7 +409,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # connected (and every node's code checked) before anything is written
         ray = connect(args.ray_address, args.jobs) if args.executor == "ray" else None
         return 1 if run_benchmark(args.out_dir, args.config, args.jobs, args.texts,
-                                  ray=ray) else 0
+                                  ray=ray, fork_server=args.fork_server) else 0
     except RunError as e:
         print(f"{TOOL}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code

@@ -239,7 +239,8 @@ def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
         return 0
     if args.command == "all" and args.model_search:  # on this machine, also with --executor ray
         model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
-    failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray)
+    failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray,
+                             fork_server=args.fork_server)
     return 1 if failed else 0
 
 

@@ -28,6 +28,7 @@ from ftc.common.build_info import git_revision
 from ftc.common.errors import StorageError
 from ftc.experiments import report
 from ftc.experiments.collect import collect
+from ftc.experiments.fork_server import ForkServer, ForkServerGone
 from ftc.experiments.methods import METHODS
 from ftc.experiments.processes import Guardian, OrchestratorLock, RunFailed, RunHandle
 from ftc.experiments.progress import Progress
@@ -45,12 +46,14 @@ class Orchestrator:
     before it counts as failed
     """
 
-    def __init__(self, jobs: int, attempts: int = 3, guardian: Guardian | None = None) -> None:
+    def __init__(self, jobs: int, attempts: int = 3, guardian: Guardian | None = None,
+                 fork_server: ForkServer | None = None) -> None:
         if jobs < 1:
             raise ValueError(f"jobs must be >= 1, got {jobs}")
         self.jobs = jobs
         self.attempts = attempts
         self.guardian = guardian
+        self.fork_server = fork_server
         self.handles: dict[str, RunHandle] = {}
         self._lock = threading.Lock()
         self.stopping = False
@@ -65,7 +68,8 @@ class Orchestrator:
     def _run_one(self, spec: RunSpec, config: ExperimentConfig, out: Path,
                  progress: Progress) -> dict:
         """One run, redone (up to ``attempts`` times) when its log misses messages."""
-        handle = RunHandle(spec.key, spec.directory(out), guardian=self.guardian)
+        handle = RunHandle(spec.key, spec.directory(out), guardian=self.guardian,
+                           fork_server=self.fork_server)
         with self._lock:
             if self.stopping:
                 raise RunFailed("cancelled")
@@ -154,10 +158,12 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
 
 
 def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resume: bool,
-                    stream: TextIO = sys.stderr, ray: RaySession | None = None) -> int:
+                    stream: TextIO = sys.stderr, ray: RaySession | None = None,
+                    fork_server: bool = True) -> int:
     """Run (or complete) the configured experiments into ``out``; then collect and
     write the figures and report. Returns the number of failed runs. ``ray``: run
-    them as tasks of that Ray session (else on the local pool of ``jobs``).
+    them as tasks of that Ray session (else on the local pool of ``jobs``, each
+    run forked from a fork server unless ``fork_server`` is false).
 
     Raises OutInUse if another orchestrator is running on ``out``, StorageError
     if a file cannot be written."""
@@ -176,7 +182,7 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resum
         tmp.unlink(missing_ok=True)
     guardian = Guardian()
     try:
-        return _run_locked(out, config, jobs, resume, stream, guardian, ray)
+        return _run_locked(out, config, jobs, resume, stream, guardian, ray, fork_server)
     finally:
         guardian.close()
         lock.release()
@@ -194,10 +200,18 @@ def provenance(config, methods, previous: dict) -> dict:
 
 def run_on_pool(out: Path, config: ExperimentConfig, todo: list, baselines: list,
                 progress: Progress, jobs: int, guardian: Guardian, stream: TextIO,
-                tool: str) -> dict:
+                tool: str, fork_server: bool = True) -> dict:
     """Run ``todo`` (and ``baselines``) on the orchestrator's pool; SIGINT or
-    SIGTERM stops every run and exits 130 with the finished runs kept."""
-    orchestrator = Orchestrator(jobs, guardian=guardian)
+    SIGTERM stops every run and exits 130 with the finished runs kept.
+    ``fork_server``: fork the runs' controllers from a :class:`ForkServer`
+    (started here, on the main thread, which outlives every run)."""
+    server = None
+    if fork_server and todo:
+        try:
+            server = ForkServer(sorted({METHODS[r.method].module for r in todo}))
+        except (ForkServerGone, OSError) as e:
+            print(f"{tool}: no fork server ({e}); each run starts a fresh python", file=stream)
+    orchestrator = Orchestrator(jobs, guardian=guardian, fork_server=server)
 
     def on_signal(signum: int, frame: object) -> None:
         orchestrator.stop_all()
@@ -214,6 +228,8 @@ def run_on_pool(out: Path, config: ExperimentConfig, todo: list, baselines: list
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+        if server is not None:
+            server.close()
 
 
 def executor_line(jobs: int | None, ray: RaySession | None) -> str:
@@ -228,7 +244,8 @@ def executor_line(jobs: int | None, ray: RaySession | None) -> str:
 
 
 def _run_locked(out: Path, config: ExperimentConfig, jobs: int | None, resume: bool,
-                stream: TextIO, guardian: Guardian, ray: RaySession | None) -> int:
+                stream: TextIO, guardian: Guardian, ray: RaySession | None,
+                fork_server: bool = True) -> int:
     config = prepare_directory(out, config, resume)
     runs = plan_runs(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
@@ -242,7 +259,7 @@ def _run_locked(out: Path, config: ExperimentConfig, jobs: int | None, resume: b
         tasks = [(f"baseline {s[0]}", (lambda s=s: run_baseline_episode(out, *s)))
                  for s in baselines]
         results = run_on_pool(out, config, todo, tasks, progress, jobs, guardian, stream,
-                              "ftc.experiments")
+                              "ftc.experiments", fork_server)
     else:
         results = run_on_ray(ray, out, config, todo, baselines, progress, stream,
                              "ftc.experiments")

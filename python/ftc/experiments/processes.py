@@ -28,6 +28,7 @@ from ftc.common.atomic import atomic_write_json
 from ftc.common.build_info import recorder_binary
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE, RunError, StorageError
 from ftc.common.lifetime import die_with_parent
+from ftc.experiments.fork_server import ForkedProcess, ForkServer, ForkServerGone
 
 LOCK_NAME = "orchestrator.lock"
 
@@ -147,6 +148,7 @@ class RunHandle:
 
     key: the run's key (experiment/tNN/method/sS); directory: its run directory
     started: wall-clock start, s since the epoch (0 until its processes start)
+    fork_server: where its controller is forked from (None: a fresh python)
     """
 
     key: str
@@ -155,6 +157,25 @@ class RunHandle:
     processes: list[subprocess.Popen] = field(default_factory=list)
     cancelled: bool = False
     guardian: Guardian | None = None
+    fork_server: "ForkServer | None" = None
+
+    def launch(self, cmd: list[str], log: Path, nice: int) -> "subprocess.Popen | ForkedProcess":
+        """Start ``cmd`` (``python -m MODULE ARGS``) in its own session, niced by
+        ``nice``, stdout and stderr into ``log`` (truncated): forked from the fork
+        server if there is one (a fresh python if it has gone)."""
+        with open(log, "wb") as out:
+            if self.fork_server is not None and cmd[1:2] == ["-m"]:
+                try:
+                    return self.fork_server.spawn(cmd[2], cmd[3:], log, nice)
+                except ForkServerGone:
+                    pass
+            # The controller (and the plant it starts) run at a lower priority
+            # than the recorder, so a busy machine slows the run down instead of
+            # making the recorder drop messages (lcm-logger's subscription queue
+            # is bounded and it missed states under load at equal priority).
+            return subprocess.Popen(["nice", "-n", str(nice), *cmd], stdin=subprocess.DEVNULL,
+                                    stdout=out, stderr=subprocess.STDOUT,
+                                    start_new_session=True, preexec_fn=die_with_parent())
 
     def watch(self, proc: subprocess.Popen) -> None:
         """Have the guardian kill ``proc``'s process group if the orchestrator dies."""

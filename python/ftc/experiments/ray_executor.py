@@ -55,7 +55,7 @@ class RayUnavailable(UsageError):
 
 
 def add_executor_options(parser: argparse.ArgumentParser) -> None:
-    """--executor and --ray-address (the experiments' and the benchmark's)."""
+    """--executor, --ray-address and --fork-server (the experiments' and the benchmark's)."""
     parser.add_argument("--executor", choices=("local", "ray"), default="local",
                         help="local: runs on this machine's pool of --jobs (default); ray: "
                              "each run a Ray task, on the cluster at --ray-address or a "
@@ -64,6 +64,12 @@ def add_executor_options(parser: argparse.ArgumentParser) -> None:
                         metavar="ADDR",
                         help="with --executor ray: the cluster's head (HOST:PORT as printed "
                              "by 'ray start --head', 'auto', or ray://HOST:PORT)")
+    parser.add_argument("--fork-server", action=argparse.BooleanOptionalAction, default=True,
+                        help="local runs: fork each run's controller from one process that "
+                             "has imported torch and the controllers (default), instead of "
+                             "starting a fresh python per run (--no-fork-server), which "
+                             "spends 1-2 s of CPU per run on imports; results are the same "
+                             "(ftc/experiments/fork_server.py)")
 
 
 def check_executor_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

@@ -179,24 +179,16 @@ def _execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: Run
         record_process(run_dir, "recorder", logger.process)
     returncode = None
     try:
-        with open(run_dir / "controller.log", "wb") as log:
-            # The controller (and the plant it starts) run at a lower priority
-            # than the recorder, so a busy machine slows the run down instead of
-            # making the recorder drop messages (lcm-logger's subscription queue
-            # is bounded and it missed states under load at equal priority).
-            proc = subprocess.Popen(["nice", "-n", str(config.nice), *cmd],
-                                    stdin=subprocess.DEVNULL, stdout=log,
-                                    stderr=subprocess.STDOUT, start_new_session=True,
-                                    preexec_fn=die_with_parent())
-            handle.watch(proc)
-            handle.processes.append(proc)
-            record_process(run_dir, "controller", proc)
-            try:
-                returncode = proc.wait(timeout=config.run_timeout or None)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-                raise RunFailed(f"timed out after {config.run_timeout:.0f} s") from None
+        proc = handle.launch(cmd, run_dir / "controller.log", config.nice)
+        handle.watch(proc)
+        handle.processes.append(proc)
+        record_process(run_dir, "controller", proc)
+        try:
+            returncode = proc.wait(timeout=config.run_timeout or None)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise RunFailed(f"timed out after {config.run_timeout:.0f} s") from None
     finally:
         if logger is not None:
             logger.stop()
