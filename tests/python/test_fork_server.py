@@ -136,3 +136,12 @@ def test_a_forked_controller_run_equals_a_fresh_process_bit_for_bit(tmp_path, sc
         server.close()
     a, b = _metrics(tmp_path / "fresh" / "metrics.csv"), _metrics(tmp_path / "forked" / "metrics.csv")
     assert len(a) == 2 and a == b
+
+
+def test_the_process_group_exists_as_soon_as_spawn_returns(server, tmp_path):
+    """The orchestrator may kill a run's group at once (--run-timeout 0.001): the
+    server reports a child only after its setsid, as Popen does after exec."""
+    for _ in range(20):
+        proc = _probe(server, tmp_path, "sleep")
+        os.killpg(proc.pid, signal.SIGKILL)  # ProcessLookupError if the group did not exist
+        assert proc.wait(timeout=30) == -signal.SIGKILL

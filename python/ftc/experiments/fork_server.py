@@ -69,7 +69,8 @@ class ForkServer:
     def __init__(self, modules: Sequence[str], start_timeout: float = 120.0) -> None:
         self.modules = list(modules)
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "ftc.experiments.fork_server", *self.modules],
+            [sys.executable, "-c", "import sys; from ftc.experiments.fork_server import serve; "
+             "sys.exit(serve(sys.argv[1:]))", *self.modules],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1,
             preexec_fn=die_with_parent())
         self.changed = threading.Condition()
@@ -158,9 +159,12 @@ class ForkServer:
 # The server
 # ---------------------------------------------------------------------------
 
-def _child(request: dict, inherited: Sequence[int], tie_to_server) -> int:
-    """In the forked child: become ``python -m module args``; returns its exit status."""
+def _child(request: dict, inherited: Sequence[int], tie_to_server, in_session: int) -> int:
+    """In the forked child: become ``python -m module args``; returns its exit status.
+    A byte on ``in_session`` tells the server its session (and process group) exists."""
     os.setsid()
+    os.write(in_session, b"s")
+    os.close(in_session)
     tie_to_server()  # SIGKILL when the server goes
     signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGCHLD, signal.SIG_DFL)
@@ -254,14 +258,23 @@ def serve(modules: Sequence[str]) -> int:
                 line, pending = pending.split(b"\n", 1)
                 request = json.loads(line)
                 out.flush()
+                session_r, session_w = os.pipe()
                 try:
                     pid = os.fork()
                 except OSError as e:
+                    os.close(session_r)
+                    os.close(session_w)
                     out.write(f"failed {request['id']} {e}\n")
                     out.flush()
                     continue
                 if pid == 0:
-                    _exit(_child(request, (wake_r, wake_w, 0), tie_to_server))
+                    os.close(session_r)
+                    _exit(_child(request, (wake_r, wake_w, 0), tie_to_server, session_w))
+                os.close(session_w)
+                # reported once its process group exists (killpg on the pid must find it,
+                # as after Popen(start_new_session=True)); EOF: it died before that
+                os.read(session_r, 1)
+                os.close(session_r)
                 out.write(f"started {request['id']} {pid}\n")
                 out.flush()
         _reap(out)
