@@ -34,6 +34,9 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             did before: the difference is what every PPO process paid
   model_mpc_decision_ms     one decision of the model MPC (64 candidates x 10 steps
                             through the world model in NumPy)
+  short_run_fresh_python_s / short_run_forked_s   a closed-valves run of 1 x 128 steps
+                            as a fresh python, and forked from the experiments' fork
+                            server (experiments/fork_server.py): start-up and exit
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -59,6 +62,7 @@ import torch
 
 from ftc import BUILD_DIR
 from ftc.common.build_info import echo_binary
+from ftc.experiments.fork_server import ForkServer
 from ftc.learning.model_env import ModelEnv
 from ftc.learning.offline import pretrained_world_model
 from ftc.learning.ppo import PPO, PPOConfig
@@ -294,13 +298,33 @@ def _python(code: str, *args: str) -> float:
 
 def bench_startup(rounds: int) -> list[Figure]:
     _python(MODEL_DECISION)  # fills the pretraining cache if it is cold
-    marked, imported, decision = _median_rounds(
-        rounds, lambda: _python(PPO_BUILD, "marked"), lambda: _python(PPO_BUILD, "dynamo"),
-        lambda: _python(MODEL_DECISION))
+    server = ForkServer(["ftc.controller"])
+    # a short closed-valves run (1 x 128 steps): start-up and exit are most of it
+    args = ["--method", "closed", "--scenario", SINGLE, "--intervals", "1",
+            "--steps-per-interval", "128", "--link", "core", "--quiet"]
+
+    def forked() -> float:
+        out = Path(tempfile.mkdtemp(prefix="ftc-bench-"))
+        (out / "log").write_bytes(b"")
+        start = time.perf_counter()
+        if server.spawn("ftc.controller", [*args, "--out", str(out / "run")], out / "log").wait():
+            raise RuntimeError(f"the forked run failed: {(out / 'log').read_text()[-2000:]}")
+        return time.perf_counter() - start
+
+    try:
+        marked, imported, decision, fresh, fork = _median_rounds(
+            rounds, lambda: _python(PPO_BUILD, "marked"), lambda: _python(PPO_BUILD, "dynamo"),
+            lambda: _python(MODEL_DECISION), lambda: _run(["-m", "ftc.controller", *args]),
+            forked)
+    finally:
+        server.close()
     med = statistics.median
     return [Figure("ppo_build_s", med(marked), "s", rounds=marked),
             Figure("ppo_build_with_dynamo_s", med(imported), "s", rounds=imported),
-            Figure("model_mpc_decision_ms", 1e3 * med(decision), "ms", rounds=decision)]
+            Figure("model_mpc_decision_ms", 1e3 * med(decision), "ms", rounds=decision),
+            Figure("short_run_fresh_python_s", med(fresh), "s", rounds=fresh),
+            Figure("short_run_forked_s", med(fork), "s", rounds=fork),
+            Figure("short_run_fresh_over_forked", med(fresh) / med(fork), "ratio")]
 
 
 # -- whole runs ---------------------------------------------------------------------
