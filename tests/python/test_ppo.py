@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -201,3 +202,22 @@ def test_ppo_update_returns_finite_stats():
     stats = ppo_update(ppo.policy, ppo.optimizer, buf.batch(), ppo.config, ppo.generator)
     assert stats.gradient_steps == 4 * 128 // 16
     assert all(math.isfinite(x) for x in stats)
+
+
+def test_acting_is_bit_identical_to_the_module_forward_and_log_prob_entropy():
+    """act() skips nn.Module's call machinery and the unused entropy (1.4x per
+    row); it must compute exactly what forward + log_prob_entropy compute."""
+    policy = ActorCritic()
+    rng = np.random.default_rng(2)
+    g_act, g_ref = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    for i in range(60):
+        obs = torch.as_tensor(rng.random((1 + i % 5, 6)), dtype=torch.float32)
+        for deterministic in (False, True):
+            actions, logprob, value = policy.act(obs, g_act, deterministic)
+            with torch.no_grad():
+                logits, ref_value = policy(obs)
+                ref_actions = ((logits > 0).float() if deterministic
+                               else torch.bernoulli(torch.sigmoid(logits), generator=g_ref))
+                ref_logprob, _ = policy.log_prob_entropy(logits, ref_actions)
+            assert torch.equal(actions, ref_actions) and torch.equal(value, ref_value)
+            assert torch.equal(logprob, ref_logprob)

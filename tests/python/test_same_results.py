@@ -14,7 +14,10 @@ commit 9de25cc (which matched same_results/ on the first machine). Those
 commands run the torch engines of the world model and PPO (--model-engine
 torch, --ppo-engine torch), the only ones that existed then; the numpy
 engines' agreement with them is test_small_mlp.py's and test_ppo_numpy.py's. Closed, random and the oracle are float64 C++ and NumPy,
-the same on both machines.
+the same on both machines. An AMD AVX-512 machine (fifth round) differs from
+the Intel ones in those commands too (MKL picks kernels by vendor): its files
+are in same_results/avx512-amd/, written by the code of commit 8641935, which
+matched same_results/avx512/ on the fourth round's machine.
 The comparison is on metrics.csv's 6-significant-digit text: any change of
 arithmetic (an RNG draw moved, an update reordered) changes some digit of the
 rewards, losses or R^2 over 3 x 512 steps.
@@ -50,10 +53,22 @@ COMMANDS = {
 CPU_CLASS = torch.backends.cpu.get_cpu_capability().lower()  # e.g. avx2, avx512
 
 
+def _vendor(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return "unknown"
+    return "amd" if "AuthenticAMD" in text else "intel" if "GenuineIntel" in text else "unknown"
+
+
 def _saved(name: str) -> Path:
-    """This CPU class's reference for a torch command, else the original one."""
-    own = SAVED / CPU_CLASS / f"{name}.csv"
-    return own if TORCH[1] in COMMANDS[name] and own.exists() else SAVED / f"{name}.csv"
+    """This CPU's reference for a torch command (its class and vendor, else its
+    class), else the original one."""
+    if TORCH[1] in COMMANDS[name]:
+        for key in (f"{CPU_CLASS}-{_vendor()}", CPU_CLASS):
+            if (SAVED / key / f"{name}.csv").exists():
+                return SAVED / key / f"{name}.csv"
+    return SAVED / f"{name}.csv"
 
 
 def _rows(path: Path) -> list[dict[str, str]]:

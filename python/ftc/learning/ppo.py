@@ -139,10 +139,39 @@ class ActorCritic(nn.Module):
         Bernoullis with the given logits, each summed over the valves -> (...,)."""
         # closed forms (faster than torch.distributions on single steps):
         # log p(a) = a log s(l) + (1 - a) log s(-l);  H = softplus(l) - s(l) l
+        # (the order of these operations is the order autograd sums the gradients
+        # of the two paths into the logits: reordering them changes the 7th digit)
         log_p = actions * nn.functional.logsigmoid(logits) \
             + (1.0 - actions) * nn.functional.logsigmoid(-logits)
         entropy = nn.functional.softplus(logits) - torch.sigmoid(logits) * logits
         return log_p.sum(-1), entropy.sum(-1)
+
+    @staticmethod
+    def log_prob(logits: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The log-probability of :meth:`log_prob_entropy` alone (for acting, where
+        the entropy is not used), computed by the same operations."""
+        log_p = actions * nn.functional.logsigmoid(logits) \
+            + (1.0 - actions) * nn.functional.logsigmoid(-logits)
+        return log_p.sum(-1)
+
+    def _acting_forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` without nn.Module's per-call machinery (hooks, dispatch),
+        for acting: the same functions on the same weights in the same order
+        (F.linear, tanh), so bit-identical, in 40% of the time for one row."""
+        def run(x: torch.Tensor, seq: nn.Sequential) -> torch.Tensor:
+            for m in seq:
+                if isinstance(m, nn.Sequential):
+                    x = run(x, m)
+                elif isinstance(m, nn.Linear):
+                    x = nn.functional.linear(x, m.weight, m.bias)
+                elif isinstance(m, nn.Tanh):
+                    x = torch.tanh(x)
+                else:
+                    x = m(x)
+            return x
+
+        h = run(2.0 * obs - 1.0, self.trunk)
+        return run(h, self.policy_head), run(h, self.value_head).squeeze(-1)
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, generator: torch.Generator | None = None,
@@ -152,13 +181,12 @@ class ActorCritic(nn.Module):
         Returns actions (N, 6) float in {0, 1}, their log-probabilities (N,) and
         values (N,). Deterministic: valve open iff p > 0.5 (logit > 0).
         """
-        logits, value = self.forward(obs)
+        logits, value = self._acting_forward(obs)
         if deterministic:
             actions = (logits > 0).to(obs.dtype)
         else:
             actions = torch.bernoulli(torch.sigmoid(logits), generator=generator)
-        logprob, _ = self.log_prob_entropy(logits, actions)
-        return actions, logprob, value
+        return actions, self.log_prob(logits, actions), value
 
     def evaluate_actions(self, obs: torch.Tensor, actions: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
