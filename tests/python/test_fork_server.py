@@ -145,3 +145,23 @@ def test_the_process_group_exists_as_soon_as_spawn_returns(server, tmp_path):
         proc = _probe(server, tmp_path, "sleep")
         os.killpg(proc.pid, signal.SIGKILL)  # ProcessLookupError if the group did not exist
         assert proc.wait(timeout=30) == -signal.SIGKILL
+
+
+def test_ctrl_c_at_the_orchestrator_leaves_the_server_and_its_runs_to_it(server, tmp_path):
+    """SIGINT to the orchestrator's process group (Ctrl-C) reaches the server:
+    it ignores it (the orchestrator stops the runs, then closes the server);
+    its children get Python's usual SIGINT handling back."""
+    import json
+
+    proc = _probe(server, tmp_path, "sleep")
+    deadline = time.monotonic() + 30
+    while not (tmp_path / "sleep.json").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    server.process.send_signal(signal.SIGINT)
+    time.sleep(0.5)
+    assert server.process.poll() is None
+    assert proc.poll() is None
+    os.kill(proc.pid, signal.SIGINT)  # KeyboardInterrupt in the child: traceback, status 1
+    assert proc.wait(timeout=30) == 1
+    assert "KeyboardInterrupt" in (tmp_path / "sleep.log").read_text()
+    assert json.loads((tmp_path / "sleep.json").read_text())["main"] == "__main__"

@@ -168,6 +168,7 @@ def _child(request: dict, inherited: Sequence[int], tie_to_server, in_session: i
     tie_to_server()  # SIGKILL when the server goes
     signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh python
     for fd in inherited:
         os.close(fd)
     if request["nice"]:
@@ -228,6 +229,9 @@ def serve(modules: Sequence[str]) -> int:
         importlib.import_module(module)  # runs it afresh as __main__, as python -m does
         del sys.modules[module]
     tie_to_server = die_with_parent()  # made here: it checks the parent is this process
+    # Ctrl-C reaches the orchestrator's process group, this server included: the
+    # orchestrator stops the runs (their own sessions) and then closes the server
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     wake_r, wake_w = os.pipe()
     os.set_blocking(wake_r, False)
     os.set_blocking(wake_w, False)
