@@ -283,6 +283,3 @@ def serve(modules: Sequence[str]) -> int:
                 out.flush()
         _reap(out)
 
-
-if __name__ == "__main__":
-    sys.exit(serve(sys.argv[1:]))

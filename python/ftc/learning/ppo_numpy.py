@@ -162,11 +162,15 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return np.exp(_logsigmoid(x))
 
 
+def log_prob(logits: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """As :meth:`ActorCritic.log_prob`: (B,), summed over valves."""
+    return (actions * _logsigmoid(logits) + (1.0 - actions) * _logsigmoid(-logits)).sum(-1)
+
+
 def log_prob_entropy(logits: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """As :meth:`ActorCritic.log_prob_entropy`: (B,) each, summed over valves."""
-    log_p = actions * _logsigmoid(logits) + (1.0 - actions) * _logsigmoid(-logits)
     entropy = np.logaddexp(0.0, logits) - _sigmoid(logits) * logits
-    return log_p.sum(-1), entropy.sum(-1)
+    return log_prob(logits, actions), entropy.sum(-1)
 
 
 class _Adam:
@@ -320,7 +324,7 @@ class NumpyActor:
         else:
             probs = torch.from_numpy(_sigmoid(logits))
             actions = torch.bernoulli(probs, generator=generator).numpy()
-        logprob = (actions * _logsigmoid(logits) + (1.0 - actions) * _logsigmoid(-logits)).sum(-1)
+        logprob = log_prob(logits, actions)
         return (torch.from_numpy(actions), torch.from_numpy(logprob.astype(np.float32, copy=False)),
                 torch.from_numpy(value.astype(np.float32, copy=False)))
 
