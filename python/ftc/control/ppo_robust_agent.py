@@ -60,6 +60,11 @@ class RobustPPOAgent(PPOAgent):
         self.teacher_eval = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8))
         # distinct levels labelled by earlier fits, most recent last (DAgger's aggregate)
         self.memory = np.empty((0, NUM_TANKS))
+        # the planner's labels by level for the parameters (and stuck valves) they were
+        # planned with: a refit after a check plans on the parameters of the fit
+        # before it, and would relabel that fit's levels (the memory) to the same labels
+        self.plan_cache: dict[bytes, np.ndarray] = {}
+        self.plan_cache_for: tuple[dict | None, dict[int, int]] = (None, {})
 
     def prepare(self) -> dict[str, Any]:
         info: dict[str, Any] = {}
@@ -177,7 +182,11 @@ class RobustPPOAgent(PPOAgent):
                                     replace=False)]
         # An interval's episodes all start from full tanks and repeat one another:
         # its 1,024-2,048 labelled levels held 55-124 distinct ones, each planned once
-        plans: dict[bytes, np.ndarray] = {}
+        plans: dict[bytes, np.ndarray] = {}  # this fit's labels (teacher_plans: how many)
+        planned_for = (self.teacher_eval.params, dict(self.teacher_eval.stuck))
+        if not (_same_params(self.plan_cache_for[0], planned_for[0])
+                and self.plan_cache_for[1] == planned_for[1]):
+            self.plan_cache, self.plan_cache_for = {}, planned_for
         carried = self.memory
         carried_labels = self._labels(carried, plans)
         states, labels = start, self._labels(start, plans)
@@ -206,6 +215,7 @@ class RobustPPOAgent(PPOAgent):
             metrics = distill(self.ppo, rows, acts, epochs=cfg.teacher_epochs, seed=seed,
                               stop_loss=cfg.teacher_stop_loss, weights=counts)
         self.ppo.generator.set_state(generator_state)
+        self.plan_cache.update(plans)
         self.memory = _recent_distinct(np.concatenate([carried, states]), cfg.teacher_memory)
         metrics["teacher_labels"], metrics["teacher_plans"] = len(carried) + len(states), len(plans)
         metrics["teacher_memory"] = len(carried)
@@ -216,12 +226,16 @@ class RobustPPOAgent(PPOAgent):
 
     def _labels(self, states: np.ndarray, plans: dict[bytes, np.ndarray]) -> np.ndarray:
         """The planner's first valves (N, 6) at each of ``states`` (N, 6); ``plans``
-        caches them by level (the planner is deterministic for fixed parameters)."""
+        caches them by level (the planner is deterministic for fixed parameters),
+        taking those an earlier fit planned on the same parameters from
+        :attr:`plan_cache`."""
         out = np.empty((len(states), NUM_TANKS))
         for n, x in enumerate(states):
             key = x.tobytes()
             if key not in plans:
-                plans[key] = self.teacher.plan(self.teacher_eval, x)[0]
+                label = self.plan_cache.get(key)
+                plans[key] = (self.teacher.plan(self.teacher_eval, x)[0] if label is None
+                              else label)
             out[n] = plans[key]
         return out
 
@@ -234,6 +248,13 @@ class RobustPPOAgent(PPOAgent):
         self.online_id.load_state_dict(state["identification"])
         memory = np.asarray(state["teacher_memory"], dtype=np.float64)
         self.memory = memory.reshape(-1, NUM_TANKS)
+
+
+def _same_params(a: dict | None, b: dict | None) -> bool:
+    """Whether two parameter dicts (as ``_core`` takes them) hold equal values."""
+    if a is None or b is None:
+        return a is b
+    return a is b or (a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a))
 
 
 def _recent_distinct(states: np.ndarray, limit: int) -> np.ndarray:
