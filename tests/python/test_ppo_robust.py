@@ -9,7 +9,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from ftc import _core
+from ftc.control.planners import ParamsEvaluator
+from ftc.control.ppo_robust_agent import PlanCache
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -124,3 +129,24 @@ def test_the_check_prices_a_policy_that_strands_fuel_behind_a_dead_pump():
     assert stranded > cfg.teacher_check_regret
     assert stranded == pytest.approx(18.96, abs=0.05)
     assert price(np.full(6, 1.0)) == 0.0
+
+
+def test_labels_are_kept_only_for_the_parameters_they_were_planned_with():
+    # a refit after a check plans on the parameters of the fit before it: its
+    # labels are reused; other parameters, or a valve seen stuck, drop them
+    evaluate = ParamsEvaluator(_core.BatchRollout())
+    evaluate.params = _core.degraded_params(_core.load_scenario(str(REPO / "scenarios" /
+                                                                    "single.toml")), 2.0)
+    cache = PlanCache()
+    cache.begin(evaluate)
+    cache.labels[b"level"] = np.ones(6)
+    evaluate.params = {k: np.array(v, copy=True) for k, v in evaluate.params.items()}
+    cache.begin(evaluate)  # equal values in a new dict: kept
+    assert b"level" in cache.labels
+    evaluate.stuck[2] = 1
+    cache.begin(evaluate)  # a stuck valve changes every plan: dropped
+    assert not cache.labels
+    cache.labels[b"level"] = np.ones(6)
+    evaluate.params = {**evaluate.params, "pump": np.asarray(evaluate.params["pump"]) * 0.5}
+    cache.begin(evaluate)  # other parameters: dropped
+    assert not cache.labels

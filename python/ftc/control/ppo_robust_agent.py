@@ -60,11 +60,7 @@ class RobustPPOAgent(PPOAgent):
         self.teacher_eval = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8))
         # distinct levels labelled by earlier fits, most recent last (DAgger's aggregate)
         self.memory = np.empty((0, NUM_TANKS))
-        # the planner's labels by level for the parameters (and stuck valves) they were
-        # planned with: a refit after a check plans on the parameters of the fit
-        # before it, and would relabel that fit's levels (the memory) to the same labels
-        self.plan_cache: dict[bytes, np.ndarray] = {}
-        self.plan_cache_for: tuple[dict | None, dict[int, int]] = (None, {})
+        self.plan_cache = PlanCache()
 
     def prepare(self) -> dict[str, Any]:
         info: dict[str, Any] = {}
@@ -183,10 +179,7 @@ class RobustPPOAgent(PPOAgent):
         # An interval's episodes all start from full tanks and repeat one another:
         # its 1,024-2,048 labelled levels held 55-124 distinct ones, each planned once
         plans: dict[bytes, np.ndarray] = {}  # this fit's labels (teacher_plans: how many)
-        planned_for = (self.teacher_eval.params, dict(self.teacher_eval.stuck))
-        if not (_same_params(self.plan_cache_for[0], planned_for[0])
-                and self.plan_cache_for[1] == planned_for[1]):
-            self.plan_cache, self.plan_cache_for = {}, planned_for
+        self.plan_cache.begin(self.teacher_eval)
         carried = self.memory
         carried_labels = self._labels(carried, plans)
         states, labels = start, self._labels(start, plans)
@@ -215,7 +208,7 @@ class RobustPPOAgent(PPOAgent):
             metrics = distill(self.ppo, rows, acts, epochs=cfg.teacher_epochs, seed=seed,
                               stop_loss=cfg.teacher_stop_loss, weights=counts)
         self.ppo.generator.set_state(generator_state)
-        self.plan_cache.update(plans)
+        self.plan_cache.labels.update(plans)
         self.memory = _recent_distinct(np.concatenate([carried, states]), cfg.teacher_memory)
         metrics["teacher_labels"], metrics["teacher_plans"] = len(carried) + len(states), len(plans)
         metrics["teacher_memory"] = len(carried)
@@ -233,7 +226,7 @@ class RobustPPOAgent(PPOAgent):
         for n, x in enumerate(states):
             key = x.tobytes()
             if key not in plans:
-                label = self.plan_cache.get(key)
+                label = self.plan_cache.labels.get(key)
                 plans[key] = (self.teacher.plan(self.teacher_eval, x)[0] if label is None
                               else label)
             out[n] = plans[key]
@@ -248,6 +241,23 @@ class RobustPPOAgent(PPOAgent):
         self.online_id.load_state_dict(state["identification"])
         memory = np.asarray(state["teacher_memory"], dtype=np.float64)
         self.memory = memory.reshape(-1, NUM_TANKS)
+
+
+class PlanCache:
+    """The planner's labels by level for the parameters (and stuck valves) they
+    were planned with: a refit after a check plans on the parameters of the fit
+    before it, and would relabel that fit's levels (the memory) to the same labels."""
+
+    def __init__(self) -> None:
+        self.labels: dict[bytes, np.ndarray] = {}
+        self.planned_for: tuple[dict | None, dict[int, int]] = (None, {})
+
+    def begin(self, evaluate: ParamsEvaluator) -> None:
+        """Keep the labels if ``evaluate`` plans as they were planned, else drop them."""
+        planned_for = (evaluate.params, dict(evaluate.stuck))
+        if not (_same_params(self.planned_for[0], planned_for[0])
+                and self.planned_for[1] == planned_for[1]):
+            self.labels, self.planned_for = {}, planned_for
 
 
 def _same_params(a: dict | None, b: dict | None) -> bool:
