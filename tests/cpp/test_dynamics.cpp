@@ -2,6 +2,8 @@
 // and the mode decisions (ties, members leaving, pinned empty tanks).
 #include <gtest/gtest.h>
 
+#include <cmath>
+
 #include "plant/core/dynamics.h"
 
 namespace ftc {
@@ -98,6 +100,27 @@ TEST(Dynamics, MemberWhosePumpOutrunsTheGroupLeavesIt) {
   EXPECT_TRUE(mode.source[1]);
   EXPECT_TRUE(mode.sink[2]);
   const Vec6 dx = Derivative(x, u, p, mode);
+  EXPECT_NEAR(dx[2], -0.05, kExact);
+  EXPECT_NEAR(dx[1], 0.0, kExact);
+}
+
+TEST(Dynamics, AMemberThatDrawsNothingStaysWhenTheTieIsBrokenByOneUlp) {
+  // As above, but tank 3 one ulp above tank 2 (where a located root can leave
+  // them): tank 3 leaves, and the sink it becomes sits above the group, so its
+  // inflow and the group's rate are a rounding error below 0; tank 2, whose
+  // pump draws nothing (engine 1 is fed by tank 3), must not leave too, or no
+  // source is left and the sinks drain into an empty conduit (fuel lost).
+  const PlantParams p;
+  const double level = 0.5394131063666735;
+  const Vec6 x = MakeLevels({1.0, level, std::nextafter(level, 1.0), 1.0, 1.0, 1.0});
+  const Valves u = MakeValves({0, 1, 1, 0, 0, 0});
+  const Mode mode = ComputeMode(x, u, p);
+  EXPECT_TRUE(mode.source[1]);
+  EXPECT_TRUE(mode.sink[2]);
+  Vec6 dx;
+  Flows flows;
+  EvaluateField(x, p, mode, &dx, &flows);
+  EXPECT_NEAR(flows.conduit.sum(), 0.0, kExact);  // the conduit moves fuel, never loses it
   EXPECT_NEAR(dx[2], -0.05, kExact);
   EXPECT_NEAR(dx[1], 0.0, kExact);
 }

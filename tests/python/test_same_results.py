@@ -18,6 +18,15 @@ the same on both machines. An AMD AVX-512 machine (fifth round) differs from
 the Intel ones in those commands too (MKL picks kernels by vendor): its files
 are in same_results/avx512-amd/, written by the code of commit 8641935, which
 matched same_results/avx512/ on the fourth round's machine.
+
+Sixth round: a fix of the plant's physics (dynamics.cpp, ComputeMode: a group
+member whose pump draws nothing no longer leaves the group when a sink sits
+one ulp above it, which emptied the group and drained the sinks into nothing)
+changed the two PPO commands, whose policies met that tie within 3 intervals;
+the other four are unchanged. Their references were rewritten on the machine
+at hand (avx512-amd, by the code of the fix's commit); on other CPU classes
+those two are skipped as stale until rewritten there (run the command of
+COMMANDS with COMMON and copy its metrics.csv into same_results/CLASS-VENDOR/).
 The comparison is on metrics.csv's 6-significant-digit text: any change of
 arithmetic (an RNG draw moved, an update reordered) changes some digit of the
 rewards, losses or R^2 over 3 x 512 steps.
@@ -51,6 +60,9 @@ COMMANDS = {
     "model-mpc": ["ftc.mpc", "--method", "model", "--pretrain-cache", "", *TORCH],
 }
 CPU_CLASS = torch.backends.cpu.get_cpu_capability().lower()  # e.g. avx2, avx512
+# commands the ComputeMode fix changed, and the reference directories rewritten since
+CHANGED_BY_LEAVE_FIX = {"ppo-offline", "ppo-offline-pretrain"}
+REWRITTEN_AFTER_LEAVE_FIX = {"avx512-amd"}
 
 
 def _vendor(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
@@ -78,12 +90,16 @@ def _rows(path: Path) -> list[dict[str, str]]:
 
 @pytest.mark.parametrize("name", list(COMMANDS))
 def test_same_metrics_as_before_the_refactor(name, tmp_path):
+    saved_path = _saved(name)
+    if name in CHANGED_BY_LEAVE_FIX and saved_path.parent.name not in REWRITTEN_AFTER_LEAVE_FIX:
+        pytest.skip(f"{saved_path.relative_to(REPO)} predates the ComputeMode fix (sixth "
+                    f"round) and was not rewritten for this CPU ({CPU_CLASS}-{_vendor()})")
     out = tmp_path / name
     module, *args = COMMANDS[name]
     proc = subprocess.run([sys.executable, "-m", module, *args, *COMMON, "--out", str(out)],
                           cwd=REPO, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr
-    saved, now = _rows(_saved(name)), _rows(out / "metrics.csv")
+    saved, now = _rows(saved_path), _rows(out / "metrics.csv")
     assert len(now) == len(saved) == 3
     compared = 0
     for k, (before, after) in enumerate(zip(saved, now)):

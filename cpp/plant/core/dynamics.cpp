@@ -163,7 +163,11 @@ Mode ComputeMode(const Vec6& x, const Valves& u, const PlantParams& p) {
   // A group member whose own pump outruns the group leaves it and becomes a
   // sink. Leaving only lowers the group rate, so dropping every offender per
   // pass converges; the member with the smallest draw per area (<= rho) never
-  // leaves, so the group never empties.
+  // leaves, so the group never empties. A member that draws nothing cannot
+  // outrun anything: where a sink sits a rounding error above the group (a
+  // tie broken by one ulp), its inflow, and so rho, is slightly negative, and
+  // without that test such a member left and emptied the group (found by the
+  // closed-form steps of linear_step.cpp; test_dynamics.cpp).
   if (conduit) {
     for (;;) {
       double xref = -std::numeric_limits<double>::infinity();
@@ -181,7 +185,7 @@ Mode ComputeMode(const Vec6& x, const Valves& u, const PlantParams& p) {
       bool changed = false;
       for (int i = 0; i < kTanks; ++i) {
         const double s = m.pump_draw[i];
-        if (m.source[i] && s - p.area[i] * rho > kLeaveMargin * s) {
+        if (m.source[i] && s > 0 && s - p.area[i] * rho > kLeaveMargin * s) {
           m.source[i] = false;
           m.sink[i] = true;
           changed = true;
