@@ -489,10 +489,12 @@ PYBIND11_MODULE(_core, m) {
       "after each step before any reset, terminal (K, L), and step counts.";
   py::class_<ftc::BatchRollout>(m, "BatchRollout",
                                 "Reusable batch rollouts (one CVODE integrator, kept warm).")
-      .def(py::init([](bool exact_idle_conduit, bool share_prefixes, double rtol, double atol) {
+      .def(py::init([](bool exact_idle_conduit, bool share_prefixes, double rtol, double atol,
+                       bool exact_active_conduit) {
              ftc::RolloutOptions o;
              o.exact_idle_conduit = exact_idle_conduit;
              o.share_prefixes = share_prefixes;
+             o.exact_active_conduit = exact_active_conduit;
              ftc::IntegratorOptions io;
              io.rtol = rtol;
              io.atol = atol;
@@ -501,7 +503,10 @@ PYBIND11_MODULE(_core, m) {
            py::arg("exact_idle_conduit") = true, py::arg("share_prefixes") = true,
            py::arg("rtol") = ftc::IntegratorOptions{}.rtol,
            py::arg("atol") = ftc::IntegratorOptions{}.atol,
-           "rtol/atol: CVODE tolerances of the rollouts (default: the plant's)")
+           py::arg("exact_active_conduit") = false,
+           "rtol/atol: CVODE tolerances of the rollouts (default: the plant's); "
+           "exact_active_conduit: steps with two or more valves open in closed form too "
+           "(linear_step.h), CVODE only where a tank is pinned")
       .def("run", &RunRollout, py::arg("x0"), py::arg("sequences"), py::arg("params"),
            py::arg("dt") = 1.0, py::arg("details") = false, rollout_doc)
       .def("step_each", &StepEach, py::arg("x"), py::arg("valves"), py::arg("params"),

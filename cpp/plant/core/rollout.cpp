@@ -20,6 +20,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "plant/core/linear_step.h"
 #include "plant/core/plant.h"
 #include "plant/core/reward.h"
 
@@ -84,6 +85,20 @@ StepResult BatchRollout::StepOnce(const Vec6& x, const Valves& u, const PlantPar
   if (options_.exact_idle_conduit && OpenCount(u) < 2) {
     ++result->exact_steps;
     return IdleConduitStep(x, u, p, dt);
+  }
+  if (options_.exact_active_conduit) {
+    const LinearStepResult linear = LinearConduitStep(x, u, p, dt);
+    if (linear.t >= dt) {
+      ++result->exact_steps;
+      StepResult r;  // the levels only: a rollout's rewards need nothing else
+      r.x = linear.x;
+      r.events = linear.events;
+      return r;
+    }
+    ++result->integrated_steps;  // the rest of the step, from where the closed form stopped
+    StepResult r = integrator_.Step(linear.x, u, p, dt - linear.t);
+    r.events += linear.events;
+    return r;
   }
   ++result->integrated_steps;
   return integrator_.Step(x, u, p, dt);

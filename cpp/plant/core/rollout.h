@@ -17,6 +17,10 @@ struct RolloutOptions {
   bool exact_idle_conduit = true;
   // Candidates sharing a prefix of valve settings simulate it once.
   bool share_prefixes = true;
+  // Steps with the conduit active in closed form too (linear_step.h: exact
+  // where CVODE is within its tolerances, so results move at that level);
+  // CVODE integrates what it does not handle (modes with a pinned tank).
+  bool exact_active_conduit = false;
 };
 
 // The rollouts of one batch, candidate-major: entry (k, t) at k * horizon + t.
@@ -26,7 +30,7 @@ struct RolloutResult {
   std::vector<Vec6> levels;              // K x L levels after each step (before any reset), m
   std::vector<unsigned char> terminal;   // K x L: the episode ended at this step (then full tanks)
   long integrated_steps = 0;             // steps integrated by CVODE
-  long exact_steps = 0;                  // steps in closed form (idle conduit)
+  long exact_steps = 0;                  // steps in closed form (idle, or active if asked)
   long shared_steps = 0;                 // steps reused from another candidate's prefix
 };
 

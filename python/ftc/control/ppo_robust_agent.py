@@ -57,7 +57,8 @@ class RobustPPOAgent(PPOAgent):
         self.online_id = OnlineIdentification(Identifier(seed=cfg.seed), trigger=1e-4, every=0)
         self.refits = 0
         self.teacher = HoldPlanner(3, 10)  # the oracle MPC's planner (H = 3, L = 10)
-        self.teacher_eval = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8))
+        self.teacher_eval = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8,
+                                                             exact_active_conduit=True))
         # distinct levels labelled by earlier fits, most recent last (DAgger's aggregate)
         self.memory = np.empty((0, NUM_TANKS))
         self.plan_cache = PlanCache()

@@ -1,0 +1,34 @@
+// Closed-form steps with the conduit active, for batch rollouts (rollout.h).
+//
+// Within a mode the field is affine in the levels (dynamics.cpp), and with no
+// pinned tank its conduit part is a star of conductances g / R_k between the
+// source group (its tanks tied, falling together) and each sink: x' = M x + b
+// with M = C^-1 L, L symmetric and C the nodes' areas. So the levels follow
+// exponentials, x(t) = x0 + V diag((e^{lambda t} - 1) / lambda) V^-1 f(x0),
+// from one symmetric eigendecomposition of C^1/2 M C^-1/2, and the root
+// functions (affine in x) are sums of those exponentials: their first
+// downward crossing is bracketed on a grid and bisected to rounding, where
+// CVODE locates it within its tolerances. M and b are read off the field
+// itself (dynamics.cpp stays the one statement of the physics).
+#pragma once
+
+#include "plant/core/integrator.h"
+
+namespace ftc {
+
+struct LinearStepResult {
+  Vec6 x = Vec6::Zero();  // levels where the closed form stopped, m
+  double t = 0;           // time reached, s (dt unless a mode it does not handle began)
+  int events = 0;         // mode switches located
+};
+
+// Integrates dt seconds from x0 with valves u in closed form, mode by mode,
+// as StepIntegrator::Step would (a located level root makes the tank exactly
+// empty; levels within 1e-12 m of 0 snap to 0 at segment boundaries). Stops
+// early, at .t < dt, where a mode with a pinned tank begins (its supply varies
+// with the group level through min(p, remaining): not affine); the caller
+// integrates the rest. Throws std::runtime_error after max_events switches.
+LinearStepResult LinearConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p,
+                                   double dt, int max_events = 1000);
+
+}  // namespace ftc
