@@ -80,11 +80,34 @@ TEST(LinearConduitStep, MatchesTightCvodeOnRandomStatesIncludingEvents) {
   EXPECT_GT(handed_over, 10);   // and so was the hand-over
 }
 
+TEST(LinearStepper, ReusesAModeAndStaysWithFreshSteps) {
+  // A planner's held action: 6 steps with the same valves from one stepper
+  // (the mode's preparation kept) against a fresh one per step. The reused
+  // eigenvectors were computed at another state of the same mode, so the two
+  // agree to rounding, not bit for bit.
+  FaultScenario s;
+  s.engine_factor[1] = 20.0;
+  const PlantParams p = DegradedParams(PlantParams{}, s, 6.0);
+  const Valves u = FromCode(0b011011);
+  Vec6 kept, fresh;
+  kept << 0.9, 0.2, 0.6, 0.4, 0.8, 0.3;
+  fresh = kept;
+  LinearStepper stepper;
+  for (int t = 0; t < 6; ++t) {
+    kept = stepper.Step(kept, u, p, 1.0).x;
+    fresh = LinearConduitStep(fresh, u, p, 1.0).x;
+    EXPECT_LT((kept - fresh).cwiseAbs().maxCoeff(), 1e-13) << "step " << t;
+  }
+  EXPECT_GT((kept - Vec6(0.9, 0.2, 0.6, 0.4, 0.8, 0.3)).cwiseAbs().maxCoeff(), 0.1);  // it moved
+}
+
 TEST(LinearConduitStep, StopsWhereATankIsPinned) {
   // Tank 3 empty and open below full tanks 1 and 2, R_3 = 1000: its inflow
   // g (1 - 0) / R_3 = 0.01 m^3/s is below its pump's draw (min(0.1, demand
-  // 0.05) = 0.05), so it is pinned from the start: the closed form hands over
-  // at t = 0, leaving the levels as they were.
+  // 0.05) = 0.05), so it is pinned from the start; tank 2 then leaves the
+  // group and draws the rest of the demand, 0.05 - inflow, which moves with
+  // the group level: not the symmetric kind, so the closed form hands over at
+  // t = 0, leaving the levels as they were.
   PlantParams p;
   p.resistance[2] = 1000.0;
   Vec6 x0;

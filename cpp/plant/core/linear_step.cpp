@@ -17,6 +17,7 @@
 
 #include <algorithm>
 #include <array>
+#include <memory>
 #include <cmath>
 #include <stdexcept>
 #include <string>
@@ -59,86 +60,22 @@ RootVector AsVector(const std::array<double, kNumRoots>& r) {
 // g(t) = g0 + L t + K psi(t).
 class ModeSolution {
  public:
-  // Returns false where the mode is not handled (a pinned tank) or M is not
-  // the symmetric kind (never seen; CVODE then integrates).
+  // Prepares the mode at x, reusing the last preparation if the mode, valves
+  // and parameters are the same (M, its eigenvectors and the roots' gradients
+  // do not depend on x within a mode). Returns false where the mode is not
+  // handled (a pinned tank upstream of a pump that cannot cover its engine's
+  // demand; a pinned tank whose supply moves a level off the conduit, which
+  // breaks the symmetry) or M is not the symmetric kind.
   bool Build(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
-    x0_ = x;
-    nodes_ = 0;
-    node_of_.fill(-1);
-    for (int i = 0; i < kTanks; ++i)
-      if (mode.pinned[i]) return false;
-    double group_area = 0;
-    int representative[kTanks];
-    for (int i = 0; i < kTanks; ++i) {
-      if (mode.source[i]) {
-        node_of_[i] = 0;
-        group_area += p.area[i];
-        if (nodes_ == 0) representative[nodes_++] = i;
-      }
+    if (!(prepared_ && SameMode(mode) && u == valves_ && SameParams(p))) {
+      prepared_ = false;
+      if (!Prepare(x, u, p, mode)) return false;
+      mode_ = mode;
+      valves_ = u;
+      params_ = p;
+      prepared_ = true;
     }
-    if (nodes_ == 0) return false;  // no conduit
-    NodeVector area(kTanks);
-    area[0] = group_area;
-    for (int i = 0; i < kTanks; ++i) {
-      if (mode.sink[i]) {
-        node_of_[i] = nodes_;
-        area[nodes_] = p.area[i];
-        representative[nodes_++] = i;
-      }
-    }
-    area.conservativeResize(nodes_);
-
-    const Vec6 f0 = Derivative(x, u, p, mode);
-    const RootVector g0 = AsVector(RootFunctions(x, u, p, mode));
-    NodeMatrix m(nodes_, nodes_);
-    RootMatrix root_nodes(kNumRoots, nodes_);
-    for (int d = 0; d < nodes_; ++d) {
-      Vec6 moved = x;
-      for (int i = 0; i < kTanks; ++i)
-        if (node_of_[i] == d) moved[i] += 1.0;
-      const Vec6 df = Derivative(moved, u, p, mode) - f0;
-      for (int k = 0; k < nodes_; ++k) m(k, d) = df[representative[k]];
-      for (int i = 0; i < kTanks; ++i)
-        if (node_of_[i] < 0 && df[i] != 0.0) return false;  // off the conduit: constant
-      root_nodes.col(d) = AsVector(RootFunctions(moved, u, p, mode)) - g0;
-    }
-    // Tanks off the conduit fall at their constant rate: one more direction each.
-    rate_.setZero();
-    linear_.setZero();
-    for (int i = 0; i < kTanks; ++i) {
-      if (node_of_[i] >= 0 || f0[i] == 0.0) continue;
-      rate_[i] = f0[i];
-      Vec6 moved = x;
-      moved[i] += 1.0;
-      linear_ += (AsVector(RootFunctions(moved, u, p, mode)) - g0) * f0[i];
-    }
-    // M = C^-1 L: C^1/2 M C^-1/2 is symmetric (checked to rounding).
-    const NodeVector root_area = area.cwiseSqrt();
-    NodeMatrix s(nodes_, nodes_);
-    double largest = 0, asymmetry = 0;
-    for (int i = 0; i < nodes_; ++i)
-      for (int j = 0; j < nodes_; ++j) {
-        s(i, j) = root_area[i] * m(i, j) / root_area[j];
-        largest = std::max(largest, std::abs(s(i, j)));
-      }
-    for (int i = 0; i < nodes_; ++i)
-      for (int j = 0; j < i; ++j) {
-        asymmetry = std::max(asymmetry, std::abs(s(i, j) - s(j, i)));
-        s(i, j) = s(j, i) = 0.5 * (s(i, j) + s(j, i));
-      }
-    if (asymmetry > 1e-12 * largest) return false;
-    const Eigen::SelfAdjointEigenSolver<NodeMatrix> eigen(s);
-    if (eigen.info() != Eigen::Success) return false;
-    lambda_ = eigen.eigenvalues();
-    NodeVector f_nodes(nodes_);
-    for (int k = 0; k < nodes_; ++k) f_nodes[k] = f0[representative[k]];
-    const NodeVector a = eigen.eigenvectors().transpose() * root_area.cwiseProduct(f_nodes);
-    spread_ = root_area.cwiseInverse().asDiagonal() * eigen.eigenvectors() * a.asDiagonal();
-    roots_ = root_nodes * spread_;
-    g0_ = g0;
-    // As CVODE at a restart: a function not positive where the mode begins is
-    // not watched (the level roots carry an offset so that an empty tank's is)
-    watched_ = (g0.array() > 0.0).cast<double>();
+    Start(x, u, p, mode);
     return true;
   }
 
@@ -161,6 +98,118 @@ class ModeSolution {
 
   RootVector Roots(double t) const { return g0_ + linear_ * t + roots_ * Psi(t); }
 
+  // Root function m alone at t.
+  double Root(int m, double t) const { return g0_[m] + linear_[m] * t + roots_.row(m).dot(Psi(t)); }
+
+  bool SameMode(const Mode& m) const {
+    return m.source == mode_.source && m.sink == mode_.sink && m.pinned == mode_.pinned &&
+           m.pumping == mode_.pumping;
+  }
+
+  bool SameParams(const PlantParams& p) const {
+    return p.g == params_.g && p.height == params_.height && p.area == params_.area &&
+           p.resistance == params_.resistance && p.pump == params_.pump &&
+           p.demand == params_.demand;
+  }
+
+  // What does not depend on x within the mode: the nodes, M's eigenvectors, the
+  // root functions' gradients along the nodes and the tanks off the conduit.
+  bool Prepare(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
+    nodes_ = 0;
+    node_of_.fill(-1);
+    // A pinned tank passes its inflow (affine in the group level) to its engine,
+    // and each pump after it in the engine's order draws min(p, remaining): affine
+    // only while that pump could cover the whole demand. Other cases: CVODE.
+    for (int j = 0; j < kEngines; ++j) {
+      bool after_pinned = false;
+      for (const int i : kPumpOrder[j]) {
+        if (after_pinned && p.pump[i] < p.demand[j]) return false;
+        after_pinned = after_pinned || mode.pinned[i];
+      }
+    }
+    double group_area = 0;
+    for (int i = 0; i < kTanks; ++i) {
+      if (mode.source[i]) {
+        node_of_[i] = 0;
+        group_area += p.area[i];
+        if (nodes_ == 0) representative_[nodes_++] = i;
+      }
+    }
+    if (nodes_ == 0) return false;  // no conduit
+    NodeVector area(kTanks);
+    area[0] = group_area;
+    for (int i = 0; i < kTanks; ++i) {
+      if (mode.sink[i] && !mode.pinned[i]) {  // a pinned tank stays at 0: no node
+        node_of_[i] = nodes_;
+        area[nodes_] = p.area[i];
+        representative_[nodes_++] = i;
+      }
+    }
+    area.conservativeResize(nodes_);
+
+    const Vec6 f0 = Derivative(x, u, p, mode);
+    const RootVector g0 = AsVector(RootFunctions(x, u, p, mode));
+    NodeMatrix m(nodes_, nodes_);
+    root_nodes_.resize(kNumRoots, nodes_);
+    for (int d = 0; d < nodes_; ++d) {
+      Vec6 moved = x;
+      for (int i = 0; i < kTanks; ++i)
+        if (node_of_[i] == d) moved[i] += 1.0;
+      const Vec6 df = Derivative(moved, u, p, mode) - f0;
+      for (int k = 0; k < nodes_; ++k) m(k, d) = df[representative_[k]];
+      for (int i = 0; i < kTanks; ++i)
+        if (node_of_[i] < 0 && df[i] != 0.0) return false;  // off the conduit: constant
+      root_nodes_.col(d) = AsVector(RootFunctions(moved, u, p, mode)) - g0;
+    }
+    // Tanks off the conduit fall at their constant rate: a direction each.
+    root_off_.setZero();
+    for (int i = 0; i < kTanks; ++i) {
+      if (node_of_[i] >= 0 || f0[i] == 0.0) continue;
+      Vec6 moved = x;
+      moved[i] += 1.0;
+      root_off_.col(i) = AsVector(RootFunctions(moved, u, p, mode)) - g0;
+    }
+    // M = C^-1 L: C^1/2 M C^-1/2 is symmetric (checked to rounding).
+    root_area_ = area.cwiseSqrt();
+    NodeMatrix s(nodes_, nodes_);
+    double largest = 0, asymmetry = 0;
+    for (int i = 0; i < nodes_; ++i)
+      for (int j = 0; j < nodes_; ++j) {
+        s(i, j) = root_area_[i] * m(i, j) / root_area_[j];
+        largest = std::max(largest, std::abs(s(i, j)));
+      }
+    for (int i = 0; i < nodes_; ++i)
+      for (int j = 0; j < i; ++j) {
+        asymmetry = std::max(asymmetry, std::abs(s(i, j) - s(j, i)));
+        s(i, j) = s(j, i) = 0.5 * (s(i, j) + s(j, i));
+      }
+    if (asymmetry > 1e-12 * largest) return false;
+    const Eigen::SelfAdjointEigenSolver<NodeMatrix> eigen(s);
+    if (eigen.info() != Eigen::Success) return false;
+    lambda_ = eigen.eigenvalues();
+    vectors_ = eigen.eigenvectors();
+    return true;
+  }
+
+  // The solution from x: the field and the root functions there.
+  void Start(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
+    x0_ = x;
+    const Vec6 f0 = Derivative(x, u, p, mode);
+    g0_ = AsVector(RootFunctions(x, u, p, mode));
+    rate_.setZero();
+    for (int i = 0; i < kTanks; ++i)
+      if (node_of_[i] < 0) rate_[i] = f0[i];
+    linear_ = root_off_ * rate_;
+    NodeVector f_nodes(nodes_);
+    for (int k = 0; k < nodes_; ++k) f_nodes[k] = f0[representative_[k]];
+    const NodeVector a = vectors_.transpose() * root_area_.cwiseProduct(f_nodes);
+    spread_ = root_area_.cwiseInverse().asDiagonal() * vectors_ * a.asDiagonal();
+    roots_ = root_nodes_ * spread_;
+    // As CVODE at a restart: a function not positive where the mode begins is
+    // not watched (the level roots carry an offset so that an empty tank's is)
+    watched_ = (g0_.array() > 0.0).cast<double>();
+  }
+
  private:
   NodeVector Psi(double t) const {
     NodeVector out(nodes_);
@@ -168,11 +217,20 @@ class ModeSolution {
     return out;
   }
 
-  Vec6 x0_;
+  // the preparation and what it was for
+  bool prepared_ = false;
+  Mode mode_;
+  Valves valves_ = Valves::Zero();
+  PlantParams params_;
   int nodes_ = 0;
   std::array<int, kTanks> node_of_{};
-  Vec6 rate_;
-  NodeVector lambda_;
+  int representative_[kTanks] = {};
+  NodeVector root_area_, lambda_;
+  NodeMatrix vectors_;
+  RootMatrix root_nodes_;
+  Eigen::Matrix<double, kNumRoots, kTanks> root_off_;
+  // the solution from x0_
+  Vec6 x0_, rate_;
   NodeMatrix spread_;  // node displacement per psi
   RootVector g0_, linear_, watched_;
   RootMatrix roots_;
@@ -180,12 +238,26 @@ class ModeSolution {
 
 }  // namespace
 
+struct LinearStepper::Impl {
+  ModeSolution solution;
+};
+
+LinearStepper::LinearStepper() : impl_(std::make_unique<Impl>()) {}
+
+LinearStepper::~LinearStepper() = default;
+
 LinearStepResult LinearConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p,
                                    double dt, int max_events) {
+  LinearStepper stepper;
+  return stepper.Step(x0, u, p, dt, max_events);
+}
+
+LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const PlantParams& p,
+                                     double dt, int max_events) {
   LinearStepResult r;
   r.x = x0;
   Clamp(&r.x, p);
-  ModeSolution solution;
+  ModeSolution& solution = impl_->solution;
   while (r.t < dt) {
     const Mode mode = ComputeMode(r.x, u, p);
     if (!solution.Build(r.x, u, p, mode)) return r;  // the caller integrates the rest
@@ -207,15 +279,38 @@ LinearStepResult LinearConduitStep(const Vec6& x0, const Valves& u, const PlantP
       r.t = dt;
       break;
     }
-    // Bisect to the earliest crossing: g > 0 at lo for every root, <= 0 at hi for one.
-    while (hi - lo > kRootWidth * std::max(1.0, hi)) {
-      const double mid = 0.5 * (lo + hi);
-      if (solution.Crossed(mid)) {
-        hi = mid;
-      } else {
-        lo = mid;
+    // The earliest crossing in (lo, hi]: each watched function that is <= 0 at
+    // hi is located by the Illinois method (regula falsi that halves the value
+    // kept at an end that stays put) to the bracket width; the earliest wins.
+    RootVector at_lo = solution.Roots(lo), at_hi;
+    solution.Crossed(hi, &at_hi);
+    double first_lo = lo, first_hi = hi;
+    for (int m = 0; m < kNumRoots; ++m) {
+      if (!solution.Watched(m) || at_hi[m] > 0.0) continue;
+      double a = lo, b = first_hi, fa = at_lo[m], fb = solution.Root(m, b);
+      if (fb > 0.0) continue;  // crosses after the earliest found so far
+      int kept = 0;            // the end that moved last: -1 a, +1 b
+      while (b - a > kRootWidth * std::max(1.0, b)) {
+        double c = (a * fb - b * fa) / (fb - fa);
+        if (!(c > a && c < b)) c = 0.5 * (a + b);
+        const double fc = solution.Root(m, c);
+        if (fc <= 0.0) {
+          b = c;
+          fb = fc;
+          if (kept == 1) fa *= 0.5;
+          kept = 1;
+        } else {
+          a = c;
+          fa = fc;
+          if (kept == -1) fb *= 0.5;
+          kept = -1;
+        }
       }
+      first_lo = a;
+      first_hi = b;
     }
+    lo = first_lo;
+    hi = first_hi;
     RootVector g;
     solution.Crossed(hi, &g);
     r.x = solution.Levels(hi);

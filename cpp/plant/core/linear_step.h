@@ -1,9 +1,9 @@
 // Closed-form steps with the conduit active, for batch rollouts (rollout.h).
 //
-// Within a mode the field is affine in the levels (dynamics.cpp), and with no
-// pinned tank its conduit part is a star of conductances g / R_k between the
+// Within a mode the field is affine in the levels (dynamics.cpp), and its conduit part is a star of conductances g / R_k between the
 // source group (its tanks tied, falling together) and each sink: x' = M x + b
-// with M = C^-1 L, L symmetric and C the nodes' areas. So the levels follow
+// with M = C^-1 L, L symmetric and C the nodes' areas (a pinned tank, held
+// at 0, is a conductance from the group to the ground). So the levels follow
 // exponentials, x(t) = x0 + V diag((e^{lambda t} - 1) / lambda) V^-1 f(x0),
 // from one symmetric eigendecomposition of C^1/2 M C^-1/2, and the root
 // functions (affine in x) are sums of those exponentials: their first
@@ -11,6 +11,8 @@
 // CVODE locates it within its tolerances. M and b are read off the field
 // itself (dynamics.cpp stays the one statement of the physics).
 #pragma once
+
+#include <memory>
 
 #include "plant/core/integrator.h"
 
@@ -22,12 +24,33 @@ struct LinearStepResult {
   int events = 0;         // mode switches located
 };
 
+// Steps in closed form, keeping the last mode's preparation (its eigenvectors
+// and the roots' gradients, which do not depend on the levels) for the next
+// step in the same mode, valves and parameters: a planner's held actions.
+class LinearStepper final {
+ public:
+  LinearStepper();
+  ~LinearStepper();
+  LinearStepper(const LinearStepper&) = delete;
+  LinearStepper& operator=(const LinearStepper&) = delete;
+
+  // See LinearConduitStep.
+  LinearStepResult Step(const Vec6& x0, const Valves& u, const PlantParams& p, double dt,
+                        int max_events = 1000);
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
 // Integrates dt seconds from x0 with valves u in closed form, mode by mode,
 // as StepIntegrator::Step would (a located level root makes the tank exactly
 // empty; levels within 1e-12 m of 0 snap to 0 at segment boundaries). Stops
-// early, at .t < dt, where a mode with a pinned tank begins (its supply varies
-// with the group level through min(p, remaining): not affine); the caller
+// early, at .t < dt, where a mode begins that is not affine in that way (a
+// pinned tank passes its inflow on, and a pump after it in the engine's order
+// draws min(p, remaining), which has a kink where p < demand); the caller
 // integrates the rest. Throws std::runtime_error after max_events switches.
+// (A fresh LinearStepper's Step.)
 LinearStepResult LinearConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p,
                                    double dt, int max_events = 1000);
 

@@ -20,7 +20,6 @@
 #include <stdexcept>
 #include <string>
 
-#include "plant/core/linear_step.h"
 #include "plant/core/plant.h"
 #include "plant/core/reward.h"
 
@@ -87,7 +86,7 @@ StepResult BatchRollout::StepOnce(const Vec6& x, const Valves& u, const PlantPar
     return IdleConduitStep(x, u, p, dt);
   }
   if (options_.exact_active_conduit) {
-    const LinearStepResult linear = LinearConduitStep(x, u, p, dt);
+    const LinearStepResult linear = linear_.Step(x, u, p, dt);
     if (linear.t >= dt) {
       ++result->exact_steps;
       StepResult r;  // the levels only: a rollout's rewards need nothing else

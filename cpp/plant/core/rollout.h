@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "plant/core/integrator.h"
+#include "plant/core/linear_step.h"
 
 namespace ftc {
 
@@ -69,6 +70,7 @@ class BatchRollout final {
                       RolloutResult* result);
 
   StepIntegrator integrator_;
+  LinearStepper linear_;
   RolloutOptions options_;
 };
 
