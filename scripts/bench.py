@@ -26,6 +26,9 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             step) with two OpenBLAS threads over one (ftc pins one)
   step_each_over_run        the identifier's one-step predictions of 512 rows, one
                             _core.run call per row over one step_each call
+  distill_step_us           one Adam step of ppo-robust's behaviour cloning (128 rows) in
+                            C++ (ftc._learn, the NumPy engine's default)
+  distill_numpy_over_native the same step in NumPy (numpy_distill) over the C++ one
   robust_run_3_intervals_s  ppo-robust (its benchmark arguments), 3 intervals, cached
                             pretraining, in process
   ppo_build_s               building a (NumPy-engine) PPO in a fresh process: its torch
@@ -233,9 +236,29 @@ def _blas_pass(threads: int) -> float:
     return float(out.split()[-1])
 
 
+def _distill_step(fit: Callable, epochs: int = 10) -> float:
+    """Seconds per Adam step of a behaviour-cloning fit (3,072 rows: 24 minibatches
+    of 128 per epoch, as a fit of ppo-robust's 2,048 levels and 1,024 of memory)."""
+    import torch
+
+    from ftc.learning.ppo import ActorCritic
+
+    g = torch.Generator().manual_seed(0)
+    states = torch.rand(3072, 6, generator=g)
+    labels = (torch.rand(3072, 6, generator=g) < 0.5).float()
+    torch.manual_seed(0)
+    policy = ActorCritic()
+    start = time.perf_counter()
+    fit(policy, states, labels, epochs=epochs, minibatch=128, lr=1e-3, max_grad_norm=0.5,
+        generator=torch.Generator().manual_seed(0))
+    return (time.perf_counter() - start) / (epochs * 24)
+
+
 def bench_robust(rounds: int) -> list[Figure]:
     from ftc import _core
     from ftc.experiments.methods import METHODS
+    from ftc.learning.distill import native_distill
+    from ftc.learning.ppo_numpy import numpy_distill
 
     rng = np.random.default_rng(0)
     x, u = rng.uniform(0.0, 1.0, (512, 6)), rng.integers(0, 2, (512, 6))
@@ -255,6 +278,8 @@ def bench_robust(rounds: int) -> list[Figure]:
 
     two, one, rows, batch = _median_rounds(rounds, lambda: _blas_pass(2), lambda: _blas_pass(1),
                                            per_row, each)
+    native, numpy_steps = _median_rounds(rounds, lambda: _distill_step(native_distill),
+                                         lambda: _distill_step(numpy_distill))
     robust = ["-m", "ftc.controller", *METHODS["ppo-robust"].args, "--scenario", SINGLE,
               "--seed", "0", "--intervals", "3", "--link", "core", "--quiet"]
     _run(robust)  # fills the pretraining cache if it is cold
@@ -262,6 +287,8 @@ def bench_robust(rounds: int) -> list[Figure]:
     med = statistics.median
     return [Figure("blas_two_over_one_thread", med(two) / med(one), "ratio"),
             Figure("step_each_over_run", med(rows) / med(batch), "ratio"),
+            Figure("distill_step_us", med(native) * 1e6, "us", rounds=[r * 1e6 for r in native]),
+            Figure("distill_numpy_over_native", med(numpy_steps) / med(native), "ratio"),
             Figure("robust_run_3_intervals_s", med(run), "s", rounds=run)]
 
 

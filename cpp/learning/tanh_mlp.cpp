@@ -104,9 +104,13 @@ DistillResult Distill(float* params, const std::vector<int>& trunk, const std::v
   const std::size_t size = trunk_size + TanhChain::Size(head);
   Eigen::ArrayXf grads = Eigen::ArrayXf::Zero(static_cast<Eigen::Index>(size));
   Eigen::ArrayXf m = grads, v = grads;
-  Eigen::Map<Eigen::ArrayXf> p(params, static_cast<Eigen::Index>(size));
-  TanhChain body(trunk, true, params, grads.data());
-  TanhChain policy(head, false, params + trunk_size, grads.data() + trunk_size);
+  // The fit works on its own copy of the weights: Eigen's vectorised loops
+  // split their work by the data's alignment, and the caller's array (NumPy's)
+  // is aligned differently from one allocation to the next, which changed the
+  // last bits of the sums from run to run. Its own buffer is always aligned.
+  Eigen::ArrayXf p = Eigen::Map<const Eigen::ArrayXf>(params, static_cast<Eigen::Index>(size));
+  TanhChain body(trunk, true, p.data(), grads.data());
+  TanhChain policy(head, false, p.data() + trunk_size, grads.data() + trunk_size);
 
   DistillResult result;
   MatrixRM xb, yb, d_logits, d_trunk;
@@ -161,6 +165,7 @@ DistillResult Distill(float* params, const std::vector<int>& trunk, const std::v
     ++result.epochs;
     if (total / batches < options.stop_loss) break;
   }
+  Eigen::Map<Eigen::ArrayXf>(params, static_cast<Eigen::Index>(size)) = p;
   return result;
 }
 
