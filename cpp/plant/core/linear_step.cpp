@@ -13,6 +13,7 @@
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <Eigen/Eigenvalues>
+#include <Eigen/LU>
 #pragma GCC diagnostic pop
 
 #include <algorithm>
@@ -127,6 +128,7 @@ class ModeSolution {
         after_pinned = after_pinned || mode.pinned[i];
       }
     }
+    NodeVector area(kTanks);
     double group_area = 0;
     for (int i = 0; i < kTanks; ++i) {
       if (mode.source[i]) {
@@ -136,7 +138,6 @@ class ModeSolution {
       }
     }
     if (nodes_ == 0) return false;  // no conduit
-    NodeVector area(kTanks);
     area[0] = group_area;
     for (int i = 0; i < kTanks; ++i) {
       if (mode.sink[i] && !mode.pinned[i]) {  // a pinned tank stays at 0: no node
@@ -145,20 +146,38 @@ class ModeSolution {
         representative_[nodes_++] = i;
       }
     }
-    area.conservativeResize(nodes_);
+    const int conduit_nodes = nodes_;
 
+    // The field along each node's direction (sources together, each sink alone).
     const Vec6 f0 = Derivative(x, u, p, mode);
     const RootVector g0 = AsVector(RootFunctions(x, u, p, mode));
-    NodeMatrix m(nodes_, nodes_);
-    root_nodes_.resize(kNumRoots, nodes_);
-    for (int d = 0; d < nodes_; ++d) {
+    auto direction = [&](int d) {
       Vec6 moved = x;
       for (int i = 0; i < kTanks; ++i)
         if (node_of_[i] == d) moved[i] += 1.0;
-      const Vec6 df = Derivative(moved, u, p, mode) - f0;
-      for (int k = 0; k < nodes_; ++k) m(k, d) = df[representative_[k]];
+      return moved;
+    };
+    Eigen::Matrix<double, kTanks, kTanks> df;
+    for (int d = 0; d < conduit_nodes; ++d) df.col(d) = Derivative(direction(d), u, p, mode) - f0;
+    // A tank off the conduit whose pump passes on what a pinned tank upstream does
+    // not supply moves with the group: a node too (it does not act back).
+    for (int i = 0; i < kTanks; ++i) {
+      if (node_of_[i] >= 0 || mode.pinned[i]) continue;
+      if ((df.row(i).head(conduit_nodes).array() != 0.0).any()) {
+        node_of_[i] = nodes_;
+        area[nodes_] = p.area[i];
+        representative_[nodes_++] = i;
+      }
+    }
+    area.conservativeResize(nodes_);
+    NodeMatrix m = NodeMatrix::Zero(nodes_, nodes_);
+    root_nodes_.resize(kNumRoots, nodes_);
+    for (int d = 0; d < nodes_; ++d) {
+      const Vec6 moved = direction(d);
+      if (d >= conduit_nodes) df.col(d) = Derivative(moved, u, p, mode) - f0;
+      for (int k = 0; k < nodes_; ++k) m(k, d) = df(representative_[k], d);
       for (int i = 0; i < kTanks; ++i)
-        if (node_of_[i] < 0 && df[i] != 0.0) return false;  // off the conduit: constant
+        if (node_of_[i] < 0 && df(i, d) != 0.0) return false;  // not affine as assumed
       root_nodes_.col(d) = AsVector(RootFunctions(moved, u, p, mode)) - g0;
     }
     // Tanks off the conduit fall at their constant rate: a direction each.
@@ -169,13 +188,21 @@ class ModeSolution {
       moved[i] += 1.0;
       root_off_.col(i) = AsVector(RootFunctions(moved, u, p, mode)) - g0;
     }
-    // M = C^-1 L: C^1/2 M C^-1/2 is symmetric (checked to rounding).
-    root_area_ = area.cwiseSqrt();
+    return Decompose(m, area);
+  }
+
+  // M = V diag(lambda) V^-1 with real lambda. Usually M = C^-1 L (a star of
+  // conductances): C^1/2 M C^-1/2 is symmetric, and its eigenvectors give V
+  // at once. With a driven tank (above) M is not of that kind: a general
+  // eigendecomposition, accepted if its eigenvalues are real and V is well
+  // conditioned (else CVODE integrates the mode).
+  bool Decompose(const NodeMatrix& m, const NodeVector& area) {
+    const NodeVector root_area = area.cwiseSqrt();
     NodeMatrix s(nodes_, nodes_);
     double largest = 0, asymmetry = 0;
     for (int i = 0; i < nodes_; ++i)
       for (int j = 0; j < nodes_; ++j) {
-        s(i, j) = root_area_[i] * m(i, j) / root_area_[j];
+        s(i, j) = root_area[i] * m(i, j) / root_area[j];
         largest = std::max(largest, std::abs(s(i, j)));
       }
     for (int i = 0; i < nodes_; ++i)
@@ -183,11 +210,23 @@ class ModeSolution {
         asymmetry = std::max(asymmetry, std::abs(s(i, j) - s(j, i)));
         s(i, j) = s(j, i) = 0.5 * (s(i, j) + s(j, i));
       }
-    if (asymmetry > 1e-12 * largest) return false;
-    const Eigen::SelfAdjointEigenSolver<NodeMatrix> eigen(s);
+    if (asymmetry <= 1e-12 * largest) {
+      const Eigen::SelfAdjointEigenSolver<NodeMatrix> eigen(s);
+      if (eigen.info() != Eigen::Success) return false;
+      lambda_ = eigen.eigenvalues();
+      vectors_ = root_area.cwiseInverse().asDiagonal() * eigen.eigenvectors();
+      inverse_ = eigen.eigenvectors().transpose() * root_area.asDiagonal();
+      return true;
+    }
+    const Eigen::EigenSolver<NodeMatrix> eigen(m);
     if (eigen.info() != Eigen::Success) return false;
-    lambda_ = eigen.eigenvalues();
-    vectors_ = eigen.eigenvectors();
+    const double scale = std::max(m.cwiseAbs().maxCoeff(), 1e-300);
+    if (eigen.eigenvalues().imag().cwiseAbs().maxCoeff() > 1e-12 * scale) return false;
+    lambda_ = eigen.eigenvalues().real();
+    vectors_ = eigen.eigenvectors().real();
+    const Eigen::FullPivLU<NodeMatrix> lu(vectors_);
+    if (lu.rcond() < 1e-8) return false;  // nearly defective: no good eigenbasis
+    inverse_ = lu.inverse();
     return true;
   }
 
@@ -202,8 +241,8 @@ class ModeSolution {
     linear_ = root_off_ * rate_;
     NodeVector f_nodes(nodes_);
     for (int k = 0; k < nodes_; ++k) f_nodes[k] = f0[representative_[k]];
-    const NodeVector a = vectors_.transpose() * root_area_.cwiseProduct(f_nodes);
-    spread_ = root_area_.cwiseInverse().asDiagonal() * vectors_ * a.asDiagonal();
+    const NodeVector a = inverse_ * f_nodes;
+    spread_ = vectors_ * a.asDiagonal();
     roots_ = root_nodes_ * spread_;
     // As CVODE at a restart: a function not positive where the mode begins is
     // not watched (the level roots carry an offset so that an empty tank's is)
@@ -225,8 +264,8 @@ class ModeSolution {
   int nodes_ = 0;
   std::array<int, kTanks> node_of_{};
   int representative_[kTanks] = {};
-  NodeVector root_area_, lambda_;
-  NodeMatrix vectors_;
+  NodeVector lambda_;
+  NodeMatrix vectors_, inverse_;  // M = vectors_ diag(lambda_) inverse_
   RootMatrix root_nodes_;
   Eigen::Matrix<double, kNumRoots, kTanks> root_off_;
   // the solution from x0_
