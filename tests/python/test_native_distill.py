@@ -104,3 +104,14 @@ def test_the_fit_does_not_depend_on_where_the_weights_lie_in_memory():
                        weights.numpy(), orders, 128, 1e-3, 0.5)
         results.add(params.tobytes())
     assert len(results) == 1
+
+
+def test_no_epochs_fit_nothing_as_the_numpy_fit():
+    states, labels, _ = _data(50)
+    for fit in (numpy_distill, native_distill):
+        policy = ActorCritic()
+        before = [p.detach().clone() for p in policy.parameters()]
+        loss, epochs = fit(policy, states, labels, epochs=0, minibatch=16, lr=1e-3,
+                           max_grad_norm=0.5, generator=torch.Generator().manual_seed(0))
+        assert epochs == 0 and np.isnan(loss)
+        assert all(torch.equal(a, b) for a, b in zip(before, policy.parameters()))

@@ -70,6 +70,8 @@ def native_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Ten
     Returns the last minibatch's loss and the epochs run."""
     from ftc import _learn  # native: built beside ftc._core
 
+    if epochs <= 0:  # nothing to fit (numpy_distill's answer)
+        return float("nan"), 0
     net = _Net(policy)
     k = net.size("trunk", "pi")  # the trunk then the policy head lead the flat vectors
     widths = {name: [layers[0][0].shape[0]] + [w.shape[1] for w, _ in layers]
