@@ -329,8 +329,9 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
       double a = lo, b = first_hi, fa = at_lo[m], fb = solution.Root(m, b);
       if (fb > 0.0) continue;  // crosses after the earliest found so far
       int kept = 0;            // the end that moved last: -1 a, +1 b
-      while (b - a > kRootWidth * std::max(1.0, b)) {
-        double c = (a * fb - b * fa) / (fb - fa);
+      for (int iteration = 0; b - a > kRootWidth * std::max(1.0, b); ++iteration) {
+        // (after 60 false-position steps, bisection: at most 60 more to the width)
+        double c = iteration < 60 ? (a * fb - b * fa) / (fb - fa) : 0.5 * (a + b);
         if (!(c > a && c < b)) c = 0.5 * (a + b);
         const double fc = solution.Root(m, c);
         if (fc <= 0.0) {
