@@ -257,8 +257,7 @@ def _distill_step(fit: Callable, epochs: int = 10) -> float:
 def bench_robust(rounds: int) -> list[Figure]:
     from ftc import _core
     from ftc.experiments.methods import METHODS
-    from ftc.learning.distill import native_distill
-    from ftc.learning.ppo_numpy import numpy_distill
+    from ftc.learning.ppo_numpy import native_distill, numpy_distill
 
     rng = np.random.default_rng(0)
     x, u = rng.uniform(0.0, 1.0, (512, 6)), rng.integers(0, 2, (512, 6))

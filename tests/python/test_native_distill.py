@@ -14,9 +14,8 @@ import pytest
 import torch
 
 from ftc import _learn
-from ftc.learning.distill import native_distill
 from ftc.learning.ppo import ActorCritic
-from ftc.learning.ppo_numpy import numpy_distill
+from ftc.learning.ppo_numpy import native_distill, numpy_distill
 
 
 def _data(n: int = 700):

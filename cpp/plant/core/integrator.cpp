@@ -54,21 +54,12 @@ namespace {
 constexpr int kStateSize = 2 * kTanks + kEngines;  // x, S, D
 constexpr int kSupplyOffset = kTanks;
 constexpr int kDeficitOffset = 2 * kTanks;
-// Levels below this (m) are set to exactly 0 at segment boundaries; each snap
-// moves at most 1e-12 m^3 of fuel, well inside the conservation tests' 1e-10.
-constexpr double kEmptySnap = 1e-12;
-
 // What the callbacks see: the problem of the current segment.
 struct ProblemData {
   PlantParams params;
   Valves valves = Valves::Zero();
   Mode mode;
 };
-
-bool SameParams(const PlantParams& a, const PlantParams& b) {
-  return a.g == b.g && a.height == b.height && a.area == b.area &&
-         a.resistance == b.resistance && a.pump == b.pump && a.demand == b.demand;
-}
 
 Vec6 Levels(N_Vector y) {
   return Eigen::Map<const Vec6>(N_VGetArrayPointer(y));
@@ -191,21 +182,9 @@ StepResult StepIntegrator::Step(const Vec6& x0, const Valves& u, const PlantPara
   if (!(dt > 0)) throw std::invalid_argument("StepIntegrator::Step: dt must be > 0");
   Impl& m = *impl_;
   realtype* y = N_VGetArrayPointer(m.y.get());
-  const auto height = p.height;
-  // Levels within kEmptySnap of the bottom are empty: rounding leaves such
-  // residues when a tank empties exactly at the end of a step, and a pump
-  // switching on and off over 1e-16 m would only feed CVODE noise. Returns
-  // whether any level changed.
-  const auto clamp_levels = [&]() {
-    bool changed = false;
-    for (int i = 0; i < kTanks; ++i) {
-      double v = std::clamp(y[i], 0.0, height[i]);
-      if (v < kEmptySnap) v = 0.0;
-      changed = changed || v != y[i];
-      y[i] = v;
-    }
-    return changed;
-  };
+  // Levels within kEmptySnap of the bottom are empty (params.h): a pump
+  // switching on and off over 1e-16 m would only feed CVODE noise.
+  const auto clamp_levels = [&]() { return ClampLevels(y, p.height); };
 
   // A step that starts exactly where the previous one ended, under the same
   // valves and parameters, continues the integration: the field is the same

@@ -28,8 +28,6 @@
 namespace ftc {
 namespace {
 
-// Levels below this (m) count as empty, as in the integrator's snap.
-constexpr double kEmptySnap = 1e-12;
 // Samples per segment at which the root functions' signs are checked (CVODE
 // checks at its own steps: 1-12 per second).
 constexpr int kGrid = 8;
@@ -40,14 +38,6 @@ using NodeMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, kTan
 using NodeVector = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kTanks, 1>;
 using RootMatrix = Eigen::Matrix<double, kNumRoots, Eigen::Dynamic, 0, kNumRoots, kTanks>;
 using RootVector = Eigen::Matrix<double, kNumRoots, 1>;
-
-void Clamp(Vec6* x, const PlantParams& p) {
-  for (int i = 0; i < kTanks; ++i) {
-    double v = std::clamp((*x)[i], 0.0, p.height[i]);
-    if (v < kEmptySnap) v = 0.0;
-    (*x)[i] = v;
-  }
-}
 
 // (e^{lambda t} - 1) / lambda, and t where lambda is 0.
 double Psi(double lambda, double t) { return lambda == 0.0 ? t : std::expm1(lambda * t) / lambda; }
@@ -68,7 +58,7 @@ class ModeSolution {
   // demand; a pinned tank whose supply moves a level off the conduit, which
   // breaks the symmetry) or M is not the symmetric kind.
   bool Build(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
-    if (!(prepared_ && SameMode(mode) && u == valves_ && SameParams(p))) {
+    if (!(prepared_ && SameMode(mode) && u == valves_ && SameParams(p, params_))) {
       prepared_ = false;
       if (!Prepare(x, u, p, mode)) return false;
       mode_ = mode;
@@ -105,12 +95,6 @@ class ModeSolution {
   bool SameMode(const Mode& m) const {
     return m.source == mode_.source && m.sink == mode_.sink && m.pinned == mode_.pinned &&
            m.pumping == mode_.pumping;
-  }
-
-  bool SameParams(const PlantParams& p) const {
-    return p.g == params_.g && p.height == params_.height && p.area == params_.area &&
-           p.resistance == params_.resistance && p.pump == params_.pump &&
-           p.demand == params_.demand;
   }
 
   // What does not depend on x within the mode: the nodes, M's eigenvectors, the
@@ -295,7 +279,7 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
                                      double dt, int max_events) {
   LinearStepResult r;
   r.x = x0;
-  Clamp(&r.x, p);
+  ClampLevels(r.x.data(), p.height);
   ModeSolution& solution = impl_->solution;
   while (r.t < dt) {
     const Mode mode = ComputeMode(r.x, u, p);
@@ -356,14 +340,14 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
     r.x = solution.Levels(hi);
     for (int i = 0; i < kTanks; ++i)
       if (solution.Watched(i) && g[i] <= 0.0) r.x[i] = 0.0;  // located at its bottom: empty
-    Clamp(&r.x, p);
+    ClampLevels(r.x.data(), p.height);
     r.t = hi >= remaining ? dt : r.t + hi;
     if (++r.events > max_events) {
       throw std::runtime_error("LinearConduitStep: more than " + std::to_string(max_events) +
                                " mode switches in one step (chattering)");
     }
   }
-  Clamp(&r.x, p);
+  ClampLevels(r.x.data(), p.height);
   return r;
 }
 

@@ -4,6 +4,8 @@
 
 #include <Eigen/Core>
 
+#include <algorithm>
+
 namespace ftc {
 
 constexpr int kTanks = 6;
@@ -22,6 +24,31 @@ struct PlantParams {
   Vec6 pump = Vec6::Constant(0.1);         // pump capacity p_i, m^3/s
   Vec2 demand = Vec2::Constant(0.05);      // engine demand d_j, m^3/s
 };
+
+// Whether two parameter sets are the same, field by field.
+inline bool SameParams(const PlantParams& a, const PlantParams& b) {
+  return a.g == b.g && a.height == b.height && a.area == b.area &&
+         a.resistance == b.resistance && a.pump == b.pump && a.demand == b.demand;
+}
+
+// Levels below this (m) are empty: set to exactly 0 at segment boundaries;
+// each snap moves at most 1e-12 m^3 of fuel, well inside the conservation
+// tests' 1e-10.
+constexpr double kEmptySnap = 1e-12;
+
+// Clamps six levels x[0..5] to [0, height] and snaps those below kEmptySnap to
+// 0 (rounding leaves such residues where a tank empties exactly at the end of
+// a step). Returns whether any level changed.
+inline bool ClampLevels(double* x, const Vec6& height) {
+  bool changed = false;
+  for (int i = 0; i < kTanks; ++i) {
+    double v = std::clamp(x[i], 0.0, height[i]);
+    if (v < kEmptySnap) v = 0.0;
+    changed = changed || v != x[i];
+    x[i] = v;
+  }
+  return changed;
+}
 
 // Moment arms of the tanks about the fuselage axis (tank spacing units).
 inline Vec6 MomentArms() {

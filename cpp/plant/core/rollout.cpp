@@ -26,9 +26,6 @@
 namespace ftc {
 namespace {
 
-// Levels below this (m) count as empty, as in the integrator's snap.
-constexpr double kEmptySnap = 1e-12;
-
 int OpenCount(const Valves& u) { return static_cast<int>((u.array() != 0).count()); }
 
 std::uint8_t Code(const Valves& u) {

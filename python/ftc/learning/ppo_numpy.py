@@ -382,3 +382,30 @@ def numpy_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tens
             break
     net.store()
     return loss, ran
+
+
+def native_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
+                   epochs: int, minibatch: int, lr: float, max_grad_norm: float,
+                   generator: torch.Generator, stop_loss: float = 0.0,
+                   weights: torch.Tensor | None = None) -> tuple[float, int]:
+    """:func:`numpy_distill` in C++ (``ftc._learn``,
+    cpp/learning/tanh_mlp.cpp): the same minibatches (one permutation per epoch
+    from ``generator``, drawn up front: the generator is the fit's own), loss,
+    clip and Adam; float32 rounding differs (tests/python/test_native_distill.py).
+    Returns the last minibatch's loss and the epochs run."""
+    from ftc import _learn  # native: built beside ftc._core
+
+    if epochs <= 0:  # nothing to fit (numpy_distill's answer)
+        return float("nan"), 0
+    net = _Net(policy)
+    k = net.size("trunk", "pi")  # the trunk then the policy head lead the flat vectors
+    widths = {name: [layers[0][0].shape[0]] + [w.shape[1] for w, _ in layers]
+              for name, layers in net.layers.items()}
+    as32 = lambda t: np.ascontiguousarray(t.detach().numpy(), dtype=np.float32)  # noqa: E731
+    n = len(states)
+    orders = np.stack([torch.randperm(n, generator=generator).numpy() for _ in range(epochs)])
+    loss, ran, _steps = _learn.distill(net.flat[:k], widths["trunk"], widths["pi"], as32(states),
+                                       as32(actions), None if weights is None else as32(weights),
+                                       orders, minibatch, lr, max_grad_norm, stop_loss)
+    net.store()
+    return loss, ran
