@@ -55,8 +55,7 @@ class ModeSolution {
   // and parameters are the same (M, its eigenvectors and the roots' gradients
   // do not depend on x within a mode). Returns false where the mode is not
   // handled (a pinned tank upstream of a pump that cannot cover its engine's
-  // demand; a pinned tank whose supply moves a level off the conduit, which
-  // breaks the symmetry) or M is not the symmetric kind.
+  // demand) or M has no real, well-conditioned eigenbasis.
   bool Build(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
     if (!(prepared_ && SameMode(mode) && u == valves_ && SameParams(p, params_))) {
       prepared_ = false;

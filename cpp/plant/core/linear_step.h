@@ -1,14 +1,16 @@
 // Closed-form steps with the conduit active, for batch rollouts (rollout.h).
 //
-// Within a mode the field is affine in the levels (dynamics.cpp), and its conduit part is a star of conductances g / R_k between the
-// source group (its tanks tied, falling together) and each sink: x' = M x + b
+// Within a mode the field is affine in the levels (dynamics.cpp), and its
+// conduit part is a star of conductances g / R_k between the source group (its tanks tied, falling together) and each sink: x' = M x + b
 // with M = C^-1 L, L symmetric and C the nodes' areas (a pinned tank, held
 // at 0, is a conductance from the group to the ground). So the levels follow
 // exponentials, x(t) = x0 + V diag((e^{lambda t} - 1) / lambda) V^-1 f(x0),
 // from one symmetric eigendecomposition of C^1/2 M C^-1/2, and the root
 // functions (affine in x) are sums of those exponentials: their first
-// downward crossing is bracketed on a grid and bisected to rounding, where
-// CVODE locates it within its tolerances. M and b are read off the field
+// downward crossing is bracketed on a grid and located by the Illinois method
+// to rounding, where CVODE locates it within its tolerances. Where a pinned
+// tank's inflow drives a tank off the conduit, M is not of that kind and a
+// general real eigendecomposition stands in. M and b are read off the field
 // itself (dynamics.cpp stays the one statement of the physics).
 #pragma once
 
