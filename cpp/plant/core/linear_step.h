@@ -1,8 +1,9 @@
 // Closed-form steps with the conduit active, for batch rollouts (rollout.h).
 //
 // Within a mode the field is affine in the levels (dynamics.cpp), and its
-// conduit part is a star of conductances g / R_k between the source group (its tanks tied, falling together) and each sink: x' = M x + b
-// with M = C^-1 L, L symmetric and C the nodes' areas (a pinned tank, held
+// conduit part is a star of conductances g / R_k between the source group
+// (its tanks tied, falling together) and each sink: x' = M x + b with
+// M = C^-1 L, L symmetric and C the nodes' areas (a pinned tank, held
 // at 0, is a conductance from the group to the ground). So the levels follow
 // exponentials, x(t) = x0 + V diag((e^{lambda t} - 1) / lambda) V^-1 f(x0),
 // from one symmetric eigendecomposition of C^1/2 M C^-1/2, and the root
