@@ -26,6 +26,10 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             step) with two OpenBLAS threads over one (ftc pins one)
   step_each_over_run        the identifier's one-step predictions of 512 rows, one
                             _core.run call per row over one step_each call
+  plan_closed_form_ms       one decision of ppo-robust's planner (64 hold candidates x 10
+                            steps, degraded random-08 physics) with the conduit's steps
+                            in closed form (linear_step.cpp), as its teacher plans
+  plan_cvode_over_closed_form  the same decision with CVODE over the closed form
   distill_step_us           one Adam step of ppo-robust's behaviour cloning (128 rows) in
                             C++ (ftc._learn, the NumPy engine's default)
   distill_numpy_over_native the same step in NumPy (numpy_distill) over the C++ one
@@ -254,6 +258,27 @@ def _distill_step(fit: Callable, epochs: int = 10) -> float:
     return (time.perf_counter() - start) / (epochs * 24)
 
 
+def _plans(closed_form: bool, count: int = 200) -> float:
+    """Seconds per plan of the teacher's planner at ``count`` random levels."""
+    from ftc import _core
+    from ftc.control.planners import HoldPlanner, ParamsEvaluator
+    from ftc.experiments.suite import write_suite
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = next(p for p in write_suite(Path(tmp)) if p.stem == "random-08")
+        scenario = _core.load_scenario(str(path))
+    rng = np.random.default_rng(0)
+    levels = rng.uniform(0.0, 1.0, (count, 6)) * (rng.uniform(0.0, 1.0, (count, 6)) > 0.2)
+    evaluate = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8,
+                                                  exact_active_conduit=closed_form))
+    evaluate.params = _core.degraded_params(scenario, 5.0)
+    planner = HoldPlanner(3, 10)
+    start = time.perf_counter()
+    for x in levels:
+        planner.plan(evaluate, x)
+    return (time.perf_counter() - start) / count
+
+
 def bench_robust(rounds: int) -> list[Figure]:
     from ftc import _core
     from ftc.experiments.methods import METHODS
@@ -279,6 +304,7 @@ def bench_robust(rounds: int) -> list[Figure]:
                                            per_row, each)
     native, numpy_steps = _median_rounds(rounds, lambda: _distill_step(native_distill),
                                          lambda: _distill_step(numpy_distill))
+    closed, cvode = _median_rounds(rounds, lambda: _plans(True), lambda: _plans(False))
     robust = ["-m", "ftc.controller", *METHODS["ppo-robust"].args, "--scenario", SINGLE,
               "--seed", "0", "--intervals", "3", "--link", "core", "--quiet"]
     _run(robust)  # fills the pretraining cache if it is cold
@@ -286,6 +312,9 @@ def bench_robust(rounds: int) -> list[Figure]:
     med = statistics.median
     return [Figure("blas_two_over_one_thread", med(two) / med(one), "ratio"),
             Figure("step_each_over_run", med(rows) / med(batch), "ratio"),
+            Figure("plan_closed_form_ms", med(closed) * 1e3, "ms",
+                   rounds=[r * 1e3 for r in closed]),
+            Figure("plan_cvode_over_closed_form", med(cvode) / med(closed), "ratio"),
             Figure("distill_step_us", med(native) * 1e6, "us", rounds=[r * 1e6 for r in native]),
             Figure("distill_numpy_over_native", med(numpy_steps) / med(native), "ratio"),
             Figure("robust_run_3_intervals_s", med(run), "s", rounds=run)]
