@@ -16,8 +16,10 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
   online_policy_over_echo   the same with the PPO policy choosing every valve, over
                             the echo floor, aim >= 0.5
   offline_model_steps_per_s offline PPO on the world model (16 rollouts, updates
-                            included, as the offline phase runs it), aim >= 50,000
-  offline_numpy_over_torch  that rate with the NumPy PPO update over the torch one
+                            included, as the offline phase runs it) with the NumPy
+                            engine (C++ PPO epochs and acting, NumPy model steps),
+                            aim >= 50,000
+  offline_numpy_over_torch  that rate over the same with the torch engine
   refit_s / refit_numpy_over_torch   a warm world-model refit on one interval
   ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
                             pretraining cached, in-process / over LCM, aims 10 / 15 s
@@ -204,7 +206,7 @@ def bench_learning(rounds: int) -> list[Figure]:
 
         def run() -> float:
             ppo = PPO(PPOConfig(minibatch_size=64, engine=engine), seed=0)
-            env = ModelEnv(model, 16, demand, max_episode_steps=512, seed=0)
+            env = ModelEnv(model, 16, demand, max_episode_steps=512, seed=0, engine=engine)
             start = time.perf_counter()
             _, _, steps = train_on_env(ppo, env, 2048, 64)
             return steps / (time.perf_counter() - start)

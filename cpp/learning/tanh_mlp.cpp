@@ -75,18 +75,21 @@ void TanhChain::Backward(const MatrixRM& d_output, MatrixRM* d_input) {
   if (d_input != nullptr) d_input->swap(delta_);
 }
 
-namespace {
-
-// log(1 + e^l), without overflow.
-float Softplus(float l) { return std::max(l, 0.0f) + std::log1p(std::exp(-std::abs(l))); }
-
-float Sigmoid(float l) {
-  if (l >= 0) return 1.0f / (1.0f + std::exp(-l));
-  const float e = std::exp(l);
-  return e / (1.0f + e);
+void AdamStep(Eigen::ArrayXf& p, const Eigen::ArrayXf& g, Eigen::ArrayXf& m, Eigen::ArrayXf& v,
+              std::int64_t t, double lr, double beta1, double beta2, double eps) {
+  const auto step = static_cast<double>(t);
+  const auto step_size = static_cast<float>(lr / (1.0 - std::pow(beta1, step)));
+  const auto root_correction = static_cast<float>(std::sqrt(1.0 - std::pow(beta2, step)));
+  m = static_cast<float>(beta1) * m + static_cast<float>(1.0 - beta1) * g;
+  v = static_cast<float>(beta2) * v + static_cast<float>(1.0 - beta2) * g.square();
+  p -= step_size * (m / (v.sqrt() / root_correction + static_cast<float>(eps)));
 }
 
-}  // namespace
+void ClipNorm(Eigen::ArrayXf& g, double max_norm) {
+  const double norm = std::sqrt(static_cast<double>(g.matrix().squaredNorm()));
+  const double clip = max_norm / (norm + 1e-6);
+  if (clip < 1.0) g *= static_cast<float>(clip);
+}
 
 DistillResult Distill(float* params, const std::vector<int>& trunk, const std::vector<int>& head,
                       const float* x, const float* y, const float* w, int n,
@@ -150,17 +153,10 @@ DistillResult Distill(float* params, const std::vector<int>& trunk, const std::v
       policy.Backward(d_logits, &d_trunk);
       body.Backward(d_trunk, nullptr);
 
-      // the global norm clip, then Adam with torch's formulae, on whole vectors
-      const double norm = std::sqrt(static_cast<double>(grads.matrix().squaredNorm()));
-      const double clip = options.max_grad_norm / (norm + 1e-6);
-      if (clip < 1.0) grads *= static_cast<float>(clip);
+      // the global norm clip, then Adam, on whole vectors
+      ClipNorm(grads, options.max_grad_norm);
       ++result.steps;
-      const auto t = static_cast<double>(result.steps);
-      const auto step_size = static_cast<float>(options.lr / (1.0 - std::pow(0.9, t)));
-      const auto root_correction = static_cast<float>(std::sqrt(1.0 - std::pow(0.999, t)));
-      m = 0.9f * m + 0.1f * grads;
-      v = 0.999f * v + 0.001f * grads.square();
-      p -= step_size * (m / (v.sqrt() / root_correction + static_cast<float>(options.adam_eps)));
+      AdamStep(p, grads, m, v, result.steps, options.lr, 0.9, 0.999, options.adam_eps);
     }
     ++result.epochs;
     if (total / batches < options.stop_loss) break;

@@ -9,6 +9,8 @@
 // is a few tens of microseconds. See docs/benchmarks.md (sixth round).
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <vector>
 
@@ -17,6 +19,24 @@
 namespace ftc::learn {
 
 using MatrixRM = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+// log(1 + e^l), without overflow.
+inline float Softplus(float l) { return std::max(l, 0.0f) + std::log1p(std::exp(-std::abs(l))); }
+
+inline float Sigmoid(float l) {
+  if (l >= 0) return 1.0f / (1.0f + std::exp(-l));
+  const float e = std::exp(l);
+  return e / (1.0f + e);
+}
+
+// Adam's update of p from the gradient g with moments m, v at step t (1 for
+// the first), torch's formulae; whole vectors.
+void AdamStep(Eigen::ArrayXf& p, const Eigen::ArrayXf& g, Eigen::ArrayXf& m, Eigen::ArrayXf& v,
+              std::int64_t t, double lr, double beta1, double beta2, double eps);
+
+// Scales g so that its L2 norm is at most max_norm (torch's clip_grad_norm_:
+// the factor max_norm / (norm + 1e-6), applied only when below 1).
+void ClipNorm(Eigen::ArrayXf& g, double max_norm);
 
 // Dense layers x -> tanh(x W1 + b1) -> ... -> x Wn + bn (tanh after the last
 // too if tanh_last), on parameters and gradients held elsewhere (views).

@@ -220,52 +220,93 @@ class _Adam:
                                        "exp_avg": back(self.m), "exp_avg_sq": back(self.v)}
 
 
+def _widths(net: _Net) -> dict[str, list[int]]:
+    """Each part's input width, then its layers' output widths."""
+    return {name: [layers[0][0].shape[0]] + [w.shape[1] for w, _ in layers]
+            for name, layers in net.layers.items()}
+
+
+def _native_epoch(net: _Net, opt: _Adam, config: PPOConfig, minibatch: int, order: np.ndarray,
+                  obs: np.ndarray, actions: np.ndarray, old_logprobs: np.ndarray,
+                  advantages: np.ndarray, returns: np.ndarray):
+    """One epoch of numpy_ppo_update's gradient steps in C++: (approx_kl and
+    clipfrac per minibatch, the last policy and value losses, Adam's step count)."""
+    from ftc import _learn  # native: built beside ftc._core
+
+    widths = _widths(net)
+    return _learn.ppo_epoch(
+        net.flat, opt.m, opt.v, opt.t, widths["trunk"], widths["pi"], widths["v"], obs, actions,
+        old_logprobs, advantages, returns, np.ascontiguousarray(order, dtype=np.int64),
+        minibatch=minibatch, clip_coef=config.clip_coef, ent_coef=config.ent_coef,
+        vf_coef=config.vf_coef, max_grad_norm=config.max_grad_norm, norm_adv=config.norm_adv,
+        lr=opt.lr, beta1=opt.beta1, beta2=opt.beta2, eps=opt.eps)
+
+
+def _numpy_epoch(net: _Net, opt: _Adam, config: PPOConfig, minibatch: int, order: np.ndarray,
+                 obs: np.ndarray, actions: np.ndarray, old_logprobs: np.ndarray,
+                 advantages: np.ndarray, returns: np.ndarray):
+    """:func:`_native_epoch` in NumPy: the reference."""
+    kls, clipfracs = [], []
+    pg_loss = v_loss = 0.0
+    for start in range(0, len(order), minibatch):
+        idx = order[start:start + minibatch]
+        n = len(idx)
+        logits, value, cache = net.forward(obs[idx])
+        a = actions[idx]
+        logprob = log_prob(logits, a)
+        log_ratio = logprob - old_logprobs[idx]
+        ratio = np.exp(log_ratio)
+        kls.append(float(np.mean((ratio - 1.0) - log_ratio)))
+        clipfracs.append(float(np.mean(np.abs(ratio - 1.0) > config.clip_coef)))
+
+        adv = advantages[idx]
+        if config.norm_adv and n > 1:
+            adv = (adv - adv.mean()) / (adv.std(ddof=1) + 1e-8)
+        unclipped = -adv * ratio
+        clipped = -adv * np.clip(ratio, 1.0 - config.clip_coef, 1.0 + config.clip_coef)
+        pg_loss = float(np.mean(np.maximum(unclipped, clipped)))
+        v_loss = float(0.5 * np.mean((value - returns[idx]) ** 2))
+
+        # d loss / d logprob: through the ratio wherever the unclipped term is
+        # the max (where the two are equal the clip is inactive: the same slope)
+        d_logprob = np.where(unclipped >= clipped, unclipped, 0.0) / n
+        sig = _sigmoid(logits)
+        d_logits = d_logprob[:, None] * (a - sig) \
+            + (config.ent_coef / n) * sig * (1.0 - sig) * logits
+        d_value = config.vf_coef * (value - returns[idx]) / n
+        grad = net.backward(cache, d_logits.astype(np.float32), d_value.astype(np.float32))
+        scale = config.max_grad_norm / (net.norm(len(grad)) + 1e-6)
+        if scale < 1.0:
+            grad *= np.float32(scale)
+        opt.step(grad)
+    return np.array(kls), np.array(clipfracs), pg_loss, v_loss, opt.t
+
+
 def numpy_ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batch,
                      config: PPOConfig, generator: torch.Generator | None,
-                     stats_type: type[UpdateStats]) -> UpdateStats:
-    """:func:`ftc.learning.ppo.ppo_update` in NumPy (same arguments, same stats)."""
-    net, opt = _Net(policy), None
+                     stats_type: type[UpdateStats], *, native: bool = True) -> UpdateStats:
+    """:func:`ftc.learning.ppo.ppo_update` in NumPy (same arguments, same stats).
+
+    ``native``: each epoch's gradient steps run in C++ (``ftc._learn.ppo_epoch``,
+    cpp/learning/ppo_update.cpp: the same minibatches, loss, clip and Adam,
+    float32 rounding differs); False: in NumPy below, the reference that
+    tests/python/test_native_ppo.py holds the C++ to."""
+    net = _Net(policy)
     opt = _Adam(optimizer, net)
     obs, actions, old_logprobs, values, advantages, returns = (
-        t.detach().numpy().astype(np.float32, copy=False) for t in batch)
+        np.ascontiguousarray(t.detach().numpy(), dtype=np.float32) for t in batch)
     B = obs.shape[0]
     mb = min(config.minibatch_size, B)
     kls, clipfracs, steps = [], [], 0
     pg_loss = v_loss = 0.0
+    epoch = _native_epoch if native else _numpy_epoch
     for _epoch in range(config.update_epochs):
         order = torch.randperm(B, generator=generator).numpy()
-        for start in range(0, B, mb):
-            idx = order[start:start + mb]
-            n = len(idx)
-            logits, value, cache = net.forward(obs[idx])
-            a = actions[idx]
-            logprob, entropy = log_prob_entropy(logits, a)
-            log_ratio = logprob - old_logprobs[idx]
-            ratio = np.exp(log_ratio)
-            kls.append(float(np.mean((ratio - 1.0) - log_ratio)))
-            clipfracs.append(float(np.mean(np.abs(ratio - 1.0) > config.clip_coef)))
-
-            adv = advantages[idx]
-            if config.norm_adv and n > 1:
-                adv = (adv - adv.mean()) / (adv.std(ddof=1) + 1e-8)
-            unclipped = -adv * ratio
-            clipped = -adv * np.clip(ratio, 1.0 - config.clip_coef, 1.0 + config.clip_coef)
-            pg_loss = float(np.mean(np.maximum(unclipped, clipped)))
-            v_loss = float(0.5 * np.mean((value - returns[idx]) ** 2))
-
-            # d loss / d logprob: through the ratio wherever the unclipped term is
-            # the max (where the two are equal the clip is inactive: the same slope)
-            d_logprob = np.where(unclipped >= clipped, unclipped, 0.0) / n
-            sig = _sigmoid(logits)
-            d_logits = d_logprob[:, None] * (a - sig) \
-                + (config.ent_coef / n) * sig * (1.0 - sig) * logits
-            d_value = config.vf_coef * (value - returns[idx]) / n
-            grad = net.backward(cache, d_logits.astype(np.float32), d_value.astype(np.float32))
-            scale = config.max_grad_norm / (net.norm(len(grad)) + 1e-6)
-            if scale < 1.0:
-                grad *= np.float32(scale)
-            opt.step(grad)
-            steps += 1
+        kl, clipfrac, pg_loss, v_loss, opt.t = epoch(
+            net, opt, config, mb, order, obs, actions, old_logprobs, advantages, returns)
+        kls += kl.tolist()
+        clipfracs += clipfrac.tolist()
+        steps += len(kl)
         if config.target_kl is not None and np.mean(kls[-math.ceil(B / mb):]) > config.target_kl:
             break
     net.store()
@@ -282,24 +323,35 @@ def numpy_ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batc
 
 
 class NumpyActor:
-    """The actor-critic's forward pass for acting, on NumPy views that share
-    memory with the torch parameters (so it always sees the current weights:
-    updates, ``load_state_dict`` and optimiser steps all write in place).
+    """The actor-critic's forward pass for acting, reading the torch parameters
+    in place (so it always sees the current weights: updates,
+    ``load_state_dict`` and optimiser steps all write in place).
 
-    Sampling draws from the PPO's torch generator with ``torch.bernoulli``, as
+    ``native`` (the default): the forward pass and the log-probabilities in C++
+    (``ftc._learn.Actor``, cpp/learning/ppo_update.cpp), two calls per act;
+    False: in NumPy on views of the weights, the reference. Sampling draws
+    from the PPO's torch generator with ``torch.bernoulli``, as
     :meth:`ActorCritic.act` does, so the generator's stream is unchanged; the
-    probabilities, log-probabilities and values are float32 NumPy results
-    (rounding differs from torch's, ~1e-7).
+    probabilities, log-probabilities and values are float32 results whose
+    rounding differs from torch's (~1e-7).
     """
 
-    def __init__(self, policy: ActorCritic) -> None:
-        def views(module: nn.Module) -> list[tuple[np.ndarray, np.ndarray]]:
-            # W.T as a view (no copy): the same operands x @ W.T always saw
-            return [(m.weight.detach().numpy().T, m.bias.detach().numpy())
-                    for m in module.modules() if isinstance(m, nn.Linear)]
+    def __init__(self, policy: ActorCritic, native: bool = True) -> None:
+        def linears(module: nn.Module) -> list[nn.Linear]:
+            return [m for m in module.modules() if isinstance(m, nn.Linear)]
 
-        self.trunk, self.pi, self.v = (views(policy.trunk), views(policy.policy_head),
-                                       views(policy.value_head))
+        parts = [linears(m) for m in (policy.trunk, policy.policy_head, policy.value_head)]
+        # W.T as a view (no copy): the same operands x @ W.T always saw
+        self.trunk, self.pi, self.v = ([(m.weight.detach().numpy().T, m.bias.detach().numpy())
+                                        for m in part] for part in parts)
+        self._native = None
+        if native:
+            from ftc import _learn  # native: built beside ftc._core
+
+            widths = [[part[0].in_features] + [m.out_features for m in part] for part in parts]
+            self._native = _learn.Actor(*widths, [p.detach().numpy() for part in parts
+                                                  for m in part for p in (m.weight, m.bias)])
+            self._log_prob = _learn.log_prob
 
     @staticmethod
     def _head(h: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -308,24 +360,33 @@ class NumpyActor:
         w, b = layers[-1]
         return h @ w + b
 
-    def act(self, obs: torch.Tensor, generator: torch.Generator | None,
-            deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """As :meth:`ActorCritic.act`: actions (N, 6), log-probs (N,), values (N,).
-        Acting is once per plant step, so this is the fewest NumPy calls that
-        compute it (no entropy, no copies): ``scripts/bench.py``'s
-        ``online_numpy_policy_over_echo``."""
-        h = 2.0 * obs.numpy().astype(np.float32, copy=False) - 1.0
+    def _forward(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """logits (N, 6), their sigmoids, values (N,): float32."""
+        if self._native is not None:
+            return self._native.forward(obs)
+        h = 2.0 * obs - 1.0
         for w, b in self.trunk:
             h = np.tanh(h @ w + b)
         logits = self._head(h, self.pi)
-        value = self._head(h, self.v)[:, 0]
+        return logits, _sigmoid(logits), self._head(h, self.v)[:, 0]
+
+    def act(self, obs: torch.Tensor, generator: torch.Generator | None,
+            deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As :meth:`ActorCritic.act`: actions (N, 6), log-probs (N,), values (N,).
+        Acting is once per plant step, so this is the fewest calls that compute
+        it (no entropy, no copies): ``scripts/bench.py``'s
+        ``online_numpy_policy_over_echo``."""
+        logits, probs, value = self._forward(
+            np.ascontiguousarray(obs.numpy(), dtype=np.float32))
         if deterministic:
             actions = (logits > 0).astype(np.float32)
         else:
-            probs = torch.from_numpy(_sigmoid(logits))
-            actions = torch.bernoulli(probs, generator=generator).numpy()
-        logprob = log_prob(logits, actions)
-        return (torch.from_numpy(actions), torch.from_numpy(logprob.astype(np.float32, copy=False)),
+            actions = torch.bernoulli(torch.from_numpy(probs), generator=generator).numpy()
+        if self._native is not None:
+            logprob = self._log_prob(logits, actions)
+        else:
+            logprob = log_prob(logits, actions).astype(np.float32, copy=False)
+        return (torch.from_numpy(actions), torch.from_numpy(logprob),
                 torch.from_numpy(value.astype(np.float32, copy=False)))
 
 

@@ -46,14 +46,24 @@ class SmallMLP:
     of the same structure.
     """
 
-    def __init__(self, net: nn.Sequential, adam: AdamSettings | None = None) -> None:
+    def __init__(self, net: nn.Sequential, adam: AdamSettings | None = None, *,
+                 share: bool = False) -> None:
+        """``share``: the weights are views of ``net``'s float32 parameters
+        instead of copies, so :meth:`forward` always computes with the module's
+        current weights (for acting or predicting; training would write into it)."""
+        def array(t: torch.Tensor) -> np.ndarray:
+            a = t.detach().numpy()
+            if share and a.dtype != np.float32:
+                raise ValueError(f"SmallMLP(share=True) needs float32 parameters, got {a.dtype}")
+            return a if share else a.astype(np.float32)
+
         self.weights: list[np.ndarray] = []
         self.biases: list[np.ndarray] = []
         self.activations: list[type[nn.Module] | None] = []
         for layer in net:
             if isinstance(layer, nn.Linear):
-                self.weights.append(layer.weight.detach().numpy().T.astype(np.float32))
-                self.biases.append(layer.bias.detach().numpy().astype(np.float32))
+                self.weights.append(array(layer.weight.T))
+                self.biases.append(array(layer.bias))
                 self.activations.append(None)
             elif isinstance(layer, _ACTIVATIONS) and self.activations \
                     and self.activations[-1] is None:
