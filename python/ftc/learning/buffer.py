@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from ftc.common.constants import NUM_TANKS
@@ -92,16 +93,21 @@ class RolloutBuffer:
         episode end. returns = advantages + values.
         """
         T = self.pos
-        last_gae = torch.zeros(self.num_envs)
+        # in NumPy on views of the tensors (the same float32 operations, one at
+        # a time as torch ran them, so the same bits; no per-op dispatch)
+        values, rewards = self.values.numpy(), self.rewards.numpy()
+        terminals, truncations = self.terminals.numpy(), self.truncations.numpy()
+        truncation_values, advantages = self.truncation_values.numpy(), self.advantages.numpy()
+        last = np.asarray(last_values.detach().numpy(), dtype=np.float32)
+        last_gae = np.zeros(self.num_envs, np.float32)
         for t in reversed(range(T)):
-            next_values = last_values if t == T - 1 else self.values[t + 1]
-            next_values = torch.where(self.truncations[t], self.truncation_values[t], next_values)
-            next_values = torch.where(self.terminals[t], torch.zeros_like(next_values),
-                                      next_values)
-            continues = (~(self.terminals[t] | self.truncations[t])).float()
-            delta = reward_scale * self.rewards[t] + gamma * next_values - self.values[t]
+            next_values = last if t == T - 1 else values[t + 1]
+            next_values = np.where(truncations[t], truncation_values[t], next_values)
+            next_values = np.where(terminals[t], np.float32(0.0), next_values)
+            continues = (~(terminals[t] | truncations[t])).astype(np.float32)
+            delta = reward_scale * rewards[t] + gamma * next_values - values[t]
             last_gae = delta + gamma * gae_lambda * continues * last_gae
-            self.advantages[t] = last_gae
+            advantages[t] = last_gae
         self.returns[:T] = self.advantages[:T] + self.values[:T]
 
     def batch(self) -> RolloutBatch:
