@@ -14,7 +14,8 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             plant / against an echo responder (same messages, no
                             physics), aim >= 0.8
   online_policy_over_echo   the same with the PPO policy choosing every valve, over
-                            the echo floor, aim >= 0.5
+                            the echo floor, with the default --ppo-engine, aim >= 0.5
+                            (online_torch_/online_numpy_policy_over_echo: each engine)
   offline_model_steps_per_s offline PPO on the world model (16 rollouts, updates
                             included, as the offline phase runs it) with the NumPy
                             engine (C++ PPO epochs and acting, NumPy model steps),
@@ -23,7 +24,8 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
   refit_s / refit_numpy_over_torch   a warm world-model refit on one interval
   ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
                             pretraining cached, in-process / over LCM, aims 10 / 15 s
-                            (and *_numpy_ppo_s: the same with --ppo-engine numpy)
+                            with the default --ppo-engine (and ppo_run_*_numpy_ppo_s,
+                            ppo_run_*_torch_ppo_s: each engine)
   blas_two_over_one_thread  a policy forward + backward pass on 128 states (distillation's
                             step) with two OpenBLAS threads over one (ftc pins one)
   step_each_over_run        the identifier's one-step predictions of 512 rows, one
@@ -82,6 +84,7 @@ from ftc.plant import CorePlant, LcmPlant, launch, private_lcm_url, private_pref
 
 REPO = Path(__file__).resolve().parents[1]
 SINGLE = str(REPO / "scenarios" / "single.toml")
+DEFAULT_ENGINE = PPOConfig().engine  # the controller's --ppo-engine default
 
 
 @dataclasses.dataclass
@@ -144,32 +147,33 @@ def _lockstep(link, steps: int, choose: Callable[[np.ndarray], np.ndarray]) -> f
 
 def bench_lockstep(rounds: int, steps: int = 2000) -> list[Figure]:
     rng = np.random.default_rng(0)
-    ppo = PPO(PPOConfig(), seed=0)
 
     def random_valves(_level: np.ndarray) -> np.ndarray:
         return rng.integers(0, 2, 6)
 
-    numpy_ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+    def policy(engine: str) -> Callable[[np.ndarray], np.ndarray]:
+        ppo = PPO(PPOConfig(engine=engine), seed=0)
 
-    def numpy_policy(level: np.ndarray) -> np.ndarray:
-        a, _, _ = numpy_ppo.act(torch.as_tensor(level, dtype=torch.float32).unsqueeze(0))
-        return a[0].numpy().astype(np.int8)
+        def choose(level: np.ndarray) -> np.ndarray:
+            a, _, _ = ppo.act(torch.as_tensor(level, dtype=torch.float32).unsqueeze(0))
+            return a[0].numpy().astype(np.int8)
+        return choose
 
-    def policy(level: np.ndarray) -> np.ndarray:
-        a, _, _ = ppo.act(torch.as_tensor(level, dtype=torch.float32).unsqueeze(0))
-        return a[0].numpy().astype(np.int8)
-
+    torch_policy, numpy_policy = policy("torch"), policy("numpy")
     with launch("scenarios/multiple.toml", 0) as plant, _start_echo() as echo:
         for link in (plant, echo):
             _lockstep(link, 200, random_valves)  # warm up
-        plant_r, echo_r, policy_r, numpy_r = _median_rounds(
+        plant_r, echo_r, torch_r, numpy_r = _median_rounds(
             rounds, lambda: _lockstep(plant, steps, random_valves),
             lambda: _lockstep(echo, steps, random_valves),
-            lambda: _lockstep(plant, steps, policy), lambda: _lockstep(plant, steps, numpy_policy))
-    p, e, q, n = (statistics.median(r) for r in (plant_r, echo_r, policy_r, numpy_r))
+            lambda: _lockstep(plant, steps, torch_policy),
+            lambda: _lockstep(plant, steps, numpy_policy))
+    p, e, q, n = (statistics.median(r) for r in (plant_r, echo_r, torch_r, numpy_r))
+    default = {"torch": q, "numpy": n}[DEFAULT_ENGINE]
     return [Figure("lockstep_plant_over_echo", p / e, "ratio", ">= 0.8"),
-            Figure("online_policy_over_echo", q / e, "ratio", ">= 0.5"),
-            Figure("online_numpy_policy_over_echo", n / e, "ratio", ">= 0.5"),
+            Figure("online_policy_over_echo", default / e, "ratio", ">= 0.5"),
+            Figure("online_torch_policy_over_echo", q / e, "ratio"),
+            Figure("online_numpy_policy_over_echo", n / e, "ratio"),
             Figure("lockstep_echo_steps_per_s", e, "steps/s", rounds=echo_r)]
 
 
@@ -397,16 +401,17 @@ def bench_runs(rounds: int) -> list[Figure]:
     base = ["-m", "ftc.controller", "--method", "ppo", "--pretrain", "--scenario", SINGLE,
             "--seed", "0", "--quiet"]
     _run([*base, "--link", "core"])  # fills the pretraining cache if it is cold
-    numpy = ["--ppo-engine", "numpy"]
-    core, lcm, core_np, lcm_np = _median_rounds(
-        rounds, lambda: _run([*base, "--link", "core"]), lambda: _run([*base, "--link", "lcm"]),
-        lambda: _run([*base, "--link", "core", *numpy]),
-        lambda: _run([*base, "--link", "lcm", *numpy]))
+    runs = {(link, engine): lambda link=link, engine=engine: _run(
+                [*base, "--link", link, "--ppo-engine", engine])
+            for engine in ("numpy", "torch") for link in ("core", "lcm")}
+    times = dict(zip(runs, _median_rounds(rounds, *runs.values())))
     med = statistics.median
-    return [Figure("ppo_run_core_s", med(core), "s", "<= 10", core),
-            Figure("ppo_run_lcm_s", med(lcm), "s", "<= 15", lcm),
-            Figure("ppo_run_core_numpy_ppo_s", med(core_np), "s", "<= 10", core_np),
-            Figure("ppo_run_lcm_numpy_ppo_s", med(lcm_np), "s", "<= 15", lcm_np)]
+    aims = {"core": "<= 10", "lcm": "<= 15"}
+    return ([Figure(f"ppo_run_{link}_s", med(times[link, DEFAULT_ENGINE]), "s", aims[link],
+                    times[link, DEFAULT_ENGINE]) for link in ("core", "lcm")]
+            + [Figure(f"ppo_run_{link}_{engine}_ppo_s", med(times[link, engine]), "s",
+                      rounds=times[link, engine])
+               for engine in ("numpy", "torch") for link in ("core", "lcm")])
 
 
 def bench_long() -> list[Figure]:

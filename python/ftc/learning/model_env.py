@@ -138,7 +138,7 @@ class ModelEnv:
         """:meth:`_step` in NumPy (the same formulae: WorldModel.predict, the
         reward, the episode rules)."""
         valves = np.asarray(actions.numpy(), dtype=np.float32)
-        level = self.level.numpy()
+        level = np.asarray(self.level.numpy(), dtype=np.float32)
         in_mean, in_std, out_mean, out_std = self._norm
         z = (np.concatenate([level, valves], axis=1) - in_mean) / in_std
         nxt = level + (self._mlp.forward(z) * out_std + out_mean)
