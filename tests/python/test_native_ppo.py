@@ -101,6 +101,21 @@ def test_native_acting_reads_the_weights_where_torch_keeps_them():
     torch.testing.assert_close(value, other.policy.value(obs).detach(), atol=1e-6, rtol=1e-5)
 
 
+def test_acting_follows_weights_whose_memory_moved():
+    # Pickling a tensor for another process (the background offline worker)
+    # moves its storage into shared memory and frees the old one; an actor
+    # built before would read freed memory (it did: NaN valves probabilities).
+    ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+    obs = torch.rand(4, 6, generator=torch.Generator().manual_seed(1))
+    ppo.act(obs, deterministic=True)
+    ppo.policy.share_memory()
+    ppo.policy.load_state_dict(PPO(PPOConfig(), seed=1).policy.state_dict())
+    for _ in range(3):  # reuse of the freed memory must not show either
+        torch.zeros(64, 64).fill_(float("nan"))
+        _, _, value = ppo.act(obs, deterministic=True)
+        torch.testing.assert_close(value, ppo.policy.value(obs).detach(), atol=1e-6, rtol=1e-5)
+
+
 def test_the_kernels_name_what_is_wrong():
     net = _Net(PPO(PPOConfig(), seed=0).policy)
     w = _widths(net)

@@ -26,6 +26,7 @@ nominal plant in simulation and stopped while it still explores.
 from __future__ import annotations
 
 import concurrent.futures
+import copy
 import dataclasses
 import multiprocessing
 from dataclasses import dataclass, field
@@ -292,8 +293,10 @@ class PPOAgent(Agent):
 
     def _offline_inputs(self, interval: int, data: Transitions | None = None) -> tuple:
         data = self.window.take() if data is None else data
-        return (self.ppo.state_dict(), self.ppo_config, self.model_state, self.model_fits, data,
-                self.cfg.offline_settings(), interval)
+        # copies: pickling a tensor for the background worker moves its storage into
+        # shared memory, which would move the live policy's weights under the actor
+        return (copy.deepcopy(self.ppo.state_dict()), self.ppo_config, self.model_state,
+                self.model_fits, data, self.cfg.offline_settings(), interval)
 
     def _apply(self, result: OfflineResult, interval: int) -> dict[str, Any]:
         what = f"the offline phase of interval {interval}"

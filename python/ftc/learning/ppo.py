@@ -69,12 +69,13 @@ class PPOConfig:
         "shared tanh trunk (paper)")})
     head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"check": at_least(1, 4096), "help": (
         "tanh layers of each of the policy and value heads (paper)")})
-    engine: str = field(default="torch", metadata={"choices": ("numpy", "torch"), "help": (
-        "how acting and updates are computed: torch (autograd) or numpy "
-        "(learning/ppo_numpy.py: hand-derived gradients, 2-3x faster for these tiny "
-        "networks; the same minibatches, loss, Adam and sampling stream, float32 "
-        "rounding differs and PPO amplifies it: not the default until the benchmark "
-        "suite shows its results within seed noise, docs/benchmarks.md); clip_vloss "
+    engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
+        "how acting and updates are computed: numpy (learning/ppo_numpy.py: "
+        "hand-derived gradients, inner loops in C++, ftc._learn; 3-4x faster runs for "
+        "these tiny networks; the same minibatches, loss, Adam and sampling stream; "
+        "float32 rounding differs and PPO amplifies it: the benchmark suite's results are "
+        "within seed noise of torch's, docs/benchmarks.md, seventh round) or torch "
+        "(autograd, the reference; tests/data/same_results pins it); clip_vloss "
         "uses torch")})
 
     @classmethod
@@ -309,7 +310,7 @@ class PPO:
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Actions (N, 6), log-probs (N,), values (N,) for obs (N, 6)."""
         if self.config.engine == "numpy" and not obs.requires_grad:
-            if self._actor is None or self._actor_of is not self.policy:
+            if self._actor is None or self._actor_of is not self.policy or self._actor.stale():
                 self._actor, self._actor_of = NumpyActor(self.policy), self.policy
             return self._actor.act(obs, self.generator, deterministic)
         return self.policy.act(obs, self.generator, deterministic)

@@ -349,6 +349,8 @@ class NumpyActor:
             return [m for m in module.modules() if isinstance(m, nn.Linear)]
 
         parts = [linears(m) for m in (policy.trunk, policy.policy_head, policy.value_head)]
+        self._params = [p for part in parts for m in part for p in (m.weight, m.bias)]
+        self._pointers = self._addresses()
         # W.T as a view (no copy): the same operands x @ W.T always saw
         self.trunk, self.pi, self.v = ([(m.weight.detach().numpy().T, m.bias.detach().numpy())
                                         for m in part] for part in parts)
@@ -357,9 +359,18 @@ class NumpyActor:
             from ftc import _learn  # native: built beside ftc._core
 
             widths = [[part[0].in_features] + [m.out_features for m in part] for part in parts]
-            self._native = _learn.Actor(*widths, [p.detach().numpy() for part in parts
-                                                  for m in part for p in (m.weight, m.bias)])
+            self._native = _learn.Actor(*widths, [p.detach().numpy() for p in self._params])
             self._log_prob = _learn.log_prob
+
+    def _addresses(self) -> list[int]:
+        return [p.data_ptr() for p in self._params]
+
+    def stale(self) -> bool:
+        """Whether a parameter's memory moved since this actor was built (torch
+        moves a tensor's storage into shared memory when it is pickled for
+        another process, ``share_memory_``; ``.data =`` replaces it): its views
+        would read freed memory. 1.3 us per call for the 16 tensors."""
+        return self._addresses() != self._pointers
 
     @staticmethod
     def _head(h: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
