@@ -12,18 +12,11 @@
 #include <stdexcept>
 #include <vector>
 
+#include "learn_random.h"
 #include "learning/ppo_update.h"
 
 namespace ftc::learn {
 namespace {
-
-std::vector<float> RandomVector(std::size_t n, unsigned seed, float scale) {
-  std::mt19937 rng(seed);
-  std::normal_distribution<float> normal(0.0f, scale);
-  std::vector<float> v(n);
-  for (float& x : v) x = normal(rng);
-  return v;
-}
 
 struct Case {
   ActorCriticShape shape{{2, 8}, {8, 1}, {8, 1}};

@@ -11,18 +11,11 @@
 #include <stdexcept>
 #include <vector>
 
+#include "learn_random.h"
 #include "learning/tanh_mlp.h"
 
 namespace ftc::learn {
 namespace {
-
-std::vector<float> RandomVector(std::size_t n, unsigned seed, float scale) {
-  std::mt19937 rng(seed);
-  std::normal_distribution<float> normal(0.0f, scale);
-  std::vector<float> v(n);
-  for (float& x : v) x = normal(rng);
-  return v;
-}
 
 // Loss c . f(x) summed over rows: its gradient with respect to the output is c.
 double Loss(TanhChain& chain, const MatrixRM& x, const MatrixRM& c) {
