@@ -197,6 +197,11 @@ def test_the_numpy_model_env_sees_a_refit_and_refuses_what_it_cannot_step():
     env.reset()
     after = env.step(torch.zeros(2, 6)).final_obs
     assert float((before - after).min()) == pytest.approx(0.03, abs=1e-3)
+    model.share_memory()  # moves every tensor's memory (pickling for a worker does)
+    torch.zeros(64, 64).fill_(float("nan"))
+    env.reset()
+    moved = env.step(torch.zeros(2, 6)).final_obs
+    torch.testing.assert_close(moved, after)
     with pytest.raises(ValueError, match="engine must be torch or numpy"):
         ModelEnv(model, 2, 0.05, engine="jax")
     with pytest.raises(ValueError, match="float32 world model"):

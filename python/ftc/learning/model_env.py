@@ -104,13 +104,21 @@ class ModelEnv:
         self.level = torch.full((self.num_envs, NUM_TANKS), TANK_HEIGHT, dtype=self.dtype)
         self.steps = torch.zeros(self.num_envs, dtype=torch.long)  # steps in the current episode
         self.engine = engine
-        if engine == "numpy":  # views: the model's current weights and normalisers
-            self._norm = [b.detach().numpy() for b in (model.in_mean, model.in_std,
-                                                        model.out_mean, model.out_std)]
+        if engine == "numpy":
             if any(p.dtype != torch.float32 for p in [*model.parameters(), *model.buffers()]
                    if p.is_floating_point()):
                 raise ValueError("ModelEnv(engine='numpy') needs a float32 world model")
-            self._mlp = SmallMLP(model.net, share=True)
+            self._tensors = [*model.parameters(), *model.buffers()]
+            self._views()
+
+    def _views(self) -> None:
+        """NumPy views of the model's current weights and normalisers, and where
+        they lie (torch moves a tensor's memory when it is pickled for another
+        process: the views are made again then, see :meth:`_step_numpy`)."""
+        m = self.model
+        self._norm = [b.detach().numpy() for b in (m.in_mean, m.in_std, m.out_mean, m.out_std)]
+        self._mlp = SmallMLP(m.net, share=True)
+        self._pointers = [t.data_ptr() for t in self._tensors]
 
     def _start_levels(self, n: int) -> torch.Tensor:
         if self.random_start:
@@ -137,6 +145,8 @@ class ModelEnv:
     def _step_numpy(self, actions: torch.Tensor) -> EnvStep:
         """:meth:`_step` in NumPy (the same formulae: WorldModel.predict, the
         reward, the episode rules)."""
+        if [t.data_ptr() for t in self._tensors] != self._pointers:
+            self._views()
         valves = np.asarray(actions.numpy(), dtype=np.float32)
         level = np.asarray(self.level.numpy(), dtype=np.float32)
         in_mean, in_std, out_mean, out_std = self._norm
