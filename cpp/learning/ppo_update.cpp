@@ -80,10 +80,7 @@ PpoEpochResult PpoEpoch(float* params, float* adam_m, float* adam_v, std::int64_
     double kl = 0, clipped_count = 0, adv_mean = 0;
     for (int r = 0; r < k; ++r) {
       float logprob = 0;
-      for (int c = 0; c < out; ++c) {
-        const float a = actions[idx[r] * out + c], l = logits(r, c);
-        logprob += a * LogSigmoid(l) + (1.0f - a) * LogSigmoid(-l);
-      }
+      BernoulliLogProb(&logits(r, 0), actions + idx[r] * out, 1, out, &logprob);
       log_ratio[r] = logprob - old_logprobs[idx[r]];
       ratio[r] = std::exp(log_ratio[r]);
       kl += (ratio[r] - 1.0) - log_ratio[r];

@@ -156,7 +156,7 @@ class ModelEnv:
         r = reward(nxt, valves).astype(np.float32)
         steps = self.steps.numpy()
         steps += 1
-        terminal = nxt @ AREAS.astype(np.float32) < self.demand_per_step + TERMINAL_TOLERANCE
+        terminal = nxt @ self.areas.numpy() < self.demand_per_step + TERMINAL_TOLERANCE
         truncated = (steps >= self.max_episode_steps) & ~terminal
         done = terminal | truncated
         obs = nxt

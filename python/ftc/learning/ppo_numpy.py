@@ -351,11 +351,12 @@ class NumpyActor:
         parts = [linears(m) for m in (policy.trunk, policy.policy_head, policy.value_head)]
         self._params = [p for part in parts for m in part for p in (m.weight, m.bias)]
         self._pointers = self._addresses()
-        # W.T as a view (no copy): the same operands x @ W.T always saw
-        self.trunk, self.pi, self.v = ([(m.weight.detach().numpy().T, m.bias.detach().numpy())
-                                        for m in part] for part in parts)
         self._native = None
-        if native:
+        if not native:  # W.T as a view (no copy): the same operands x @ W.T always saw
+            self.trunk, self.pi, self.v = ([(m.weight.detach().numpy().T,
+                                             m.bias.detach().numpy()) for m in part]
+                                           for part in parts)
+        else:
             from ftc import _learn  # native: built beside ftc._core
 
             widths = [[part[0].in_features] + [m.out_features for m in part] for part in parts]
@@ -479,8 +480,7 @@ def native_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Ten
         return float("nan"), 0
     net = _Net(policy)
     k = net.size("trunk", "pi")  # the trunk then the policy head lead the flat vectors
-    widths = {name: [layers[0][0].shape[0]] + [w.shape[1] for w, _ in layers]
-              for name, layers in net.layers.items()}
+    widths = _widths(net)
     as32 = lambda t: np.ascontiguousarray(t.detach().numpy(), dtype=np.float32)  # noqa: E731
     n = len(states)
     orders = np.stack([torch.randperm(n, generator=generator).numpy() for _ in range(epochs)])
