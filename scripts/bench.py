@@ -21,6 +21,9 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             engine (C++ PPO epochs and acting, NumPy model steps),
                             aim >= 50,000
   offline_numpy_over_torch  that rate over the same with the torch engine
+  act_native_us / act_numpy_over_native / act_torch_over_native   one act (one state:
+                            forward, sampling, log-prob) in C++, NumPy and torch
+  model_env_step_numpy_us / model_env_torch_over_numpy   one step of 16 model envs
   refit_s / refit_numpy_over_torch   a warm world-model refit on one interval
   ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
                             pretraining cached, in-process / over LCM, aims 10 / 15 s
@@ -77,6 +80,7 @@ from ftc.experiments.fork_server import ForkServer
 from ftc.learning.model_env import ModelEnv
 from ftc.learning.offline import pretrained_world_model
 from ftc.learning.ppo import PPO, PPOConfig
+from ftc.learning.ppo_numpy import NumpyActor
 from ftc.learning.rollout import train_on_env
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModel, WorldModelConfig
@@ -216,13 +220,47 @@ def bench_learning(rounds: int) -> list[Figure]:
             return steps / (time.perf_counter() - start)
         return run
 
-    rn, rt, on, ot = _median_rounds(rounds, refit("numpy"), refit("torch"),
-                                    offline("numpy"), offline("torch"))
+    def act(actor: Callable[[torch.Tensor], object], n: int = 3000) -> Callable[[], float]:
+        obs = torch.rand(1, 6, generator=torch.Generator().manual_seed(0))
+
+        def run() -> float:
+            start = time.perf_counter()
+            for _ in range(n):
+                actor(obs)
+            return 1e6 * (time.perf_counter() - start) / n
+        return run
+
+    policy, generator = PPO(PPOConfig(), seed=0).policy, torch.Generator().manual_seed(0)
+    native, numpy_actor = NumpyActor(policy), NumpyActor(policy, native=False)
+
+    def model_step(engine: str, n: int = 500) -> Callable[[], float]:
+        model, demand, _ = models["numpy"]
+        actions = torch.bernoulli(torch.full((16, 6), 0.3), generator=torch.Generator())
+
+        def run() -> float:
+            env = ModelEnv(model, 16, demand, seed=0, engine=engine)
+            env.reset()
+            start = time.perf_counter()
+            for _ in range(n):
+                env.step(actions)
+            return 1e6 * (time.perf_counter() - start) / n
+        return run
+
+    rn, rt, on, ot, an, aa, at, mn, mt = _median_rounds(
+        rounds, refit("numpy"), refit("torch"), offline("numpy"), offline("torch"),
+        act(lambda o: native.act(o, generator, False)),
+        act(lambda o: numpy_actor.act(o, generator, False)),
+        act(lambda o: policy.act(o, generator, False)), model_step("numpy"), model_step("torch"))
     med = statistics.median
     return [Figure("offline_model_steps_per_s", med(on), "steps/s", ">= 50000", on),
             Figure("offline_numpy_over_torch", med(on) / med(ot), "ratio"),
             Figure("refit_s", med(rn), "s", rounds=rn),
-            Figure("refit_numpy_over_torch", med(rt) / med(rn), "ratio")]
+            Figure("refit_numpy_over_torch", med(rt) / med(rn), "ratio"),
+            Figure("act_native_us", med(an), "us", rounds=an),
+            Figure("act_numpy_over_native", med(aa) / med(an), "ratio"),
+            Figure("act_torch_over_native", med(at) / med(an), "ratio"),
+            Figure("model_env_step_numpy_us", med(mn), "us", rounds=mn),
+            Figure("model_env_torch_over_numpy", med(mt) / med(mn), "ratio")]
 
 
 # -- ppo-robust's pieces ---------------------------------------------------------------
