@@ -266,6 +266,26 @@ def test_simulate_out_that_is_a_directory_exits_2_before_the_plant_starts(tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
+def test_the_lock_removes_temporaries_when_taken_and_when_released(tmp_path):
+    """A run stopped by SIGTERM mid-write (the disk filled under another run)
+    leaves its atomic write's temporary file behind: the lock's holder removes
+    such leftovers when it takes the lock and after every run has stopped."""
+    from ftc.experiments.processes import OrchestratorLock
+
+    out = tmp_path / "run"
+    stale = out / "runs" / "single" / "t00" / "ppo-online" / "s0" / "controller"
+    stale.mkdir(parents=True)
+    (stale / "checkpoint.pt.abc.tmp").write_bytes(b"half")
+    (stale / "checkpoint.pt").write_bytes(b"whole")
+    lock = OrchestratorLock(out).acquire()
+    assert not list(out.rglob("*.tmp"))
+    (stale / "metrics.csv.def.tmp").write_text("cut short")
+    lock.release()
+    assert not list(out.rglob("*.tmp"))
+    assert (stale / "checkpoint.pt").read_bytes() == b"whole"
+    assert not (out / "orchestrator.lock").exists()
+
+
 def test_experiment_on_a_full_disk_exits_5_and_resume_completes(small_disk, reference):
     out = small_disk / "run"
     proc = _experiments([*REDUCED, "--out", str(out)])

@@ -176,10 +176,6 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resum
     if lock.took_over:
         print(f"ftc.experiments: taking over the stale lock of pid {lock.took_over.get('pid')} "
               f"(no longer running)", file=stream)
-    # Under the lock no one else writes here: temporary files are leftovers of
-    # atomic writes cut short by a killed orchestrator.
-    for tmp in out.rglob("*.tmp"):
-        tmp.unlink(missing_ok=True)
     guardian = Guardian()
     try:
         return _run_locked(out, config, jobs, resume, stream, guardian, ray, fork_server)

@@ -296,7 +296,13 @@ class OrchestratorLock:
     """OUT/orchestrator.lock while an orchestrator runs on OUT: an flock (which
     a killed holder drops with its last descriptor) on a file naming its pid
     and process start time. A lock left by a dead orchestrator is stale and
-    taken over; one held by a live orchestrator refuses with OutInUse."""
+    taken over; one held by a live orchestrator refuses with OutInUse.
+
+    While it is held no one else writes under OUT, so temporary files (``*.tmp``)
+    there are leftovers of atomic writes cut short (a killed orchestrator, or a
+    run stopped mid-write by SIGTERM when the disk filled): they are removed
+    when the lock is taken and again when it is released, after every run
+    has stopped."""
 
     def __init__(self, out: Path) -> None:
         self.path = Path(out) / LOCK_NAME
@@ -331,10 +337,19 @@ class OrchestratorLock:
             self.path.unlink(missing_ok=True)
             raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
         self._fd = fd
+        self.remove_temporaries()
         return self
+
+    def remove_temporaries(self) -> None:
+        for tmp in self.path.parent.rglob("*.tmp"):
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
 
     def release(self) -> None:
         if self._fd is not None:
+            self.remove_temporaries()
             self.path.unlink(missing_ok=True)  # still holding it: no one sees a gap
             os.close(self._fd)
             self._fd = None
