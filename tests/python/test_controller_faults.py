@@ -10,6 +10,9 @@ through the real command line against the real plant where it can:
     where, the last good checkpoint kept (in process, through a fake plant link);
   * a corrupt, truncated, foreign or mismatched checkpoint or config to --resume:
     exit 2 with the reason, nothing loaded or written;
+  * a stop signal (SIGTERM, SIGINT, SIGHUP): one line, exit 128 + signal, the
+    plant shut down, the finished intervals kept, --resume continues; SIGKILL:
+    the plant dies with the controller;
   * the issue's done-when: a lockstep run through ftc.relay at 5% message loss
     gives metrics identical to a loss-free run with the same seed (2 short
     intervals here; the full 10 intervals are marked ``slow``).
@@ -147,6 +150,75 @@ def test_plant_killed_mid_interval_exits_3_keeps_results_and_resumes(tmp_path, s
                          capture_output=True, text=True, env=ENV, cwd=REPO, timeout=300)
     assert ref.returncode == 0, ref.stderr
     assert _comparable(out / "metrics.csv") == _comparable(tmp_path / "ref" / "metrics.csv")
+
+
+def _gone(pid: int, timeout: float = 10.0) -> bool:
+    """The process has ended (a zombie counts: it runs no more) within ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state == "Z":
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _start_then_wait_for_an_interval(out: Path, scenario: str) -> tuple[subprocess.Popen, int]:
+    # 512 steps per interval: interval 1 is running when the signal lands
+    args = [*SHORT, "--steps-per-interval", "512", "--update-every", "128", "--intervals", "3",
+            "--scenario", scenario]
+    proc = subprocess.Popen([PY, "-m", "ftc.controller", *args, "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+                            cwd=REPO)
+    _wait_for(lambda: _rows(out) == 1 and (out / "plant.pid").is_file(), "interval 0 to finish",
+              proc=proc)
+    return proc, int((out / "plant.pid").read_text())
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
+def test_a_stop_signal_shuts_the_plant_down_keeps_results_and_resumes(tmp_path, scenarios, sig):
+    """SIGTERM (what a supervisor sends), SIGINT (Ctrl-C) and SIGHUP (a closed
+    terminal) go through the run's clean-up: before, SIGTERM left the plant
+    running for ever and plant.pid behind, and a signal landing in LCM's wait
+    skipped the plant's shut-down."""
+    out = tmp_path / "run"
+    proc, plant = _start_then_wait_for_an_interval(out, str(scenarios / "single.toml"))
+    try:
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + sig, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines == [f"ftc.controller: stopped by {signal.Signals(sig).name}; the finished "
+                     f"intervals are in {out}, --resume {out} continues"], err
+    assert _gone(plant), f"plant {plant} still running after the controller stopped"
+    # the finished intervals, whole; no pid file, no temporary file
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt", "config.json",
+                                                      "metrics.csv"]
+    rows = _rows(out)
+    assert rows >= 1 and torch.load(out / "checkpoint.pt", weights_only=True)["interval"] == rows
+    if sig == signal.SIGTERM:
+        resumed = subprocess.run([PY, "-m", "ftc.controller", "--resume", str(out), "--quiet"],
+                                 capture_output=True, text=True, env=ENV, cwd=REPO, timeout=300)
+        assert resumed.returncode == 0, resumed.stderr
+        assert _rows(out) == 3 and (out / "done.json").exists()
+
+
+def test_the_plant_dies_with_a_killed_controller(tmp_path, scenarios):
+    """SIGKILL runs no clean-up: the plant, launched from the controller's main
+    thread with PR_SET_PDEATHSIG, goes with it instead of waiting for commands
+    for ever."""
+    proc, plant = _start_then_wait_for_an_interval(tmp_path / "run",
+                                                   str(scenarios / "single.toml"))
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert _gone(plant), f"plant {plant} outlived its SIGKILLed controller"
 
 
 def test_attached_plant_that_stops_answering_is_retried_with_backoff(tmp_path, scenarios):

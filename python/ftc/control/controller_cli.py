@@ -25,6 +25,10 @@ of that interval and --resume continues from it):
             --link-give-up-timeout seconds): "plant gone at interval K, step T: ..."
     exit 4  a non-finite number: observation, PPO loss, gradient or weights
     exit 5  a result could not be written (disk full, unwritable file)
+
+SIGINT, SIGTERM or SIGHUP stops the run as a failure does (the plant shut
+down, no partial file, --resume continues): "ftc.controller: stopped by
+SIGTERM; ...", exit 130, 143 or 129.
 """
 
 from __future__ import annotations
@@ -126,7 +130,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 setattr(cfg, k, v)
         Controller(cfg, ppo).run()
 
-    return run_or_report(TOOL, run)
+    out = cfg.resume or cfg.out
+    return run_or_report(TOOL, run, kept=f"; the finished intervals are in {out}, "
+                         f"--resume {out} continues")
 
 
 if __name__ == "__main__":

@@ -128,9 +128,11 @@ class IntervalRunner:
             self.checkpoint()
             self.write_metrics()
         finally:
-            plant.close()
-            if process is not None:
-                pid_file.unlink(missing_ok=True)
+            try:
+                plant.close()
+            finally:
+                if process is not None:
+                    pid_file.unlink(missing_ok=True)
 
     def _one_interval(self, plant: PlantLink, start: float) -> None:
         k = self.interval

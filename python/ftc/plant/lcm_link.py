@@ -159,7 +159,14 @@ class LcmPlant:
                     f"(seq {seq}) within {timeout:.1f} s after {resent} re-sends"
                     + (f"; {exited}" if exited else ""))
             wait = max(0.0, min(interval - (now - last_send), timeout - (now - start)))
-            self._lc.handle_timeout(max(1, int(wait * 1000)))
+            try:
+                self._lc.handle_timeout(max(1, int(wait * 1000)))
+            except OSError:
+                # A signal interrupted the wait (lcm reports EINTR as -1): its
+                # Python handler runs now, here, where it may raise (SIGINT,
+                # a controller's SIGTERM) with the link intact for close().
+                # Anything else ends as "did not answer" at the timeout.
+                time.sleep(min(wait, 0.005))
             for state in self._answers:
                 if state.command_seq == seq:
                     self._answers.clear()
