@@ -36,6 +36,8 @@ import numpy as np
 import pytest
 import torch
 
+from proc_state import ended
+
 import ftc.control.controller_cli as controller
 import ftc.control.runner as runner
 from ftc.common.build_info import plant_binary
@@ -152,20 +154,6 @@ def test_plant_killed_mid_interval_exits_3_keeps_results_and_resumes(tmp_path, s
     assert _comparable(out / "metrics.csv") == _comparable(tmp_path / "ref" / "metrics.csv")
 
 
-def _gone(pid: int, timeout: float = 10.0) -> bool:
-    """The process has ended (a zombie counts: it runs no more) within ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (FileNotFoundError, ProcessLookupError):
-            return True
-        if state == "Z":
-            return True
-        time.sleep(0.02)
-    return False
-
-
 def _start_then_wait_for_an_interval(out: Path, scenario: str) -> tuple[subprocess.Popen, int]:
     # 512 steps per interval: interval 1 is running when the signal lands
     args = [*SHORT, "--steps-per-interval", "512", "--update-every", "128", "--intervals", "3",
@@ -197,7 +185,7 @@ def test_a_stop_signal_shuts_the_plant_down_keeps_results_and_resumes(tmp_path, 
     lines = [line for line in err.splitlines() if line.strip()]
     assert lines == [f"ftc.controller: stopped by {signal.Signals(sig).name}; the finished "
                      f"intervals are in {out}, --resume {out} continues"], err
-    assert _gone(plant), f"plant {plant} still running after the controller stopped"
+    assert ended(plant), f"plant {plant} still running after the controller stopped"
     # the finished intervals, whole; no pid file, no temporary file
     assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt", "config.json",
                                                       "metrics.csv"]
@@ -218,7 +206,7 @@ def test_the_plant_dies_with_a_killed_controller(tmp_path, scenarios):
                                                    str(scenarios / "single.toml"))
     proc.kill()
     proc.communicate(timeout=60)
-    assert _gone(plant), f"plant {plant} outlived its SIGKILLed controller"
+    assert ended(plant), f"plant {plant} outlived its SIGKILLed controller"
 
 
 def test_attached_plant_that_stops_answering_is_retried_with_backoff(tmp_path, scenarios):

@@ -4,13 +4,16 @@ reference simulation of the spec, and its handling of bad input."""
 from __future__ import annotations
 
 import csv
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
 import reference_sim
+from proc_state import children, ended
 from ftc.tools.simulate import HEADER
 
 
@@ -63,3 +66,30 @@ def test_bad_flags_exit_2_with_the_flag_named(tmp_path):
     assert res.returncode == 2 and "--policy" in res.stderr
     res = _run(["--steps", "0", "--out", str(tmp_path / "t.csv")])
     assert res.returncode == 2 and "--steps" in res.stderr
+
+
+def test_sigterm_stops_the_plant_and_writes_nothing(tmp_path):
+    """Before, SIGTERM killed ftc.simulate outright and left its plant waiting
+    for commands for ever."""
+    out = tmp_path / "traj.csv"
+    proc = subprocess.Popen([sys.executable, "-m", "ftc.simulate", "--policy", "random",
+                             "--steps", "10000000", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not (plants := children(proc.pid)) and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.stderr.read()
+            time.sleep(0.05)
+        assert plants, "no plant started within 60 s"
+        time.sleep(0.5)  # stepping by now
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines == [f"ftc.simulate: stopped by SIGTERM; nothing written to {out}"], err
+    assert all(ended(p) for p in plants), plants
+    assert list(tmp_path.iterdir()) == []

@@ -1,13 +1,16 @@
-"""Tying a child process's life to the thread that started it (Linux
+"""Process lifetimes: a child's tied to the thread that started it (Linux
 ``PR_SET_PDEATHSIG``), so a plant or a run does not outlive a parent that was
-killed or terminated without running its clean-up."""
+killed without running its clean-up; and stop signals turned into an
+exception, so a tool that is told to stop does run its clean-up."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
-from typing import Callable
+import threading
+from typing import Callable, Iterator
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -17,13 +20,61 @@ def die_with_parent(then: Callable[[], None] | None = None) -> Callable[[], None
     ends (PR_SET_PDEATHSIG is per thread, not per process), or exits at once if
     that already happened; then runs ``then``."""
     parent = os.getpid()
+    # Looked up here, in the parent: a dlopen between fork and exec could wait
+    # for ever on a loader lock another of the parent's threads held at the fork.
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
 
     def preexec() -> None:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
         if os.getppid() != parent:  # the parent died before prctl took effect
             os._exit(1)
         if then is not None:
             then()
 
     return preexec
+
+
+class Stopped(BaseException):
+    """A stop signal (SIGTERM, SIGHUP) raised in the main thread, so every
+    ``finally`` runs: the plant is shut down, an atomic write cut short removes
+    its temporary file. A BaseException, as KeyboardInterrupt is, so no
+    ``except Exception`` on the way swallows it."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+def _stop(signum: int, frame: object) -> None:
+    for s in STOP_SIGNALS:  # one stop: a second signal must not cut the clean-up short
+        signal.signal(s, signal.SIG_IGN)
+    raise Stopped(signum)
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[None]:
+    """SIGTERM and SIGHUP raise :class:`Stopped` in the block (main thread only;
+    elsewhere a no-op); the previous handlers are restored after it."""
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+
+
+def stop_signal(e: BaseException) -> int:
+    """The signal a KeyboardInterrupt or :class:`Stopped` stands for."""
+    return e.signum if isinstance(e, Stopped) else signal.SIGINT
+
+
+def stopped_line(tool: str, e: BaseException, kept: str = "") -> tuple[str, int]:
+    """The one line a tool prints when stopped by a signal, and its exit code,
+    128 + the signal's number (130, 143, 129), as a shell reports it."""
+    signum = stop_signal(e)
+    return f"{tool}: stopped by {signal.Signals(signum).name}{kept}", 128 + signum

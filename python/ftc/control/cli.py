@@ -7,15 +7,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
-import threading
 from dataclasses import fields
 from pathlib import Path
 from typing import Any, Callable
 
 from ftc.common.cli import add_dataclass_options, check_config, out_dir_problem
 from ftc.common.errors import CheckpointError, RunError
+from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.control.config import RunConfig
 
 # RunConfig's fields before and after the tool's own in --help
@@ -81,45 +80,19 @@ def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:
     return configs
 
 
-class Stopped(BaseException):
-    """A stop signal (SIGTERM, SIGHUP) turned into an exception in the main
-    thread, so every ``finally`` runs: the plant is shut down, an atomic write
-    cut short removes its temporary file. A BaseException, as KeyboardInterrupt
-    is, so no ``except Exception`` on the way swallows it."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
-
-
-def _stop(signum: int, frame: object) -> None:
-    for s in STOP_SIGNALS:  # one stop: a second signal must not cut the clean-up short
-        signal.signal(s, signal.SIG_IGN)
-    raise Stopped(signum)
-
-
 def run_or_report(tool: str, run: Callable[[], Any], kept: str = "") -> int:
     """Run; a RunError is one line on stderr and its exit code. SIGINT, SIGTERM
     and SIGHUP stop the run through its clean-up: one line ("stopped by
     SIGTERM" and ``kept``, what the finished part left and how to go on) and
     exit 128 + the signal's number (130, 143, 129), as a shell reports it."""
-    handlers = {}
-    if threading.current_thread() is threading.main_thread():
-        handlers = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
     try:
-        run()
+        with stop_signals():
+            run()
     except RunError as e:
         print(f"{tool}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code
     except (KeyboardInterrupt, Stopped) as e:
-        signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
-        print(f"\n{tool}: stopped by {signal.Signals(signum).name}{kept}", file=sys.stderr,
-              flush=True)
-        return 128 + signum
-    finally:
-        for s, h in handlers.items():
-            signal.signal(s, h)
+        line, code = stopped_line(tool, e, kept)
+        print(f"\n{line}", file=sys.stderr, flush=True)
+        return code
     return 0

@@ -4,7 +4,6 @@ controller's and the MPC's configs extend :class:`RunConfig`."""
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 from ftc.common.cli import Check, at_least, positive
@@ -124,11 +123,8 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
         extra = ["--steps-per-interval", str(cfg.steps_per_interval)]
         if start_step:
             extra += ["--start-step", str(start_step)]
-        # From the main thread the plant also dies with this process when it is
-        # killed outright (SIGKILL: no clean-up runs).
         return launch(scenario, cfg.seed, lcm_url=cfg.lcm_url, prefix=cfg.prefix,
-                      extra_args=extra, config=cfg.link_config(),
-                      die_with_caller=threading.current_thread() is threading.main_thread())
+                      extra_args=extra, config=cfg.link_config())
     except PlantGoneError as e:
         raise PlantLostError(f"plant gone before the first step: {e}") from None
     except PlantError as e:  # refused to start; its exit code 2 means bad input

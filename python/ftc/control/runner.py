@@ -28,11 +28,12 @@ interval and --resume continues from it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -49,6 +50,25 @@ from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantGoneError, PlantLink, PlantObservation
 from ftc.plant.reward import reward
+
+
+@contextlib.contextmanager
+def _driving(plant: PlantLink, out: Path) -> Iterator[None]:
+    """The block drives ``plant``, which is closed after it whatever happens;
+    OUT/plant.pid names a launched plant's process meanwhile (for tools and
+    tests that need it) and is removed even if closing fails."""
+    pid_file = out / "plant.pid"
+    process = getattr(plant, "process", None)
+    if process is not None:
+        atomic_write_text(pid_file, f"{process.pid}\n")
+    try:
+        yield
+    finally:
+        try:
+            plant.close()
+        finally:
+            if process is not None:
+                pid_file.unlink(missing_ok=True)
 
 
 class IntervalRunner:
@@ -114,11 +134,7 @@ class IntervalRunner:
         return self.rows
 
     def _run_intervals(self, plant: PlantLink, start: float, stop_after: int | None) -> None:
-        pid_file = self.out / "plant.pid"
-        process = getattr(plant, "process", None)
-        if process is not None:  # for tools (and tests) that need the plant's process
-            atomic_write_text(pid_file, f"{process.pid}\n")
-        try:
+        with _driving(plant, self.out):
             while self.interval < self.cfg.intervals:
                 self._one_interval(plant, start)
                 if stop_after is not None and self.interval >= stop_after:
@@ -127,12 +143,6 @@ class IntervalRunner:
             self._merge_late_metrics()
             self.checkpoint()
             self.write_metrics()
-        finally:
-            try:
-                plant.close()
-            finally:
-                if process is not None:
-                    pid_file.unlink(missing_ok=True)
 
     def _one_interval(self, plant: PlantLink, start: float) -> None:
         k = self.interval

@@ -21,7 +21,6 @@ the same actions gives the same trajectory.
 from __future__ import annotations
 
 import os
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -122,10 +121,8 @@ class FuelTransferEnv(gym.Env):
         if self._kind == "core":
             return CorePlant(self._scenario, self._plant_seed)
         # A plant launched from the main thread dies with this process even when it
-        # is killed (a vector-env worker terminated): PR_SET_PDEATHSIG is per
-        # thread, so from any other thread only close() stops it.
-        return launch(self._scenario, self._plant_seed,
-                      die_with_caller=threading.current_thread() is threading.main_thread())
+        # is killed (a vector-env worker terminated): launch()'s default.
+        return launch(self._scenario, self._plant_seed)
 
     def _close_link(self) -> None:
         if self._link is not None and self._kind is not None:

@@ -10,6 +10,7 @@ import secrets
 import struct
 import subprocess
 import tempfile
+import threading
 import time
 import warnings
 from dataclasses import dataclass
@@ -268,12 +269,15 @@ def _from_message(msg) -> PlantObservation:
 
 def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = None,
            prefix: str | None = None, extra_args: Sequence[str] = (),
-           config: LinkConfig = LinkConfig(), die_with_caller: bool = False) -> LcmPlant:
+           config: LinkConfig = LinkConfig(), die_with_caller: bool | None = None
+           ) -> LcmPlant:
     """Start ``build/plant`` on a private LCM port and prefix; the link owns it.
 
     die_with_caller: the plant gets SIGKILL when the calling thread ends (so a
-        worker process that is terminated or crashes, and never runs close(),
-        leaves no plant behind); only for a thread that lives as long as the link.
+        process that is killed or crashes, and never runs close(), leaves no
+        plant behind); only for a thread that lives as long as the link. None
+        (default): when called from the main thread (PR_SET_PDEATHSIG is per
+        thread: from any other thread only close() stops the plant).
 
     Raises PlantError with the plant's own message if it refuses to start
     (e.g. a malformed scenario file).
@@ -285,6 +289,8 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
         cmd += ["--scenario", str(scenario)]
     cmd += list(extra_args)
     stderr = tempfile.NamedTemporaryFile(prefix="ftc-plant-", suffix=".log", delete=False)
+    if die_with_caller is None:
+        die_with_caller = threading.current_thread() is threading.main_thread()
     preexec = die_with_parent() if die_with_caller else None
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             stderr=stderr, preexec_fn=preexec)

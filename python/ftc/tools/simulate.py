@@ -30,6 +30,7 @@ from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
+from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.plant import PlantError, launch, trajectory
 
 POLICIES = BASELINES
@@ -108,8 +109,13 @@ def main(argv: list[str] | None = None) -> int:
     extra = ([] if args.steps_per_interval is None
              else ["--steps-per-interval", str(args.steps_per_interval)])
     try:
-        n = run(str(args.scenario) if args.scenario else None, args.policy, args.seed,
-                args.steps, args.out, extra)
+        with stop_signals():
+            n = run(str(args.scenario) if args.scenario else None, args.policy, args.seed,
+                    args.steps, args.out, extra)
+    except (KeyboardInterrupt, Stopped) as e:  # the plant shut down, nothing written
+        line, code = stopped_line("ftc.simulate", e, f"; nothing written to {args.out}")
+        print(f"\n{line}", file=sys.stderr)
+        return code
     except PlantError as e:
         print(f"ftc.simulate: error: {e}", file=sys.stderr)
         return 2 if e.exit_code == 2 else 1
