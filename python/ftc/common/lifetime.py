@@ -68,13 +68,9 @@ def stop_signals() -> Iterator[None]:
             signal.signal(s, h)
 
 
-def stop_signal(e: BaseException) -> int:
-    """The signal a KeyboardInterrupt or :class:`Stopped` stands for."""
-    return e.signum if isinstance(e, Stopped) else signal.SIGINT
-
-
 def stopped_line(tool: str, e: BaseException, kept: str = "") -> tuple[str, int]:
-    """The one line a tool prints when stopped by a signal, and its exit code,
-    128 + the signal's number (130, 143, 129), as a shell reports it."""
-    signum = stop_signal(e)
+    """The one line a tool prints when stopped by a signal (``e``: Stopped, or
+    KeyboardInterrupt for SIGINT), and its exit code, 128 + the signal's
+    number (130, 143, 129), as a shell reports it."""
+    signum = e.signum if isinstance(e, Stopped) else signal.SIGINT
     return f"{tool}: stopped by {signal.Signals(signum).name}{kept}", 128 + signum
