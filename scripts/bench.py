@@ -111,12 +111,16 @@ class Figure:
         return f"{self.name:28s} {self.value:12.4g} {self.unit:8s} {self.aim:>10s} {self.status}"
 
 
-def _median_rounds(rounds: int, *measures: Callable[[], float]) -> list[list[float]]:
-    """Run the measures in alternating rounds; their values, measure by measure."""
+def _median_rounds(rounds: int, *measures: Callable[[], float],
+                   rotate: bool = False) -> list[list[float]]:
+    """Run the measures in alternating rounds; their values, measure by measure.
+    rotate: start each round one measure later than the last (no measure always
+    runs right after the same other)."""
     out: list[list[float]] = [[] for _ in measures]
-    for _ in range(rounds):
-        for values, measure in zip(out, measures):
-            values.append(measure())
+    for k in range(rounds):
+        for i in range(len(measures)):
+            j = (i + k) % len(measures) if rotate else i
+            out[j].append(measures[j]())
     return out
 
 
@@ -149,30 +153,12 @@ def _lockstep(link, steps: int, choose: Callable[[np.ndarray], np.ndarray]) -> f
     return steps / (time.perf_counter() - start)
 
 
-def _paired_ratios(blocks: int, reference: Callable[[], float],
-                   *measures: Callable[[], float]) -> tuple[list[float], list[list[float]]]:
-    """Rates of ``reference`` and of each measure in ``blocks`` short blocks, the
-    order rotated block by block; returns the reference's rates and, per
-    measure, its rate over the reference's of the same block. The LCM round
-    trip drifts by several times over minutes on this shared machine, and a
-    short block pairs each rate with a floor measured within a second of it."""
-    every = (reference, *measures)
-    ref: list[float] = []
-    ratios: list[list[float]] = [[] for _ in measures]
-    for k in range(blocks):
-        rates = {}
-        for i in range(len(every)):
-            j = (i + k) % len(every)
-            rates[j] = every[j]()
-        ref.append(rates[0])
-        for i, r in enumerate(ratios):
-            r.append(rates[i + 1] / rates[0])
-    return ref, ratios
-
-
 def bench_lockstep(rounds: int, steps: int = 250) -> list[Figure]:
-    """Lockstep rates over LCM in 8 x ``rounds`` blocks of ``steps`` steps each;
-    every figure is the median of its per-block ratios to the echo floor."""
+    """Lockstep rates over LCM in 8 x ``rounds`` blocks of ``steps`` steps each,
+    the order rotated block by block; every figure is the median of its
+    per-block ratios to the echo floor. The LCM round trip drifts by several
+    times over minutes on this shared machine, and a short block pairs each
+    rate with a floor measured within a second of it."""
     rng = np.random.default_rng(0)
 
     def random_valves(_level: np.ndarray) -> np.ndarray:
@@ -190,11 +176,12 @@ def bench_lockstep(rounds: int, steps: int = 250) -> list[Figure]:
     with launch("scenarios/multiple.toml", 0) as plant, _start_echo() as echo:
         for link in (plant, echo):
             _lockstep(link, 200, random_valves)  # warm up
-        echo_r, (plant_r, torch_r, numpy_r) = _paired_ratios(
+        echo_r, *rates = _median_rounds(
             8 * rounds, lambda: _lockstep(echo, steps, random_valves),
             lambda: _lockstep(plant, steps, random_valves),
             lambda: _lockstep(plant, steps, torch_policy),
-            lambda: _lockstep(plant, steps, numpy_policy))
+            lambda: _lockstep(plant, steps, numpy_policy), rotate=True)
+    plant_r, torch_r, numpy_r = ([r / e for r, e in zip(rate, echo_r)] for rate in rates)
     p, q, n = (statistics.median(r) for r in (plant_r, torch_r, numpy_r))
     default = {"torch": q, "numpy": n}[DEFAULT_ENGINE]
     return [Figure("lockstep_plant_over_echo", p, "ratio", ">= 0.8", rounds=plant_r),

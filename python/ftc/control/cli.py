@@ -80,11 +80,13 @@ def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:
     return configs
 
 
-def run_or_report(tool: str, run: Callable[[], Any], kept: str = "") -> int:
+def run_or_report(tool: str, run: Callable[[], Any], out: str | None = None) -> int:
     """Run; a RunError is one line on stderr and its exit code. SIGINT, SIGTERM
     and SIGHUP stop the run through its clean-up: one line ("stopped by
-    SIGTERM" and ``kept``, what the finished part left and how to go on) and
-    exit 128 + the signal's number (130, 143, 129), as a shell reports it."""
+    SIGTERM", and with ``out``, the run directory, where the finished
+    intervals are and how to go on) and exit 128 + the signal's number (130,
+    143, 129), as a shell reports it."""
+    kept = f"; the finished intervals are in {out}, --resume {out} continues" if out else ""
     try:
         with stop_signals():
             run()

@@ -130,9 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 setattr(cfg, k, v)
         Controller(cfg, ppo).run()
 
-    out = cfg.resume or cfg.out
-    return run_or_report(TOOL, run, kept=f"; the finished intervals are in {out}, "
-                         f"--resume {out} continues")
+    return run_or_report(TOOL, run, out=cfg.resume or cfg.out)
 
 
 if __name__ == "__main__":

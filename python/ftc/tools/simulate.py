@@ -28,9 +28,9 @@ import numpy as np
 from ftc.common.atomic import atomic_write_csv
 from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
+from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
-from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.plant import PlantError, launch, trajectory
 
 POLICIES = BASELINES
