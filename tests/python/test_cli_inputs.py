@@ -53,8 +53,6 @@ def _value_options(parser: argparse.ArgumentParser) -> list[str]:
             continue
         if isinstance(action, argparse.BooleanOptionalAction):
             continue
-        if action.dest.startswith("ignored_"):  # mpc: accepted and ignored PPO options
-            continue
         flags.append(action.option_strings[0])
     return flags
 

@@ -92,9 +92,9 @@ def test_cli_parses_every_option_and_help_explains_them(capsys):
                 "--scenario", "--seed", "--out", "--intervals", "--steps-per-interval",
                 "--attach", "--lcm-url", "--prefix", "--resume", "--ppo-learning-rate"):
         assert opt in text
-    cfg, ppo = parse_args(["--no-offline", "--method", "random", "--ppo-learning-rate", "0.01",
-                           "--ppo-trunk-sizes", "32", "32"])
-    assert cfg.offline is False and cfg.method == "random"
+    cfg, ppo = parse_args(["--no-offline", "--method", "ppo-robust", "--ppo-learning-rate",
+                           "0.01", "--ppo-trunk-sizes", "32", "32"])
+    assert cfg.offline is False and cfg.method == "ppo-robust"
     assert ppo.learning_rate == 0.01 and ppo.trunk_sizes == (32, 32)
 
 

@@ -2,7 +2,9 @@
 in the target's directory, then ``os.replace`` it over the target, so a reader
 (or a run killed at any moment) sees either the old file or the complete new
 one, never a partial one. A write that fails (disk full, unwritable directory)
-removes its temporary file and raises :class:`StorageError` naming the path."""
+removes its temporary file and raises :class:`StorageError` naming the path.
+The file gets the mode any other tool would give it (0666 less the umask), not
+the 0600 of a temporary file, so a group sharing a results directory reads it."""
 
 from __future__ import annotations
 
@@ -17,12 +19,28 @@ from typing import Any, Callable, Iterable, Sequence
 from ftc.common.errors import StorageError
 
 
+def current_umask() -> int:
+    """The process's umask, read without changing it (Linux's /proc; elsewhere
+    the set-and-restore of os.umask)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _atomic(path: Path | str, write: Callable[[Any], None], binary: bool) -> None:
     path = Path(path)
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"newline": ""})) as f:
             write(f)
             f.flush()

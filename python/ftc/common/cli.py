@@ -29,6 +29,21 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog.removeprefix('python -m ')}: error: {message}\n")
 
 
+def given_options(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> set[str]:
+    """The dests of the options given on the command line ``argv`` (already
+    parsed once, so it is known to be valid), told apart from defaults even
+    where a value equals its default."""
+    actions = [a for a in parser._actions if a.dest != "help"]
+    saved = [a.default for a in actions]
+    try:
+        for a in actions:
+            a.default = argparse.SUPPRESS
+        return set(vars(parser.parse_args(argv)))
+    finally:
+        for a, default in zip(actions, saved):
+            a.default = default
+
+
 def flag(name: str, prefix: str = "") -> str:
     """The command-line option of config field ``name``."""
     return "--" + prefix + name.replace("_", "-")

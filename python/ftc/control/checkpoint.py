@@ -22,7 +22,7 @@ import torch
 
 from ftc.common.atomic import atomic_torch_save
 from ftc.common.errors import CheckpointError, NonFiniteError
-from ftc.control.config import RUN_LOCAL_FIELDS
+from ftc.control.config import EXTENSIBLE_FIELDS, RUN_LOCAL_FIELDS
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
@@ -32,10 +32,12 @@ KEYS = frozenset({"format", "interval", "rows", "info", "torch_rng", "config", "
 
 def config_stamp(configs: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """What a checkpoint must agree with to be resumed: every config part,
-    without the fields that do not change results, as plain JSON values."""
+    without the fields that do not change results and those a resumed run may
+    raise (its intervals), as plain JSON values."""
     stamp = {}
     for part, cfg in configs.items():
-        values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in RUN_LOCAL_FIELDS}
+        values = {k: v for k, v in dataclasses.asdict(cfg).items()
+                  if k not in RUN_LOCAL_FIELDS and k not in EXTENSIBLE_FIELDS}
         stamp[part] = json.loads(json.dumps(values, default=str))
     return stamp
 

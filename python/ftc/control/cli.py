@@ -10,12 +10,14 @@ import json
 import sys
 from dataclasses import fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
-from ftc.common.cli import add_dataclass_options, check_config, out_dir_problem
+from ftc.common.cli import (add_dataclass_options, check_config, flag, given_options,
+                            out_dir_problem)
 from ftc.common.errors import CheckpointError, RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
-from ftc.control.config import RunConfig
+from ftc.common.run_lock import InUse, check_free
+from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RUN_LOCAL_FIELDS, RunConfig
 
 # RunConfig's fields before and after the tool's own in --help
 RUN_HEAD = ("scenario", "seed", "out", "intervals", "steps_per_interval")
@@ -44,21 +46,106 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
         cfg.validate()
     except ValueError as e:
         parser.error(str(e))
-    if cfg.scenario:  # the plant would refuse it too, but only after --out exists
-        from ftc import _core  # native: the plant's own scenario parser
-
-        try:
-            _core.load_scenario(cfg.scenario)
-        except _core.ScenarioError as e:  # names the file and the key: one line
-            parser.error(f"--scenario: {e}")
+    if cfg.scenario and not cfg.resume:  # a resumed run's own: checked by resume_configs
+        check_scenario(parser, cfg.scenario)
     if cfg.resume and not (Path(cfg.resume) / "config.json").is_file():
         parser.error(f"--resume {cfg.resume}: config.json missing (is it a run directory?)")
     problem = out_dir_problem(cfg.resume or cfg.out)
     if problem:
         parser.error(f"--out {cfg.resume or cfg.out}: cannot write there ({problem})")
+    held = run_held(cfg.out)
+    if not cfg.resume and held and not cfg.overwrite:
+        parser.error(f"--out {cfg.out} already holds a run ({held}): --resume {cfg.out} "
+                     "continues it, --overwrite replaces it")
+    try:
+        check_free(cfg.resume or cfg.out)
+    except InUse as e:
+        parser.error(str(e))
     problem = out_dir_problem(cfg.tensorboard) if cfg.tensorboard else None
     if problem:
         parser.error(f"--tensorboard {cfg.tensorboard}: cannot write there ({problem})")
+
+
+def check_scenario(parser: argparse.ArgumentParser, scenario: str, what: str = "--scenario"
+                   ) -> None:
+    """The plant's own parser reads the file (it would refuse it too, but only
+    after --out exists): a bad one exits 2 with one line naming file and key."""
+    from ftc import _core  # native: the plant's scenario parser
+
+    try:
+        _core.load_scenario(scenario)
+    except _core.ScenarioError as e:
+        parser.error(f"{what}: {e}")
+
+
+def run_held(out: str | Path) -> str | None:
+    """What run ``out`` holds ("finished, 10 intervals", "stopped after 2 of 10
+    intervals"), or None when it holds none."""
+    out = Path(out)
+    present = [n for n in RUN_FILES if (out / n).exists()]
+    if not present:
+        return None
+    try:
+        done = json.loads((out / "done.json").read_text())
+        return f"finished, {done['intervals']} intervals"
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    try:
+        rows = max(len((out / "metrics.csv").read_text().splitlines()) - 1, 0)
+    except OSError:
+        rows = 0
+    return f"stopped after {rows} finished intervals" if rows else f"started ({', '.join(present)})"
+
+
+def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
+                   given: dict[str, tuple[Any, str]], classes: dict[str, type]) -> dict[str, Any]:
+    """The configs of the run ``--resume DIR`` continues, read from its
+    config.json, with every option given on this command line honoured or
+    refused (exit 2, one line): the run-local ones (link, console, TensorBoard)
+    are this command line's; --intervals beyond the run's extends it; any other
+    option given must equal the run's value, since it fixes the results.
+
+    given: the configs parsed from this command line by part, with their
+    option prefix ({"controller": (cfg, ""), "ppo": (ppo, "ppo-")}); classes:
+    the config class of each part."""
+    here = next(iter(given.values()))[0]
+    out = here.resume
+    try:
+        stored = read_run_configs(out, classes)
+    except CheckpointError as e:
+        parser.error(str(e))
+    named = given_options(parser, argv)
+    if "out" in named and Path(here.out).resolve() != Path(out).resolve():
+        parser.error(f"--out {here.out} with --resume {out}: a resumed run stays in its "
+                     "directory (give only --resume)")
+    for part, (cfg, prefix) in given.items():
+        run = stored[part]
+        for f in fields(run):
+            value, theirs = getattr(cfg, f.name), getattr(run, f.name)
+            dest = prefix.replace("-", "_") + f.name
+            if f.name in RUN_LOCAL_FIELDS:
+                setattr(run, f.name, value)
+            elif dest not in named or value == theirs or _same_file(f.name, value, theirs):
+                continue
+            elif f.name in EXTENSIBLE_FIELDS and value > theirs:
+                setattr(run, f.name, value)
+            elif f.name in EXTENSIBLE_FIELDS:
+                parser.error(f"--resume {out}: {flag(f.name, prefix)} {value} is below the "
+                             f"run's {theirs}; a run can be extended, not shortened")
+            else:
+                shown = " ".join(map(str, value)) if isinstance(value, tuple) else value
+                parser.error(f"--resume {out}: {flag(f.name, prefix)} {shown} differs from "
+                             f"the run's {theirs!r}, which fixes its results (start a new "
+                             "run with another --out)")
+        run.resume, run.out, run.overwrite = out, out, False
+    scenario = next(iter(stored.values())).scenario
+    if scenario:
+        check_scenario(parser, scenario, f"--resume {out}: the run's scenario")
+    return stored
+
+
+def _same_file(name: str, a: Any, b: Any) -> bool:
+    return name == "scenario" and bool(a) and bool(b) and Path(a).resolve() == Path(b).resolve()
 
 
 def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:

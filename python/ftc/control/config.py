@@ -49,7 +49,13 @@ class RunConfig:
         f"LCM channel prefix (None: a private one when launching; {DEFAULT_PREFIX} with "
         "--attach)")})
     resume: str | None = field(default=None, metadata={"help": (
-        "continue the stopped run in this directory from its last checkpoint")})
+        "continue the stopped run in this directory from its last checkpoint; with "
+        "--intervals N beyond the run's, extend it (more control and learning); the "
+        "options that fix its results may be given only with the run's own values")})
+    overwrite: bool = field(default=False, metadata={"help": (
+        "replace the run already in --out: it is moved aside when this run starts and "
+        "deleted once this run's first interval is saved (moved back if this run fails "
+        "before)")})
     link_retry_timeout: float = field(default=0.05, metadata={"check": positive(60.0), "help": (
         "seconds before an unanswered plant message is re-sent (LCM on loopback answers "
         "in well under 1 ms; a lost message costs this much)")})
@@ -72,6 +78,8 @@ class RunConfig:
             raise ValueError("--out must name a directory, got ''")
         if self.resume is not None and not self.resume.strip():
             raise ValueError("--resume must name a run directory, got ''")
+        if self.resume is not None and self.overwrite:
+            raise ValueError("--overwrite replaces a run, --resume continues it: give one")
         if self.tensorboard is not None and not self.tensorboard.strip():
             raise ValueError("--tensorboard must name a directory, got ''")
         if self.prefix is not None and not self.prefix.strip():
@@ -95,10 +103,15 @@ class RunConfig:
 
 
 # Fields that do not change a run's results: a checkpoint written under other
-# values of these may be resumed (everything else must match).
-RUN_LOCAL_FIELDS = ("out", "resume", "lcm_url", "prefix", "attach", "allow_network", "quiet",
-                    "link_retry_timeout", "link_backoff", "link_give_up_timeout",
+# values of these may be resumed (everything else must match), and a resumed
+# run takes them from its own command line.
+RUN_LOCAL_FIELDS = ("out", "resume", "overwrite", "lcm_url", "prefix", "attach", "allow_network",
+                    "quiet", "link_retry_timeout", "link_backoff", "link_give_up_timeout",
                     "pretrain_cache", "tensorboard")
+# Fields a resumed run may raise: more intervals extend it.
+EXTENSIBLE_FIELDS = ("intervals",)
+# The files that make a run directory hold a run (what --overwrite replaces).
+RUN_FILES = ("config.json", "metrics.csv", "checkpoint.pt", "done.json")
 
 
 def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:

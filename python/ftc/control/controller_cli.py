@@ -4,11 +4,19 @@ offline on a world model refitted from real experience, interval by interval.
     python -m ftc.controller --scenario scenarios/single.toml --seed 0 --out runs/s0
     python -m ftc.controller --method closed --out runs/closed      # a baseline
     python -m ftc.controller --resume runs/s0                       # continue a stopped run
+    python -m ftc.controller --resume runs/s0 --intervals 20        # extend a run to 20
 
 Outputs in --out DIR: config.json (resolved config, seed, git revision),
 metrics.csv (one row per interval, rewritten atomically after each), a
 checkpoint after every interval (checkpoint.pt, torch.load(weights_only=True)),
-done.json when the run has finished; plant.pid while a launched plant runs.
+done.json when the run has finished; plant.pid while a launched plant runs;
+run.lock while the run writes (pid, start time, host): a second writer is
+refused, a lock whose holder is gone is taken over with a note. An --out that
+already holds a run is refused (--resume continues it, --overwrite replaces
+it: the old run is deleted only once the new one has saved an interval). On
+--resume, an option that fixes results (scenario, seed, method, sizes) may be
+given only with the run's own value; --intervals beyond the run's extends it,
+exactly as if it had been asked for from the start.
 With --tensorboard DIR, TensorBoard scalars in DIR: every PPO update's
 statistics, every interval's metrics, reward terms and steps/s
 (docs/ecosystem.md). A PPO run's policy exports to ONNX with
@@ -18,9 +26,9 @@ Failures (one line on stderr, "ftc.controller: error: ..."; nothing written
 after the last finished interval, so metrics.csv and checkpoint.pt stay those
 of that interval and --resume continues from it):
 
-    exit 2  bad input: a flag, a scenario file, or a --resume directory whose
-            config.json or checkpoint.pt is corrupt, truncated or from another
-            configuration
+    exit 2  bad input: a flag, a scenario file, an --out that holds a run or is
+            in use, or a --resume directory whose config.json or checkpoint.pt is
+            corrupt, truncated or from another configuration
     exit 3  the plant stopped answering (retried with back-off for
             --link-give-up-timeout seconds): "plant gone at interval K, step T: ..."
     exit 4  a non-finite number: observation, PPO loss, gradient or weights
@@ -36,24 +44,26 @@ from __future__ import annotations
 import argparse
 import sys
 import textwrap
+from dataclasses import fields
 from typing import Sequence
 
 import torch
 
-from ftc.common.cli import OneLineParser, add_dataclass_options, config_from_namespace
+from ftc.common.cli import (OneLineParser, add_dataclass_options, config_from_namespace, flag,
+                            given_options)
 from ftc.control.agent import Agent
 from ftc.control.balance import BalanceAgent
 from ftc.control.baselines import BaselineAgent
-from ftc.control.cli import add_run_options, check_or_exit, read_run_configs, run_or_report
+from ftc.control.cli import (add_run_options, check_or_exit, read_run_configs, resume_configs,
+                             run_or_report)
+from ftc.control.config import RunConfig
 from ftc.control.ppo_agent import ControllerConfig, PPOAgent
 from ftc.control.ppo_robust_agent import RobustPPOAgent
 from ftc.control.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
 
 TOOL = "ftc.controller"
-# options of a resumed run taken from this command line, not from its config.json
-RESUME_OVERRIDES = ("lcm_url", "prefix", "attach", "allow_network", "quiet",
-                    "link_retry_timeout", "link_backoff", "link_give_up_timeout", "tensorboard")
+PPO_METHODS = ("ppo", "ppo-robust")
 
 
 def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
@@ -69,6 +79,8 @@ def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
 
 class Controller(IntervalRunner):
     """A controller run: the interval runner driving the agent of ``cfg.method``."""
+
+    tool = TOOL
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         cfg.validate()
@@ -98,14 +110,32 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPOConfig]:
-    """The run's configs from the command line; bad input exits 2 before anything
+    """The run's configs from the command line (with --resume, the run's own,
+    every option given honoured or refused); bad input exits 2 before anything
     is written."""
     parser = build_parser()
     ns = vars(parser.parse_args(argv))
     cfg = config_from_namespace(ControllerConfig, ns)
     ppo = config_from_namespace(PPOConfig, ns, "ppo-")
     check_or_exit(parser, cfg, {"ppo-": ppo})
+    if cfg.resume:
+        configs = resume_configs(parser, argv, {"controller": (cfg, ""), "ppo": (ppo, "ppo-")},
+                                 {"controller": ControllerConfig, "ppo": PPOConfig})
+        return configs["controller"], configs["ppo"]
+    if cfg.method not in PPO_METHODS:
+        _refuse_ppo_options(parser, given_options(parser, argv), cfg.method)
     return cfg, ppo
+
+
+def _refuse_ppo_options(parser: argparse.ArgumentParser, named: set[str], method: str) -> None:
+    """A baseline has no policy: an option that configures PPO would have no effect."""
+    run = {f.name for f in fields(RunConfig)}
+    ppo_only = [flag(f.name) for f in fields(ControllerConfig)
+                if f.name not in run and f.name != "method" and f.name in named]
+    ppo_only += [flag(f.name, "ppo-") for f in fields(PPOConfig) if "ppo_" + f.name in named]
+    if ppo_only:
+        parser.error(f"{ppo_only[0]} has no effect with --method {method} (it configures the "
+                     f"PPO methods: {', '.join(PPO_METHODS)})")
 
 
 def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
@@ -120,17 +150,7 @@ def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
 def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
     cfg, ppo = parse_args(argv)
-
-    def run() -> None:
-        nonlocal cfg, ppo
-        if cfg.resume:
-            overrides = {k: getattr(cfg, k) for k in RESUME_OVERRIDES}
-            cfg, ppo = resume_config(cfg.resume)
-            for k, v in overrides.items():
-                setattr(cfg, k, v)
-        Controller(cfg, ppo).run()
-
-    return run_or_report(TOOL, run, out=cfg.resume or cfg.out)
+    return run_or_report(TOOL, lambda: Controller(cfg, ppo).run(), out=cfg.resume or cfg.out)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -40,11 +41,13 @@ import torch
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
 from ftc.common.build_info import git_revision
-from ftc.common.errors import CheckpointError, PlantLostError, RunError
+from ftc.common.errors import CheckpointError, PlantLostError, RunError, UsageError
+from ftc.common.replacing import Replacement
+from ftc.common.run_lock import RunLock
 from ftc.control import checkpoint
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import finite_observation
-from ftc.control.config import RunConfig, open_plant
+from ftc.control.config import RUN_FILES, RunConfig, open_plant
 from ftc.control.metrics import METRIC_COLUMNS, format_cell, progress_line
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
@@ -78,6 +81,8 @@ class IntervalRunner:
     "ppo": ...}); they go into config.json and a checkpoint must match them.
     """
 
+    tool = "ftc.controller"  # the command line that runs it: messages, the lock's record
+
     def __init__(self, cfg: RunConfig, agent: Agent, configs: dict[str, Any]) -> None:
         self.cfg, self.agent, self.configs = cfg, agent, configs
         self.out = Path(cfg.out)
@@ -94,12 +99,38 @@ class IntervalRunner:
             ) -> list[dict[str, Any]]:
         """Run (or continue, with cfg.resume) the intervals; returns the metrics rows.
 
+        The run directory is locked meanwhile (OUT/run.lock: a live second
+        writer raises InUse). A new run refuses a directory that holds a run
+        unless cfg.overwrite, which moves the old one aside until this run has
+        saved its first interval (and back if it fails before).
+
         stop_after: return after this many intervals of this call, as if the run
         had been stopped there (its checkpoint written; for tests of --resume).
         plant: drive this link instead of opening one from the config (tests).
         """
+        lock = RunLock(self.out, self.tool).acquire()
+        try:
+            if lock.took_over_line():
+                print(lock.took_over_line(), file=sys.stderr, flush=True)
+            replacement = None
+            if not self.cfg.resume:
+                held = [n for n in RUN_FILES if (self.out / n).exists()]
+                if held and not self.cfg.overwrite:
+                    raise UsageError(f"{self.out} already holds a run ({', '.join(held)}): "
+                                     f"--resume {self.out} continues it, --overwrite replaces it")
+                replacement = Replacement(self.out, RUN_FILES)
+                replacement.stash_old()
+            try:
+                return self._run(stop_after, plant)
+            except BaseException:
+                if replacement is not None and not (self.out / "checkpoint.pt").exists():
+                    replacement.restore()  # failed before its first interval: the old run back
+                raise
+        finally:
+            lock.release()
+
+    def _run(self, stop_after: int | None, plant: PlantLink | None) -> list[dict[str, Any]]:
         cfg = self.cfg
-        self.out.mkdir(parents=True, exist_ok=True)
         # one intra-op thread: the networks are tiny (threads cost more than they
         # give) and results are then bit-for-bit reproducible (measured: with the
         # default thread pool, losses differ in the 7th digit run to run)
@@ -107,6 +138,12 @@ class IntervalRunner:
         torch.manual_seed(cfg.seed)
         if cfg.resume:
             self.restore()
+            if self.interval >= cfg.intervals:
+                print(f"{self.tool}: {self.out} has finished its {self.interval} intervals; "
+                      f"nothing to do (--intervals N above {self.interval} extends it)",
+                      flush=True)
+                return self.rows
+            self._record_extension()
         else:
             self.write_config()
             self.info.update(self.agent.prepare())
@@ -229,11 +266,13 @@ class IntervalRunner:
 
     # -- persistence -------------------------------------------------------------
     def checkpoint(self) -> None:
-        """Everything needed to continue after interval ``self.interval - 1``."""
+        """Everything needed to continue after interval ``self.interval - 1``;
+        a run replaced by --overwrite is deleted once this one has saved one."""
         checkpoint.save(self.out / "checkpoint.pt", {
             "interval": self.interval, "rows": self.rows, "info": self.info,
             "torch_rng": torch.get_rng_state(), "config": checkpoint.config_stamp(self.configs),
             "agent": self.agent.state_dict()})
+        Replacement(self.out, RUN_FILES).commit()
 
     def restore(self) -> None:
         path = self.out / "checkpoint.pt"
@@ -248,6 +287,27 @@ class IntervalRunner:
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise CheckpointError(f"{path}: the {self.agent.name} state does not load: "
                                   f"{reason[:200]}") from None
+
+    def _record_extension(self) -> None:
+        """A resumed run asked for more intervals than its config.json says:
+        record the new count there (a later --resume continues to it) and mark
+        the run unfinished again."""
+        path = self.out / "config.json"
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise CheckpointError(f"{path}: unreadable ({e})") from None
+        parts = [p for p in self.configs if isinstance(doc.get(p), dict)]
+        if all(doc[p].get("intervals") == self.cfg.intervals for p in parts):
+            return
+        before = doc[parts[0]].get("intervals") if parts else None
+        for p in parts:
+            doc[p]["intervals"] = self.cfg.intervals
+        doc.setdefault("extended", []).append({"from": before, "to": self.cfg.intervals,
+                                               "argv": sys.argv})
+        atomic_write_json(path, doc)
+        (self.out / "done.json").unlink(missing_ok=True)
+        self._say(f"extending {self.out} from {before} to {self.cfg.intervals} intervals")
 
     def write_metrics(self) -> None:
         atomic_write_csv(self.out / "metrics.csv", self.columns,

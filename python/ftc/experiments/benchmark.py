@@ -44,7 +44,8 @@ from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report
 from ftc.experiments.methods import METHODS
 from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
-from ftc.experiments.processes import Guardian, OrchestratorLock, OutInUse, check_out_free
+from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorReplacement,
+                                      OutInUse, check_out_free)
 from ftc.experiments.progress import Progress
 from ftc.experiments.ray_executor import (RaySession, add_executor_options,
                                          check_executor_options, connect, run_on_ray)
@@ -77,7 +78,7 @@ class BenchmarkConfig:
     intervals: degradation intervals per run
     steps_per_interval: real control steps per interval (overrides the files' value)
     link: core (physics in the controller's process) or lcm (a plant process, recorded)
-    controller_args: extra arguments given to every run's controller
+    controller_args: extra arguments for the PPO methods' runs (MethodSpec.takes_controller_args)
     run_timeout: seconds after which a run is killed and counted failed (0: never)
     nice: niceness added to each controller
     """
@@ -154,8 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="core: the physics in each controller's process (default, fast); "
                              "lcm: a plant process per run, its traffic recorded and checked")
     parser.add_argument("--controller-args", default=None,
-                        help="extra arguments for every run's controller, one string (e.g. "
-                             "\"--update-every 32\" for intervals shorter than PPO's 128 steps)")
+                        help="extra arguments for the runs of the PPO methods (their "
+                             "ftc.controller), one string (e.g. \"--update-every 32\" for "
+                             "intervals shorter than PPO's 128 steps)")
     parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
                         default=None,
                         help="kill a run after this many seconds and count it failed (0: never)")
@@ -163,6 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="complete an interrupted run directory: finished runs are kept, "
                              "unfinished ones redone; scenarios, methods and seeds given are "
                              "added to the stored ones")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the benchmark already in --out: it is moved aside when "
+                             "this one starts, deleted once one of its runs has finished, and "
+                             "moved back if none does")
     return parser
 
 
@@ -205,7 +211,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     problem = out_dir_problem(out)
     if problem:
         parser.error(f"--out {out}: cannot write there ({problem})")
-    stored = _stored_config(parser, out, args.resume)
+    if args.overwrite and args.resume:
+        parser.error("--overwrite replaces a benchmark, --resume completes it: give one")
+    stored = None if args.overwrite else _stored_config(parser, out, args.resume)
     given = {k: getattr(args, k) for k in ("intervals", "steps_per_interval", "link")
              if getattr(args, k) is not None}
     if args.controller_args is not None:
@@ -251,6 +259,10 @@ def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
     """Why a method's module would refuse its runs' command line, or None: its own
     parser reads the command line (writing nothing), so a run option it refuses
     is an error here instead of a failure of every run."""
+    if config.controller_args and not any(METHODS[m].takes_controller_args
+                                          for m in config.methods):
+        return (f"--controller-args {' '.join(config.controller_args)}: no method here takes "
+                "them (they go to the runs of PPO methods, e.g. ppo-online)")
     for name in config.methods:
         method = METHODS[name]
         module = PARSERS.get(method.module)
@@ -259,7 +271,8 @@ def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
         argv = [*method.args, "--scenario", "", "--seed", str(config.seeds[0]),
                 "--intervals", str(config.intervals),
                 "--steps-per-interval", str(config.steps_per_interval), "--link", config.link,
-                f"--out={out / 'runs' / 'check'}", *config.controller_args]  # --out=: '-...'
+                f"--out={out / 'runs' / 'check'}",  # --out=: a path may start with '-'
+                *(config.controller_args if method.takes_controller_args else ())]
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
@@ -278,8 +291,8 @@ def _stored_config(parser: argparse.ArgumentParser, out: Path,
     if not meta.is_file():
         return None
     if not resume:
-        parser.error(f"--out {out} already holds a benchmark; use --resume to complete it "
-                     "or choose another --out")
+        parser.error(f"--out {out} already holds a benchmark: --resume completes it, "
+                     "--overwrite replaces it")
     try:
         return BenchmarkConfig.from_json(json.loads(meta.read_text())["config"])
     except (OSError, ValueError, KeyError, TypeError) as e:
@@ -316,11 +329,14 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
 
 def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
                   texts: dict[str, tuple[str, str]], stream: TextIO = sys.stderr,
-                  ray: RaySession | None = None, fork_server: bool = True) -> int:
+                  ray: RaySession | None = None, fork_server: bool = True,
+                  overwrite: bool = False) -> int:
     """Run (or complete) the benchmark in ``out``, then write results.csv,
     fractions.csv, the figure and the report. Returns the number of failed runs.
     ``ray``: run them as tasks of that Ray session (else on the local pool, each
     run forked from a fork server unless ``fork_server`` is false).
+    ``overwrite``: replace the benchmark already in ``out``
+    (:class:`OrchestratorReplacement`).
 
     Raises OutInUse if an orchestrator is running on ``out``, StorageError if a
     file cannot be written."""
@@ -329,14 +345,21 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise StorageError(f"cannot write {out}: {e.strerror or e}") from None
-    lock = OrchestratorLock(out).acquire()
+    lock = OrchestratorLock(out, TOOL).acquire()
+    if lock.took_over_line():
+        print(lock.took_over_line(), file=stream)
     guardian = Guardian()
     try:
-        prepare_directory(out, config, texts)
-        failed = _run_all(out, config, jobs, stream, guardian, ray, fork_server)
+        with OrchestratorReplacement(out, overwrite) as replacing:
+            prepare_directory(out, config, texts)
+            failed = _run_all(out, config, jobs, stream, guardian, ray, fork_server)
     finally:
         guardian.close()
         lock.release()
+    if replacing.restored:
+        print(f"{TOOL}: no run finished; the benchmark that was in {out} is back in place",
+              file=stream)
+        return len(failed)
     collect_benchmark(out)
     benchmark_report.write_report(out)
     print(f"{TOOL}: results in {out / 'results.csv'}, report at {out / 'report.md'}"
@@ -409,7 +432,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # connected (and every node's code checked) before anything is written
         ray = connect(args.ray_address, args.jobs) if args.executor == "ray" else None
         return 1 if run_benchmark(args.out_dir, args.config, args.jobs, args.texts,
-                                  ray=ray, fork_server=args.fork_server) else 0
+                                  ray=ray, fork_server=args.fork_server,
+                                  overwrite=args.overwrite) else 0
     except RunError as e:
         print(f"{TOOL}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code

@@ -56,7 +56,7 @@ from ftc.experiments.collect import collect
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
-from ftc.experiments.processes import OutInUse, check_out_free
+from ftc.experiments.processes import OrchestratorLock, OutInUse, check_out_free
 from ftc.experiments.ray_executor import (RaySession, add_executor_options,
                                          check_executor_options, connect)
 from ftc.experiments.scenarios import EXPERIMENTS, PRESETS, ExperimentConfig
@@ -85,6 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resume", action="store_true",
                         help="complete an interrupted run directory: finished runs are kept, "
                              "unfinished ones redone")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the experiment already in --out: it is moved aside when "
+                             "this one starts, deleted once one of its runs has finished, and "
+                             "moved back if none does")
     parser.add_argument("--full", action="store_true",
                         help="the paper's protocol (20 aggregate trials); default: a short run "
                              f"({PRESETS['quick']['trials']} aggregate trials)")
@@ -108,11 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
                         help=f"methods to compare (registered: {', '.join(METHODS)})")
     parser.add_argument("--pretrain", action="store_true",
-                        help="pass --pretrain to the controller (PPO methods: nominal pretraining in "
-                             "simulation; default: from scratch as in the paper)")
+                        help="pass --pretrain to the PPO methods' controllers (nominal "
+                             "pretraining in simulation; default: from scratch as in the paper)")
     parser.add_argument("--controller-args", default="",
-                        help="extra arguments for every run's controller, one string "
-                             "(e.g. \"--model-episodes 10 --offline-steps 512\")")
+                        help="extra arguments for the runs of the PPO methods (their "
+                             "ftc.controller), one string (e.g. \"--model-episodes 10 "
+                             "--offline-steps 512\"); other methods' runs do not get them")
     parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
                         default=0.0,
                         help="kill a run after this many seconds and count it failed (0: never)")
@@ -133,6 +138,9 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
     """Why a run's controller would refuse ``extra``, or None: each method's own
     parser reads the run's command line (writing nothing), so a bad
     --controller-args is refused here instead of failing every run."""
+    if extra and not any(METHODS[name].takes_controller_args for name in methods):
+        return (f"{' '.join(extra)}: no method here takes them (they go to the runs of "
+                "PPO methods, e.g. ppo-online)")
     for name in methods:
         method = METHODS[name]
         module = PARSERS.get(method.module)
@@ -141,7 +149,8 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
         argv = [*method.args, "--scenario", "", "--seed", str(config.seeds[0]),
                 "--intervals", str(config.intervals),
                 "--steps-per-interval", str(config.steps_per_interval),
-                f"--out={out / 'runs' / 'check'}", *extra]
+                f"--out={out / 'runs' / 'check'}",
+                *(extra if method.takes_controller_args else ())]
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
@@ -176,9 +185,16 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     ns = SimpleNamespace(**vars(args), out_dir=out, config=None)
     if args.tensorboard is not None and args.command in ("report", "model-search"):
         parser.error(f"--tensorboard: the {args.command} command runs no controller")
+    if args.overwrite and (args.command in ("report", "model-search") or args.model_search):
+        parser.error(f"--overwrite: replaces a whole experiment; not with "
+                     f"{'--model-search' if args.model_search else args.command}")
     if args.command == "report":
         if not (out / "experiment.json").is_file():
             parser.error(f"--out {out} holds no experiment.json")
+        try:
+            check_out_free(out)
+        except OutInUse as e:
+            parser.error(str(e))
         return ns
     problem = out_dir_problem(out)
     if problem:  # an unwritable --out is an error before any run starts
@@ -187,6 +203,10 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
         problem = out_dir_problem(args.tensorboard)
         if problem:
             parser.error(f"--tensorboard {args.tensorboard}: cannot write there ({problem})")
+    try:
+        check_out_free(out)
+    except OutInUse as e:
+        parser.error(str(e))
     if args.command == "model-search":
         return ns
     preset = PRESETS["full" if args.full else "quick"]
@@ -207,40 +227,44 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
                                        out)
     if problem:
         parser.error(f"--controller-args: {problem}")
+    if args.overwrite and args.resume:
+        parser.error("--overwrite replaces an experiment, --resume completes it: give one")
     meta = out / "experiment.json"
-    if meta.is_file():
+    if meta.is_file() and not args.overwrite:
         if not args.resume:
-            parser.error(f"--out {out} already holds an experiment; use --resume to complete "
-                         "it or choose another --out")
+            parser.error(f"--out {out} already holds an experiment: --resume completes it, "
+                         "--overwrite replaces it")
         try:
             ExperimentConfig.from_json(json.loads(meta.read_text())["config"])
         except (OSError, ValueError, KeyError, TypeError) as e:
             parser.error(f"--resume: {meta} is not a readable experiment "
                          f"({type(e).__name__}: {e})")
-    try:
-        check_out_free(out)
-    except OutInUse as e:
-        parser.error(f"--resume: {e}")
     return ns
 
 
 def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
     out = args.out_dir
     if args.command == "report":
-        collect(out)
-        report.write_report(out)
+        with OrchestratorLock(out):  # one writer: not beside a running experiment
+            collect(out)
+            report.write_report(out)
         print(f"report at {out / 'report.md'}")
         return 0
     if args.command == "model-search":
-        model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(), args.jobs)
-        if (out / "experiment.json").is_file():
-            report.write_report(out)
+        out.mkdir(parents=True, exist_ok=True)
+        with OrchestratorLock(out):
+            model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(),
+                         args.jobs)
+            if (out / "experiment.json").is_file():
+                report.write_report(out)
         print(f"model search table at {out / 'model_search.csv'}")
         return 0
     if args.command == "all" and args.model_search:  # on this machine, also with --executor ray
-        model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
+        out.mkdir(parents=True, exist_ok=True)
+        with OrchestratorLock(out):
+            model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
     failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray,
-                             fork_server=args.fork_server)
+                             fork_server=args.fork_server, overwrite=args.overwrite)
     return 1 if failed else 0
 
 

@@ -30,7 +30,8 @@ from ftc.experiments import report
 from ftc.experiments.collect import collect
 from ftc.experiments.fork_server import ForkServer, ForkServerGone
 from ftc.experiments.methods import METHODS
-from ftc.experiments.processes import Guardian, OrchestratorLock, RunFailed, RunHandle
+from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorReplacement,
+                                      RunFailed, RunHandle)
 from ftc.experiments.progress import Progress
 from ftc.experiments.ray_executor import RaySession, run_on_ray
 from ftc.experiments.runs import (RunSpec, baseline_specs, execute_with_retries, is_finished,
@@ -126,8 +127,8 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
     meta = out / "experiment.json"
     if meta.is_file():
         if not resume:
-            raise SystemExit(f"ftc.experiments: error: {out} already holds an experiment; "
-                             "use --resume to complete it or choose another --out")
+            raise SystemExit(f"ftc.experiments: error: {out} already holds an experiment: "
+                             "--resume completes it, --overwrite replaces it")
         stored = ExperimentConfig.from_json(json.loads(meta.read_text())["config"])
         merged = dataclasses.replace(
             stored,
@@ -159,7 +160,7 @@ def prepare_directory(out: Path, config: ExperimentConfig, resume: bool) -> Expe
 
 def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resume: bool,
                     stream: TextIO = sys.stderr, ray: RaySession | None = None,
-                    fork_server: bool = True) -> int:
+                    fork_server: bool = True, overwrite: bool = False) -> int:
     """Run (or complete) the configured experiments into ``out``; then collect and
     write the figures and report. Returns the number of failed runs. ``ray``: run
     them as tasks of that Ray session (else on the local pool of ``jobs``, each
@@ -173,15 +174,19 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resum
     except OSError as e:
         raise StorageError(f"cannot write {out}: {e.strerror or e}") from None
     lock = OrchestratorLock(out).acquire()
-    if lock.took_over:
-        print(f"ftc.experiments: taking over the stale lock of pid {lock.took_over.get('pid')} "
-              f"(no longer running)", file=stream)
+    if lock.took_over_line():
+        print(lock.took_over_line(), file=stream)
     guardian = Guardian()
+    replacing = OrchestratorReplacement(out, overwrite)
     try:
-        return _run_locked(out, config, jobs, resume, stream, guardian, ray, fork_server)
+        with replacing:  # --overwrite: the old experiment aside until a run has finished
+            return _run_locked(out, config, jobs, resume, stream, guardian, ray, fork_server)
     finally:
         guardian.close()
         lock.release()
+        if replacing.restored:
+            print(f"ftc.experiments: no run finished; the experiment that was in {out} is "
+                  "back in place", file=stream)
 
 
 def provenance(config, methods, previous: dict) -> dict:

@@ -12,8 +12,6 @@ pid and stopping the group stops the plant a controller started too.
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import json
 import os
 import signal
@@ -26,8 +24,10 @@ from typing import Callable
 
 from ftc.common.atomic import atomic_write_json
 from ftc.common.build_info import recorder_binary
-from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE, RunError, StorageError
+from ftc.common.errors import EXIT_STORAGE, RunError, StorageError
 from ftc.common.lifetime import die_with_parent
+from ftc.common.replacing import Replacement
+from ftc.common.run_lock import InUse, RunLock, check_free, proc_start_time
 from ftc.experiments.fork_server import ForkedProcess, ForkServer, ForkServerGone
 
 LOCK_NAME = "orchestrator.lock"
@@ -37,10 +37,7 @@ class RunFailed(RunError):
     """One run failed (the others go on); the message says why."""
 
 
-class OutInUse(RunError):
-    """The run directory belongs to an orchestrator that is still running."""
-
-    exit_code = EXIT_USAGE
+OutInUse = InUse  # the run directory belongs to an orchestrator that is still running
 
 
 # The guardian: reads "+gPGID" / "+pPID" lines (a process group, a single
@@ -105,15 +102,6 @@ class Guardian:
         self.process.wait()
 
 
-def _proc_start_time(pid: int) -> str | None:
-    """The start time of process ``pid`` (clock ticks since boot), or None if it is gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return None
-
-
 def record_process(run_dir: Path, name: str, proc: subprocess.Popen) -> None:
     """Note a started process group (pid and start time) so --resume can stop a
     leftover of a killed orchestrator, and nothing else."""
@@ -122,7 +110,7 @@ def record_process(run_dir: Path, name: str, proc: subprocess.Popen) -> None:
         procs = json.loads(path.read_text())
     except (OSError, ValueError):
         procs = {}
-    procs[name] = {"pid": proc.pid, "start": _proc_start_time(proc.pid)}
+    procs[name] = {"pid": proc.pid, "start": proc_start_time(proc.pid)}
     atomic_write_json(path, procs)
 
 
@@ -135,7 +123,7 @@ def stop_leftover_processes(run_dir: Path) -> None:
     for info in procs.values():
         pid, start = info.get("pid"), info.get("start")
         # The start time tells a leftover from an unrelated process that reuses the pid.
-        if pid and start and _proc_start_time(pid) == start:
+        if pid and start and proc_start_time(pid) == start:
             try:
                 os.killpg(pid, signal.SIGKILL)  # its own session: pgid == pid
             except OSError:
@@ -292,11 +280,10 @@ class LcmLogger:
             self._stderr.close()
 
 
-class OrchestratorLock:
-    """OUT/orchestrator.lock while an orchestrator runs on OUT: an flock (which
-    a killed holder drops with its last descriptor) on a file naming its pid
-    and process start time. A lock left by a dead orchestrator is stale and
-    taken over; one held by a live orchestrator refuses with OutInUse.
+class OrchestratorLock(RunLock):
+    """OUT/orchestrator.lock while an orchestrator runs on OUT (a
+    :class:`ftc.common.run_lock.RunLock`: a live holder refuses with OutInUse,
+    a stale one is taken over).
 
     While it is held no one else writes under OUT, so temporary files (``*.tmp``)
     there are leftovers of atomic writes cut short (a killed orchestrator, or a
@@ -304,39 +291,11 @@ class OrchestratorLock:
     when the lock is taken and again when it is released, after every run
     has stopped."""
 
-    def __init__(self, out: Path) -> None:
-        self.path = Path(out) / LOCK_NAME
-        self._fd: int | None = None
-        self.took_over: dict | None = None
+    def __init__(self, out: Path, tool: str = "ftc.experiments") -> None:
+        super().__init__(out, tool, LOCK_NAME)
 
     def acquire(self) -> "OrchestratorLock":
-        try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as e:
-            raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as e:
-            os.close(fd)
-            if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-                raise StorageError(f"cannot lock {self.path}: {e.strerror or e}") from None
-            raise OutInUse(_in_use_message(self.path, read_lock(self.path))) from None
-        holder = read_lock(self.path)
-        if holder and holder.get("pid") != os.getpid() and _alive(holder):
-            os.close(fd)  # a file system without flock: the pid and start time tell
-            raise OutInUse(_in_use_message(self.path, holder))
-        self.took_over = holder or None
-        me = json.dumps({"pid": os.getpid(), "start": _proc_start_time(os.getpid()),
-                         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode()
-        try:
-            os.ftruncate(fd, 0)
-            if os.pwrite(fd, me, 0) != len(me):
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        except OSError as e:
-            os.close(fd)
-            self.path.unlink(missing_ok=True)
-            raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
-        self._fd = fd
+        super().acquire()
         self.remove_temporaries()
         return self
 
@@ -350,46 +309,34 @@ class OrchestratorLock:
     def release(self) -> None:
         if self._fd is not None:
             self.remove_temporaries()
-            self.path.unlink(missing_ok=True)  # still holding it: no one sees a gap
-            os.close(self._fd)
-            self._fd = None
+        super().release()
 
 
-def read_lock(path: Path) -> dict:
-    try:
-        doc = json.loads(Path(path).read_text() or "{}")
-        return doc if isinstance(doc, dict) else {}
-    except (OSError, ValueError):
-        return {}
+class OrchestratorReplacement:
+    """--overwrite of an orchestrator's directory (:mod:`ftc.common.replacing`):
+    everything in OUT moved aside once the lock is held; deleted once the new
+    experiment has finished a run, moved back if it ends before any."""
 
+    def __init__(self, out: Path, overwrite: bool) -> None:
+        self.out = Path(out)
+        self.replacement = Replacement(self.out, os.listdir) if overwrite else None
+        self.restored = False
 
-def _alive(holder: dict) -> bool:
-    pid, start = holder.get("pid"), holder.get("start")
-    return bool(isinstance(pid, int) and start and _proc_start_time(pid) == start)
+    def __enter__(self) -> "OrchestratorReplacement":
+        if self.replacement is not None:
+            self.replacement.stash_old()
+        return self
 
-
-def _in_use_message(path: Path, holder: dict) -> str:
-    who = f"pid {holder['pid']}" if holder.get("pid") else "another process"
-    since = f", started {holder['started']}" if holder.get("started") else ""
-    return (f"{path.parent} is in use by a running ftc.experiments ({who}{since}; lock "
-            f"{path}): wait for it to finish or stop it first")
+    def __exit__(self, *exc: object) -> None:
+        if self.replacement is None:
+            return
+        if any(self.out.glob("runs/**/result.json")):
+            self.replacement.commit()
+        else:
+            self.replacement.restore()
+            self.restored = True
 
 
 def check_out_free(out: Path) -> None:
     """Raise OutInUse if a live orchestrator holds OUT's lock (creates nothing)."""
-    path = Path(out) / LOCK_NAME
-    if not path.is_file():
-        return
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        raise OutInUse(_in_use_message(path, read_lock(path))) from None
-    finally:
-        os.close(fd)
-    holder = read_lock(path)
-    if holder and holder.get("pid") != os.getpid() and _alive(holder):
-        raise OutInUse(_in_use_message(path, holder))
+    check_free(out, LOCK_NAME)

@@ -126,7 +126,7 @@ def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: P
             else ["--lcm-url", url, "--prefix", prefix])
     if config.tensorboard is not None:
         cmd += ["--tensorboard", str(tensorboard_dir(spec, config))]
-    return cmd + list(config.controller_args)
+    return cmd + (list(config.controller_args) if method.takes_controller_args else [])
 
 
 def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunHandle) -> dict:

@@ -22,9 +22,13 @@ onnxruntime on fixed-seed states over the observation space and refuses to
 write a model whose valves differ from torch's; the .onnx is written
 atomically.
 
+An existing --out is refused unless --overwrite; while the tool runs,
+.NAME.lock beside --out keeps a second writer out.
+
 Errors: one line on stderr ("ftc.export: error: ..."); exit 2 for bad input (a
 missing, corrupt or truncated checkpoint, one of a run without a policy, a bad
---out), 5 when the file cannot be written, 1 when the export itself fails.
+--out, an --out that exists or is being written by another export), 5 when the
+file cannot be written, 1 when the export itself fails.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from ftc.common.atomic import atomic_write_bytes
 from ftc.common.build_info import git_revision
 from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import CheckpointError, NonFiniteError, RunError
+from ftc.common.run_lock import InUse, RunLock, check_free
 from ftc.control import checkpoint
 from ftc.control.cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
@@ -202,6 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a controller checkpoint.pt (or its run directory)")
     parser.add_argument("--out", type=checked(Path, nonempty=True), required=True,
                         help="the .onnx file to write (atomically)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing --out file (atomically, once the new model "
+                             "is verified; default: refuse it)")
     parser.add_argument("--verify-states", type=checked(int, at_least(0, 10_000_000)),
                         default=4096, help="states on which onnxruntime must agree with torch "
                         "before the file is written (0: no check; default: %(default)s)")
@@ -217,6 +225,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     problem = out_dir_problem(args.out.resolve().parent)
     if problem:
         parser.error(f"--out {args.out}: cannot write there ({problem})")
+    if args.out.exists() and not args.overwrite:
+        parser.error(f"--out {args.out}: exists (--overwrite replaces it)")
+    try:
+        check_free(args.out, beside=True)
+    except InUse as e:
+        parser.error(str(e))
     return args
 
 
@@ -225,11 +239,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
 
     def run() -> None:
-        path = checkpoint_path(args.checkpoint)
-        policy, source = load_policy(path)
-        model = export_model(policy, source)
-        gap = verify(model, policy, args.verify_states) if args.verify_states else None
-        atomic_write_bytes(args.out, model.SerializeToString())
+        with RunLock(args.out, TOOL, beside=True) as lock:
+            if lock.took_over_line():
+                print(lock.took_over_line(), file=sys.stderr)
+            path = checkpoint_path(args.checkpoint)
+            policy, source = load_policy(path)
+            model = export_model(policy, source)
+            gap = verify(model, policy, args.verify_states) if args.verify_states else None
+            atomic_write_bytes(args.out, model.SerializeToString())
         checked_text = (f"; onnxruntime agrees on {args.verify_states} states (logits within "
                         f"{gap:.2g})" if gap is not None else "")
         print(f"{TOOL}: wrote {args.out} ({source['method']} policy of {path}, after "

@@ -11,8 +11,12 @@ Every episode starts from full tanks; the plant cuts the running episode at
 each interval boundary. Anyone can check the physics against an independent
 simulation of ../shared/design/plant-model.md with this file.
 
-Exit codes: 2 bad input (a flag, the scenario file, an --out that is a
-directory or cannot be written), checked before the plant starts; 1 the plant
+An existing --out is refused unless --overwrite; while the tool runs,
+.NAME.lock beside --out keeps a second writer out.
+
+Exit codes: 2 bad input (a flag, the scenario file, an --out that exists, is
+a directory, cannot be written or is being written by another run), checked
+before the plant starts; 1 the plant
 failed or stopped answering; 5 the CSV could not be written (disk full): one
 line naming the path, no partial or temporary file left.
 """
@@ -29,6 +33,7 @@ from ftc.common.atomic import atomic_write_csv
 from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
+from ftc.common.run_lock import InUse, RunLock, check_free
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
@@ -75,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="control steps to simulate")
     parser.add_argument("--out", type=checked(Path, nonempty=True), required=True,
                         help="CSV file to write")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing --out file (atomically, once the new one is "
+                             "complete; default: refuse it)")
     parser.add_argument("--steps-per-interval",
                         type=checked(int, at_least(1, MAX_STEPS_PER_INTERVAL)), default=None,
                         help="override the scenario's steps per degradation interval")
@@ -97,6 +105,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             parser.error(f"--scenario: {e}")
     if args.out.is_dir():
         parser.error(f"--out {args.out}: is a directory (give the CSV file to write)")
+    if args.out.exists() and not args.overwrite:
+        parser.error(f"--out {args.out}: exists (--overwrite replaces it)")
+    try:
+        check_free(args.out, beside=True)
+    except InUse as e:
+        parser.error(str(e))
     # An unwritable --out is an error before the plant starts; nothing is created.
     problem = out_dir_problem(args.out.resolve().parent)
     if problem:
@@ -109,7 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     extra = ([] if args.steps_per_interval is None
              else ["--steps-per-interval", str(args.steps_per_interval)])
     try:
-        with stop_signals():
+        with stop_signals(), RunLock(args.out, "ftc.simulate", beside=True) as lock:
+            if lock.took_over_line():
+                print(lock.took_over_line(), file=sys.stderr)
             n = run(str(args.scenario) if args.scenario else None, args.policy, args.seed,
                     args.steps, args.out, extra)
     except (KeyboardInterrupt, Stopped) as e:  # the plant shut down, nothing written
