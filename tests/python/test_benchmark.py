@@ -24,8 +24,7 @@ from ftc import _core
 from ftc.experiments import benchmark, benchmark_report, suite
 from ftc.experiments.methods import METHODS
 
-SHORT = ["--intervals", "2", "--steps-per-interval", "64", "--jobs", "2",
-         "--controller-args", "--update-every 32"]
+SHORT = ["--intervals", "2", "--steps-per-interval", "64", "--jobs", "2"]
 METHODS_RUN = ("closed", "balance", "oracle-mpc")
 SEEDS = (0, 1)
 

@@ -9,8 +9,9 @@ items 3, 6 and 8):
     while it ran is gone), a second orchestrator on the same --out is refused
     while the first runs, and --resume takes the stale lock over and completes
     with the results of an uninterrupted run;
-  * the soak (slow): 20 rounds of SIGKILL at random moments of a reduced
-    ``all``, each followed by --resume.
+  * the soak (slow): 20 rounds of SIGKILL of a reduced ``all`` on a fixed
+    schedule of progress events (mid-run, or right after a run finished), each
+    followed by --resume; every round is killed while runs remain.
 
 Results are compared on every column of results.csv but the timing ones, and
 the baseline episodes byte for byte. Set FTC_FAULT_TALLY=<file> for the counts.
@@ -22,13 +23,13 @@ import csv
 import hashlib
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -308,34 +309,104 @@ def test_experiment_on_a_full_disk_exits_5_and_resume_completes(small_disk, refe
 # Soak
 # ---------------------------------------------------------------------------
 
+class Kill(NamedTuple):
+    """When a soak round SIGKILLs its orchestrator: ``delay`` s after the
+    round's ``after_results``-th new result.json appears (right after a run
+    finished), or, with ``after_results`` 0, ``delay`` s after the round's first
+    controller is seen running (mid-run)."""
+
+    after_results: int
+    delay: float
+
+
+# One entry per round. Why the number of kills is deterministic: every kill is
+# triggered by the round's own progress, not by wall time, and the schedule
+# cannot use up the work before its last kill. A SOAK run takes about 0.4 s
+# (more on a loaded machine) from its controller's start to its result.json, so
+# a mid-run round (delays <= 0.2 s) finishes no run; an after-result round
+# finishes its `after_results` runs plus at most the one other run in flight
+# (--jobs 2), since a result.json the schedule did not ask for triggers the kill
+# at once (_wait_to_kill). The whole schedule thus finishes at most
+# SOAK_RESULT_BUDGET (4) of SOAK's 6 runs: every round still has runs to do when
+# its kill comes, so it cannot exit before it.
+SOAK_KILLS = [
+    Kill(0, 0.0), Kill(0, 0.1), Kill(0, 0.2), Kill(1, 0.0), Kill(0, 0.05),
+    Kill(0, 0.15), Kill(0, 0.0), Kill(0, 0.1), Kill(0, 0.2), Kill(0, 0.05),
+    Kill(1, 0.1), Kill(0, 0.15), Kill(0, 0.0), Kill(0, 0.1), Kill(0, 0.2),
+    Kill(0, 0.05), Kill(0, 0.15), Kill(0, 0.0), Kill(0, 0.1), Kill(0, 0.2),
+]
+SOAK_JOBS = int(SOAK[SOAK.index("--jobs") + 1])
+SOAK_RESULT_BUDGET = sum(k.after_results + SOAK_JOBS - 1 for k in SOAK_KILLS if k.after_results)
+
+
+def _finished_runs(out: Path) -> set[Path]:
+    return set(out.glob("runs/**/result.json"))
+
+
+def _controller_running(out: Path) -> bool:
+    """A run's controller is alive (earlier rounds' processes are all gone)."""
+    for path in out.glob("runs/**/processes.json"):
+        controller = _processes(path.parent).get("controller", {})
+        if controller.get("pid") and _start_time(controller["pid"]) == controller.get("start"):
+            return True
+    return False
+
+
+def _wait_to_kill(p: subprocess.Popen, out: Path, kill: Kill, before: set[Path],
+                  timeout: float = 300) -> int:
+    """Waits for the moment ``kill`` names, or for a result.json it did not ask
+    for (then at once); returns the number of such unscheduled results."""
+    deadline, since = time.monotonic() + timeout, None
+    while True:
+        new = len(_finished_runs(out) - before)
+        if new > kill.after_results:
+            return new - kill.after_results
+        if since is None and (new == kill.after_results if kill.after_results
+                              else _controller_running(out)):
+            since = time.monotonic()
+        if since is not None and time.monotonic() - since >= kill.delay:
+            return 0
+        assert p.poll() is None, \
+            f"the orchestrator ended before its kill {kill}: {p.stderr.read().decode()[-2000:]}"
+        assert time.monotonic() < deadline, f"timed out waiting for the moment of {kill}"
+        time.sleep(0.01)
+
+
 @pytest.mark.slow
-def test_soak_sigkill_at_random_moments_then_resume(tmp_path):
+def test_soak_sigkill_on_a_fixed_schedule_then_resume(tmp_path):
     reference = tmp_path / "reference"
-    start = time.monotonic()
     proc = _experiments([*SOAK, "--out", str(reference)], timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    duration = time.monotonic() - start
-    rng = random.Random(20)
+    runs = len(_finished_runs(reference))
+    assert SOAK_RESULT_BUDGET < runs, (SOAK_RESULT_BUDGET, runs)
     out = tmp_path / "soak"
-    counts = {"rounds": 0, "kills": 0, "finished_before_kill": 0, "orphans": 0,
+    counts = {"rounds": 0, "kills": 0, "killed_mid_run": 0, "killed_after_a_result": 0,
+              "unscheduled_results": 0, "fewest_runs_left": runs, "orphans": 0,
               "runs_survived": 0, "results_lost": 0}
     finished: dict[str, str] = {}  # run directory -> digest of result.json when first seen
-    for _ in range(20):
+    for kill in SOAK_KILLS:
         counts["rounds"] += 1
+        before = _finished_runs(out)
         p = subprocess.Popen([PY, "-m", "ftc.experiments", *SOAK, "--out", str(out), "--resume"],
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=REPO)
         watcher = Watcher(p.pid)
         try:
-            p.wait(timeout=rng.uniform(0.2, duration))  # the fault's timing, drawn from the seed
-            counts["finished_before_kill"] += 1
-            assert p.returncode == 0, p.stderr.read().decode()[-2000:]
-        except subprocess.TimeoutExpired:
+            counts["unscheduled_results"] += _wait_to_kill(p, out, kill, before)
             p.send_signal(signal.SIGKILL)
             p.wait()
-            counts["kills"] += 1
         finally:
             watcher.stop()
+            if p.poll() is None:
+                p.kill()
+                p.wait()
             p.stderr.close()
+        # only the orchestrator writes result.json: none appears once it is dead
+        runs_left = runs - len(_finished_runs(out))
+        assert runs_left > 0, f"round {counts['rounds']}: every run finished before its kill"
+        counts["fewest_runs_left"] = min(counts["fewest_runs_left"], runs_left)
+        if p.returncode == -signal.SIGKILL:
+            counts["kills"] += 1
+            counts["killed_after_a_result" if kill.after_results else "killed_mid_run"] += 1
         orphans = _orphans(watcher.seen, out)
         counts["orphans"] += len(orphans)
         assert orphans == [], orphans
@@ -355,4 +426,4 @@ def test_soak_sigkill_at_random_moments_then_resume(tmp_path):
     counts["result_rows"] = _assert_same_results(out, reference)
     print("soak:", json.dumps(counts))
     tally("soak SIGKILLs of ftc.experiments", counts["kills"])
-    assert counts["kills"] >= 10  # most rounds were cut short
+    assert counts["kills"] == len(SOAK_KILLS), counts  # every round was cut short

@@ -43,7 +43,10 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
         check_config(cfg)
         for prefix, part in (parts or {}).items():
             check_config(part, prefix)
-        cfg.validate()
+        if not cfg.resume:  # a resumed run's cross-field rules: on its own config
+            cfg.validate()
+        elif cfg.overwrite:
+            raise ValueError("--overwrite replaces a run, --resume continues it: give one")
     except ValueError as e:
         parser.error(str(e))
     if cfg.scenario and not cfg.resume:  # a resumed run's own: checked by resume_configs
@@ -138,6 +141,12 @@ def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
                              f"the run's {theirs!r}, which fixes its results (start a new "
                              "run with another --out)")
         run.resume, run.out, run.overwrite = out, out, False
+    for run in stored.values():
+        try:
+            if hasattr(run, "validate"):
+                run.validate()
+        except ValueError as e:
+            parser.error(f"--resume {out}: {e}")
     scenario = next(iter(stored.values())).scenario
     if scenario:
         check_scenario(parser, scenario, f"--resume {out}: the run's scenario")

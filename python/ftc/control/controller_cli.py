@@ -57,13 +57,12 @@ from ftc.control.baselines import BaselineAgent
 from ftc.control.cli import (add_run_options, check_or_exit, read_run_configs, resume_configs,
                              run_or_report)
 from ftc.control.config import RunConfig
-from ftc.control.ppo_agent import ControllerConfig, PPOAgent
+from ftc.control.ppo_agent import PPO_METHODS, ControllerConfig, PPOAgent
 from ftc.control.ppo_robust_agent import RobustPPOAgent
 from ftc.control.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
 
 TOOL = "ftc.controller"
-PPO_METHODS = ("ppo", "ppo-robust")
 
 
 def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:

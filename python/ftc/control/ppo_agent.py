@@ -52,6 +52,7 @@ from ftc.learning.world_model import WorldModelConfig
 from ftc.plant.link import PlantObservation
 
 METHODS = ("ppo", "closed", "open", "random", "balance", "ppo-robust")
+PPO_METHODS = ("ppo", "ppo-robust")  # the methods with a policy (the rest ignore PPO's options)
 OFFLINE_MODES = ("sequential", "background")
 PRETRAIN_SIMS = ("model", "core")
 
@@ -170,7 +171,7 @@ class ControllerConfig(RunConfig):
         super().validate()
         if self.method == "ppo" and self.offline and self.offline_steps < 1:
             raise ValueError("--offline-steps must be >= 1 with --method ppo --offline")
-        if self.steps_per_interval % self.update_every:
+        if self.method in PPO_METHODS and self.steps_per_interval % self.update_every:
             raise ValueError("--steps-per-interval must be a multiple of --update-every")
 
     def pretrain_settings(self) -> PretrainSettings:
