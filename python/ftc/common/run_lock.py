@@ -70,6 +70,9 @@ def describe(holder: dict) -> str:
 
 
 def in_use_message(target: Path, lock: Path, holder: dict) -> str:
+    if holder.get("host") not in (None, socket.gethostname()):
+        return (f"{target} is in use by {describe(holder)} (lock {lock}), which cannot be "
+                "checked from this host: wait for it, or remove the lock if it is gone")
     return (f"{target} is in use by a running {describe(holder)} (lock {lock}): wait for it "
             "to finish or stop it first")
 

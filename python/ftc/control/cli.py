@@ -56,14 +56,14 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
     problem = out_dir_problem(cfg.resume or cfg.out)
     if problem:
         parser.error(f"--out {cfg.resume or cfg.out}: cannot write there ({problem})")
+    try:  # a live writer first: the run it holds is not finished
+        check_free(cfg.resume or cfg.out)
+    except InUse as e:
+        parser.error(str(e))
     held = run_held(cfg.out)
     if not cfg.resume and held and not cfg.overwrite:
         parser.error(f"--out {cfg.out} already holds a run ({held}): --resume {cfg.out} "
                      "continues it, --overwrite replaces it")
-    try:
-        check_free(cfg.resume or cfg.out)
-    except InUse as e:
-        parser.error(str(e))
     problem = out_dir_problem(cfg.tensorboard) if cfg.tensorboard else None
     if problem:
         parser.error(f"--tensorboard {cfg.tensorboard}: cannot write there ({problem})")
