@@ -133,7 +133,7 @@ def policyless(tmp_path_factory) -> dict[str, Path]:
     common = ["--scenario", "", "--intervals", "1", "--steps-per-interval", "32", "--quiet",
               "--link", "core"]
     assert controller_cli.main(["--method", "closed", "--out", str(root / "closed"),
-                                "--update-every", "32", *common]) == 0
+                                *common]) == 0
     assert mpc_cli.main(["--method", "oracle", "--out", str(root / "oracle"), *common]) == 0
     return {"closed": root / "closed" / "checkpoint.pt",
             "oracle": root / "oracle" / "checkpoint.pt"}

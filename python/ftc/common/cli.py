@@ -18,6 +18,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from ftc.common.run_lock import InUse, check_free
+
 
 class OneLineParser(argparse.ArgumentParser):
     """An ArgumentParser whose errors are one line on stderr (``prog: error: ...``,
@@ -163,6 +165,25 @@ def out_dir_problem(out: str | os.PathLike) -> str | None:
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
         return f"{existing} is not a writable directory"
     return None
+
+
+def check_out_file(parser: argparse.ArgumentParser, out: Path, overwrite: bool,
+                   kind: str) -> None:
+    """An --out that names one file to write (``kind``: "the CSV file"), checked
+    before anything runs: not a directory, in a writable directory, not an
+    existing file unless ``overwrite``, not being written by another live
+    process (its lock beside it); each refusal is one line, exit 2."""
+    if out.is_dir():
+        parser.error(f"--out {out}: is a directory (name {kind} to write)")
+    problem = out_dir_problem(out.resolve().parent)
+    if problem:
+        parser.error(f"--out {out}: cannot write there ({problem})")
+    if out.exists() and not overwrite:
+        parser.error(f"--out {out}: exists (--overwrite replaces it)")
+    try:
+        check_free(out, beside=True)
+    except InUse as e:
+        parser.error(str(e))
 
 
 def checked(convert: Callable[[str], Any], check: Check | None = None,

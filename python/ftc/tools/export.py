@@ -47,9 +47,9 @@ from torch import nn
 
 from ftc.common.atomic import atomic_write_bytes
 from ftc.common.build_info import git_revision
-from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
+from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import CheckpointError, NonFiniteError, RunError
-from ftc.common.run_lock import InUse, RunLock, check_free
+from ftc.common.run_lock import RunLock
 from ftc.control import checkpoint
 from ftc.control.cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
@@ -220,17 +220,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """The command line; a bad --out exits 2 with one line before anything runs."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.out.is_dir():
-        parser.error(f"--out {args.out}: is a directory (name the .onnx file)")
-    problem = out_dir_problem(args.out.resolve().parent)
-    if problem:
-        parser.error(f"--out {args.out}: cannot write there ({problem})")
-    if args.out.exists() and not args.overwrite:
-        parser.error(f"--out {args.out}: exists (--overwrite replaces it)")
-    try:
-        check_free(args.out, beside=True)
-    except InUse as e:
-        parser.error(str(e))
+    check_out_file(parser, args.out, args.overwrite, "the .onnx file")
     return args
 
 

@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from ftc.common.atomic import atomic_write_csv
-from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
+from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
-from ftc.common.run_lock import InUse, RunLock, check_free
+from ftc.common.run_lock import RunLock
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
@@ -103,18 +103,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             _core.load_scenario(str(args.scenario))
         except _core.ScenarioError as e:  # names the file and the key
             parser.error(f"--scenario: {e}")
-    if args.out.is_dir():
-        parser.error(f"--out {args.out}: is a directory (give the CSV file to write)")
-    if args.out.exists() and not args.overwrite:
-        parser.error(f"--out {args.out}: exists (--overwrite replaces it)")
-    try:
-        check_free(args.out, beside=True)
-    except InUse as e:
-        parser.error(str(e))
-    # An unwritable --out is an error before the plant starts; nothing is created.
-    problem = out_dir_problem(args.out.resolve().parent)
-    if problem:
-        parser.error(f"--out {args.out}: cannot write there ({problem})")
+    check_out_file(parser, args.out, args.overwrite, "the CSV file")  # nothing created
     return args
 
 
