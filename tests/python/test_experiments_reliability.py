@@ -215,7 +215,7 @@ def test_sigkill_leaves_no_orphans_the_lock_refuses_and_resume_completes(tmp_pat
         if resumed.poll() is None:
             resumed.kill()
     assert resumed.returncode == 0, err[-3000:]
-    assert f"stale lock of pid {proc.pid}" in err
+    assert "taking over the stale lock" in err and f"pid {proc.pid} on " in err
     _assert_same_results(out, reference)
     tally("orchestrator SIGKILLed mid-run", 1)
 

@@ -169,7 +169,7 @@ def _task_processes() -> dict[int, str]:
 
 def test_killed_driver_leaves_finished_runs_and_resume_on_ray_skips_them(head, tmp_path):
     out = tmp_path / "resume"
-    args = [*EXPERIMENT[:2], "closed", "open", "--seeds", "0", "1", *EXPERIMENT[7:],
+    args = [*EXPERIMENT[:2], "closed", "open", "--seeds", "0", "1", *EXPERIMENT[7:11],
             "--executor", "ray", "--ray-address", head["address"], "--jobs", "1",
             "--out", str(out)]
     args[args.index("--steps-per-interval") + 1] = "128"  # long enough to be caught running

@@ -74,6 +74,56 @@ def _driving(plant: PlantLink, out: Path) -> Iterator[None]:
                 pid_file.unlink(missing_ok=True)
 
 
+@contextlib.contextmanager
+def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
+    """The block writes the run in ``out`` as its only writer (OUT/run.lock; a
+    live holder raises InUse, a stale one is taken over with a note). A new
+    run refuses a directory holding a run unless cfg.overwrite, which moves
+    the old one aside until the new one's first checkpoint (the runner's
+    checkpoint() then deletes it) and back if the block fails before."""
+    lock = RunLock(out, tool).acquire()
+    try:
+        if lock.took_over_line():
+            print(lock.took_over_line(), file=sys.stderr, flush=True)
+        replacement = None
+        if not cfg.resume:
+            held = [n for n in RUN_FILES if (out / n).exists()]
+            if held and not cfg.overwrite:
+                raise UsageError(f"{out} already holds a run ({', '.join(held)}): "
+                                 f"--resume {out} continues it, --overwrite replaces it")
+            replacement = Replacement(out, RUN_FILES)
+            replacement.stash_old()
+        try:
+            yield
+        except BaseException:
+            if replacement is not None and not (out / "checkpoint.pt").exists():
+                replacement.restore()  # failed before its first interval: the old run back
+            raise
+    finally:
+        lock.release()
+
+
+def record_extension(out: Path, parts: list[str], intervals: int) -> bool:
+    """A resumed run asked for more intervals than its config.json says: record
+    the new count there (a later --resume continues to it) and mark the run
+    unfinished again. Returns whether it was extended."""
+    path = out / "config.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise CheckpointError(f"{path}: unreadable ({e})") from None
+    parts = [p for p in parts if isinstance(doc.get(p), dict)]
+    if all(doc[p].get("intervals") == intervals for p in parts):
+        return False
+    before = doc[parts[0]].get("intervals") if parts else None
+    for p in parts:
+        doc[p]["intervals"] = intervals
+    doc.setdefault("extended", []).append({"from": before, "to": intervals, "argv": sys.argv})
+    atomic_write_json(path, doc)
+    (out / "done.json").unlink(missing_ok=True)
+    return True
+
+
 class IntervalRunner:
     """Runs ``agent`` on the plant of ``cfg`` interval by interval.
 
@@ -97,78 +147,53 @@ class IntervalRunner:
     # -- the run ----------------------------------------------------------------
     def run(self, stop_after: int | None = None, plant: PlantLink | None = None
             ) -> list[dict[str, Any]]:
-        """Run (or continue, with cfg.resume) the intervals; returns the metrics rows.
-
-        The run directory is locked meanwhile (OUT/run.lock: a live second
-        writer raises InUse). A new run refuses a directory that holds a run
-        unless cfg.overwrite, which moves the old one aside until this run has
-        saved its first interval (and back if it fails before).
+        """Run (or continue, with cfg.resume) the intervals as the only writer
+        of the run directory (:func:`_owning`); returns the metrics rows.
 
         stop_after: return after this many intervals of this call, as if the run
         had been stopped there (its checkpoint written; for tests of --resume).
         plant: drive this link instead of opening one from the config (tests).
         """
-        lock = RunLock(self.out, self.tool).acquire()
-        try:
-            if lock.took_over_line():
-                print(lock.took_over_line(), file=sys.stderr, flush=True)
-            replacement = None
-            if not self.cfg.resume:
-                held = [n for n in RUN_FILES if (self.out / n).exists()]
-                if held and not self.cfg.overwrite:
-                    raise UsageError(f"{self.out} already holds a run ({', '.join(held)}): "
-                                     f"--resume {self.out} continues it, --overwrite replaces it")
-                replacement = Replacement(self.out, RUN_FILES)
-                replacement.stash_old()
+        with _owning(self.out, self.cfg, self.tool):
+            cfg = self.cfg
+            # one intra-op thread: tiny networks, and bit-for-bit reproducible results
+            # (measured: with the default pool, losses differ in the 7th digit run to run)
+            torch.set_num_threads(1)
+            torch.manual_seed(cfg.seed)
+            if cfg.resume:
+                self.restore()
+                if self.interval >= cfg.intervals:
+                    print(f"{self.tool}: {self.out} has finished its {self.interval} intervals; "
+                          f"nothing to do (--intervals N above {self.interval} extends it)",
+                          flush=True)
+                    return self.rows
+                if record_extension(self.out, list(self.configs), cfg.intervals):
+                    self._say(f"extending {self.out} to {cfg.intervals} intervals")
+            else:
+                self.write_config()
+                self.info.update(self.agent.prepare())
+                self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
+            start = time.perf_counter()
             try:
-                return self._run(stop_after, plant)
-            except BaseException:
-                if replacement is not None and not (self.out / "checkpoint.pt").exists():
-                    replacement.restore()  # failed before its first interval: the old run back
-                raise
-        finally:
-            lock.release()
-
-    def _run(self, stop_after: int | None, plant: PlantLink | None) -> list[dict[str, Any]]:
-        cfg = self.cfg
-        # one intra-op thread: the networks are tiny (threads cost more than they
-        # give) and results are then bit-for-bit reproducible (measured: with the
-        # default thread pool, losses differ in the 7th digit run to run)
-        torch.set_num_threads(1)
-        torch.manual_seed(cfg.seed)
-        if cfg.resume:
-            self.restore()
+                self.telemetry = self.agent.telemetry = open_telemetry(
+                    cfg.tensorboard, cfg.steps_per_interval, self.interval if cfg.resume else None)
+                if plant is None:
+                    try:
+                        plant = open_plant(cfg, self.interval * cfg.steps_per_interval)
+                    except PlantLostError as e:
+                        raise PlantLostError(f"at interval {self.interval}: {e}") from None
+                self._run_intervals(plant, start, stop_after)
+            except PlantGoneError as e:
+                raise PlantLostError(f"plant gone at {self.where}: {e}; results of the "
+                                     f"{self.interval} finished intervals are in {self.out}, "
+                                     "--resume continues from them") from None
+            finally:
+                self.agent.close()
+                self.telemetry.close()
             if self.interval >= cfg.intervals:
-                print(f"{self.tool}: {self.out} has finished its {self.interval} intervals; "
-                      f"nothing to do (--intervals N above {self.interval} extends it)",
-                      flush=True)
-                return self.rows
-            self._record_extension()
-        else:
-            self.write_config()
-            self.info.update(self.agent.prepare())
-            self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
-        start = time.perf_counter()
-        try:
-            self.telemetry = self.agent.telemetry = open_telemetry(
-                cfg.tensorboard, cfg.steps_per_interval, self.interval if cfg.resume else None)
-            if plant is None:
-                try:
-                    plant = open_plant(cfg, self.interval * cfg.steps_per_interval)
-                except PlantLostError as e:
-                    raise PlantLostError(f"at interval {self.interval}: {e}") from None
-            self._run_intervals(plant, start, stop_after)
-        except PlantGoneError as e:
-            raise PlantLostError(f"plant gone at {self.where}: {e}; results of the "
-                                 f"{self.interval} finished intervals are in {self.out}, "
-                                 "--resume continues from them") from None
-        finally:
-            self.agent.close()
-            self.telemetry.close()
-        if self.interval >= cfg.intervals:
-            atomic_write_json(self.out / "done.json", {
-                "intervals": self.interval, "wall_time": time.perf_counter() - start}, indent=None)
-        return self.rows
+                done = {"intervals": self.interval, "wall_time": time.perf_counter() - start}
+                atomic_write_json(self.out / "done.json", done, indent=None)
+            return self.rows
 
     def _run_intervals(self, plant: PlantLink, start: float, stop_after: int | None) -> None:
         with _driving(plant, self.out):
@@ -205,9 +230,6 @@ class IntervalRunner:
             self.rows[interval].update(metrics)
             self.telemetry.late(interval, metrics)
 
-    def _checked(self, o: PlantObservation) -> PlantObservation:
-        return finite_observation(o, self.where)
-
     def online(self, plant: PlantLink) -> tuple[dict[str, Any], Transitions | None]:
         """One interval of operating steps; returns its metrics and, for an agent
         that wants them, its transitions."""
@@ -216,14 +238,14 @@ class IntervalRunner:
         rewards = np.zeros(n)
         observations: list[PlantObservation] = []
         self.where = f"interval {k}, step 0"
-        o = self._checked(plant.reset())
+        o = finite_observation(plant.reset(), self.where)
         agent.start_episode(o)
         observations.append(o)
         episodes = 1
         for t in range(n):
             u = agent.act(o, StepContext(k, t, n - t))
             self.where = f"interval {k}, step {t + 1}"
-            nxt = self._checked(plant.step(u))
+            nxt = finite_observation(plant.step(u), self.where)
             observations.append(nxt)
             rewards[t] = reward(nxt.level, u)
             self.telemetry.step(nxt.level, u)
@@ -236,7 +258,7 @@ class IntervalRunner:
                                "interval's end (is its steps_per_interval the same as ours?)")
             following = nxt
             if nxt.terminal and not last:
-                following = self._checked(plant.reset())
+                following = finite_observation(plant.reset(), self.where)
                 observations.append(following)
                 episodes += 1
             agent.observe(Transition(o, u, float(rewards[t]), nxt, following))
@@ -253,13 +275,13 @@ class IntervalRunner:
         can keep an episode from ever ending. Returns (reward per step, steps)."""
         k, limit = self.interval, self.cfg.steps_per_interval
         self.where = f"interval {k}, evaluation step 0"
-        o = self._checked(plant.evaluate())
+        o = finite_observation(plant.evaluate(), self.where)
         self.agent.start_episode(o)
         total, steps = 0.0, 0
         while not o.done and steps < limit:
             u = self.agent.act(o, StepContext(k, steps, None, evaluation=True))
             self.where = f"interval {k}, evaluation step {steps + 1}"
-            o = self._checked(plant.step(u))
+            o = finite_observation(plant.step(u), self.where)
             total += float(reward(o.level, u))
             steps += 1
         return total / max(steps, 1), steps
@@ -287,27 +309,6 @@ class IntervalRunner:
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise CheckpointError(f"{path}: the {self.agent.name} state does not load: "
                                   f"{reason[:200]}") from None
-
-    def _record_extension(self) -> None:
-        """A resumed run asked for more intervals than its config.json says:
-        record the new count there (a later --resume continues to it) and mark
-        the run unfinished again."""
-        path = self.out / "config.json"
-        try:
-            doc = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            raise CheckpointError(f"{path}: unreadable ({e})") from None
-        parts = [p for p in self.configs if isinstance(doc.get(p), dict)]
-        if all(doc[p].get("intervals") == self.cfg.intervals for p in parts):
-            return
-        before = doc[parts[0]].get("intervals") if parts else None
-        for p in parts:
-            doc[p]["intervals"] = self.cfg.intervals
-        doc.setdefault("extended", []).append({"from": before, "to": self.cfg.intervals,
-                                               "argv": sys.argv})
-        atomic_write_json(path, doc)
-        (self.out / "done.json").unlink(missing_ok=True)
-        self._say(f"extending {self.out} from {before} to {self.cfg.intervals} intervals")
 
     def write_metrics(self) -> None:
         atomic_write_csv(self.out / "metrics.csv", self.columns,
