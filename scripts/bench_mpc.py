@@ -1,4 +1,4 @@
-"""Benchmark of the MPC controllers (issue 5): decisions per second of the
+"""Benchmark of the MPC controllers: decisions per second of the
 oracle (C++ batch rollouts, H=3, L=10: 64 candidates x 10 steps) and of the
 learned-model MPC (torch, same planner), on states visited by a closed-loop
 run of the single-fault plant at several ages; then, unless --no-runs, the

@@ -1,5 +1,5 @@
 """Named constants of the plant and the wire, defined once
-(``../shared/design/plant-model.md`` for the physics)."""
+(``docs/plant-model.md`` for the physics)."""
 
 from __future__ import annotations
 

@@ -81,7 +81,7 @@ class MPCConfig(RunConfig):
     horizon: int = field(default=10, metadata={"check": at_least(1, 10_000), "help": "L: planning horizon, steps"})
     hold: int = field(default=3, metadata={"check": at_least(1, 10_000), "help": (
         "H: steps each candidate setting is held before all valves close (hold planner; "
-        "issue 5: H=3 beat 1, 5 and 10 in an independent simulation)")})
+        "measured: H=3 beat 1, 5 and 10 in an independent simulation)")})
     truncate_at_interval: bool = field(default=True, metadata={"help": (
         "plan no further than the interval's last step (the plant cuts the episode there "
         "and the next interval starts from full tanks)")})

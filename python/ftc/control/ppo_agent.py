@@ -139,7 +139,8 @@ class ControllerConfig(RunConfig):
         "before interval 0, stopped while it still explores (see --pretrain-open-fraction)")})
     pretrain_open_fraction: float = field(default=0.05, metadata={"check": between(0.0, 1.0), "help": (
         "pretraining stops once the mean valve-open probability over the last rollout "
-        "falls to this (controller-notes item 1: ~5% keeps enough exploration to adapt)")})
+        "falls to this (~5% keeps enough exploration to adapt; trained to convergence the "
+        "policy barely adapts)")})
     pretrain_deterministic_closed: bool = field(default=False, metadata={"help": (
         "also require the deterministic policy to keep every valve closed on every "
         "state of the last rollout before stopping (measured: that comes only at ~1.7% "
@@ -165,7 +166,8 @@ class ControllerConfig(RunConfig):
         "pretraining depends on (seed, pretrain, PPO and model settings, code); a hit skips "
         "pretraining with the same result ('' disables)")})
     fresh_optimizer: bool = field(default=True, metadata={"help": (
-        "reset Adam's state when adaptation starts, after pretraining (controller-notes item 3)")})
+        "reset Adam's state when adaptation starts, after pretraining (narrows the spread "
+        "across seeds)")})
 
     def validate(self) -> None:
         super().validate()

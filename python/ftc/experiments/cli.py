@@ -8,7 +8,7 @@
     python -m ftc.experiments benchmark [--scenarios FILE...] [--methods NAME...]
                                         # the benchmark suite (benchmark --help)
 
-Experiments (../shared/design/plant-model.md, "The paper's experiments"):
+Experiments (docs/plant-model.md, "The paper's experiments"):
 single (engine E1, D_E = 20), multiple (E1 D_E = 20, tanks 5 and 6 D_T = 20)
 and aggregate (N trials, each one random tank and one random engine with
 factors uniform in [10, 30], drawn from --scenario-seed). Every

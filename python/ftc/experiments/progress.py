@@ -37,7 +37,7 @@ class Progress:
     """Runs done/total, each running run's current interval, elapsed time and ETA.
 
     The ETA weighs each run's intervals by its method's cost and extrapolates
-    the rate of this session's progress.
+    the rate of this orchestrator's progress.
     """
 
     def __init__(self, runs: list[RunSpec], finished: set[str], intervals: int,

@@ -1,5 +1,5 @@
 """What an experiment runs: its configuration, the presets, and the fault
-scenarios of its trials (../shared/design/plant-model.md, "The paper's
+scenarios of its trials (docs/plant-model.md, "The paper's
 experiments").
 
 single: engine E1 D_E = 20; multiple: E1 D_E = 20, tanks 5 and 6 D_T = 20;

@@ -1,6 +1,6 @@
 """Grey-box identification of the plant's physical parameters from observed
 transitions: pump capacities p_i, valve resistances R_i and engine demands d_j
-(``../shared/design/plant-model.md``).
+(``docs/plant-model.md``).
 
 This *assumes the plant's structure*: the hybrid tank model (pumps feeding
 each engine innermost first, the shared conduit, its source/sink rule) with

@@ -39,12 +39,13 @@ skip_dynamo_import()  # 2 s of start-up: nothing here is compiled
 @dataclass
 class PPOConfig:
     """PPO hyperparameters. ``paper`` = the values the paper's authors used in the
-    code behind their figures; ``notes`` = /work/shared/design/controller-notes.md;
-    ``measured`` = changed by a measurement of ours, recorded in docs/controller.md."""
+    code behind their figures; ``measured`` = changed by a measurement of ours,
+    recorded in docs/controller.md."""
 
     learning_rate: float = field(default=1e-3, metadata={"check": positive(1.0), "help": (
-        "Adam step size. paper: 1e-2; 1e-3 per the notes and measured here (single "
-        "fault, online+offline, pretrained, 3-5 seeds): 1e-2 earns 2.42 per step in "
+        "Adam step size. paper: 1e-2 (unstable: the deterministic policy collapsed); "
+        "1e-3 measured here (single fault, online+offline, pretrained, 3-5 seeds): 1e-2 "
+        "earns 2.42 per step in "
         "interval 0 and 2.03 over intervals 1-9, 1e-3 earns 2.60 and 2.28")})
     gamma: float = field(default=0.99, metadata={"check": between(0.0, 1.0), "help": "discount factor (paper)"})
     gae_lambda: float = field(default=0.95, metadata={"check": between(0.0, 1.0), "help": "GAE lambda (paper)"})
@@ -64,7 +65,8 @@ class PPOConfig:
         "stop the epochs of an update early once approx-KL exceeds this (None: never)")})
     reward_scale: float = field(default=0.01, metadata={"check": positive(1e6), "help": (
         "rewards are multiplied by this before GAE so critic targets are O(1) "
-        "(rewards ~2.5/step, discounted returns ~100). notes item 4")})
+        "(rewards ~2.5/step, discounted returns ~100: unscaled, the value loss dominates "
+        "the shared trunk)")})
     trunk_sizes: tuple[int, ...] = field(default=(64, 64), metadata={"check": at_least(1, 4096), "help": (
         "shared tanh trunk (paper)")})
     head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"check": at_least(1, 4096), "help": (
@@ -74,7 +76,7 @@ class PPOConfig:
         "hand-derived gradients, inner loops in C++, ftc._learn; 3-4x faster runs for "
         "these tiny networks; the same minibatches, loss, Adam and sampling stream; "
         "float32 rounding differs and PPO amplifies it: the benchmark suite's results are "
-        "within seed noise of torch's, docs/benchmarks.md, seventh round) or torch "
+        "within seed noise of torch's, docs/benchmarks.md) or torch "
         "(autograd, the reference; tests/data/same_results pins it); clip_vloss "
         "uses torch")})
 
@@ -303,7 +305,8 @@ class PPO:
         return torch.optim.Adam(self.policy.parameters(), lr=self.config.learning_rate, eps=1e-5)
 
     def reset_optimizer(self) -> None:
-        """A fresh optimiser state (notes item 3: at the start of adaptation)."""
+        """A fresh optimiser state (at the start of adaptation: it narrows the spread
+        across seeds)."""
         self.optimizer = self.new_optimizer()
 
     def act(self, obs: torch.Tensor, deterministic: bool = False

@@ -1,5 +1,5 @@
 """Nominal pretraining of the policy in simulation, stopped while it still
-explores (controller-notes item 1), with a cache of pretrained policies.
+explores (a policy trained until exploration collapses barely adapts), with a cache of pretrained policies.
 
 Stop rule (explicit and measured): after an update, the mean valve-open
 probability over the rollout is <= ``open_fraction`` and, if

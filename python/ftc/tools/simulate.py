@@ -9,7 +9,7 @@ episode, ``age`` is the degradation age (intervals) in force during the step,
 ``u`` the valves applied, ``x`` the true (noise-free) levels after the step.
 Every episode starts from full tanks; the plant cuts the running episode at
 each interval boundary. Anyone can check the physics against an independent
-simulation of ../shared/design/plant-model.md with this file.
+simulation of docs/plant-model.md with this file.
 
 An existing --out is refused unless --overwrite; while the tool runs,
 .NAME.lock beside --out keeps a second writer out.
