@@ -7,8 +7,9 @@
   native pieces (the generated LCM types, the ``_core`` and ``_learn``
   bindings) may be
   imported inside functions, where a missing build gives a clear error late;
-* no module is over 500 lines and no class over 200 (the size at which the
-  flat layout this replaced had become hard to extend).
+* no two modules import each other, directly or through others (type-checking
+  imports counted): the import graph has no circle;
+* no module is over 500 lines and no class over 200.
 """
 
 from __future__ import annotations
@@ -36,6 +37,58 @@ def test_import_linter_contract_is_kept():
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
     assert "0 broken" in proc.stdout
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The circles of a directed import graph (its strongly connected
+    components of more than one module), each sorted (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                circles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return circles
+
+
+def test_the_circle_finder_finds_circles_and_only_those():
+    assert import_circles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+    assert import_circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert import_circles({"a": {"b"}, "b": {"a"}, "c": {"d"}, "d": {"c"}}) == [["a", "b"],
+                                                                                ["c", "d"]]
+
+
+def test_the_import_graph_has_no_circle():
+    import grimp  # import-linter's graph builder: every import statement, TYPE_CHECKING too
+
+    sys.path.insert(0, str(PACKAGE.parent))
+    graph = grimp.build_graph("ftc", include_external_packages=False)
+    edges = {m: graph.find_modules_directly_imported_by(m) for m in graph.modules}
+    assert import_circles(edges) == []
 
 
 def _local_ftc_imports(tree: ast.AST) -> list[tuple[int, str]]:

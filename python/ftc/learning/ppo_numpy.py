@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 if TYPE_CHECKING:  # ppo.py imports this module; these are for annotations only
-    from ftc.learning.ppo import ActorCritic, PPOConfig, UpdateStats
+    from ftc.learning.ppo_policy import ActorCritic, PPOConfig, UpdateStats
 
 
 class _Net:
