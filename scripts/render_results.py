@@ -1,0 +1,94 @@
+#!/usr/bin/env python3
+"""Render the docs' result tables from the committed result files.
+
+    .venv/bin/python scripts/render_results.py          # rewrite the tables in place
+    .venv/bin/python scripts/render_results.py --check  # exit 1 naming each stale table
+
+A table lives in a Markdown file between two markers,
+
+    <!-- results: NAME -->
+    ...rendered table...
+    <!-- /results -->
+
+and is rendered from docs/results/NAME.csv: '#' lines first (what was
+measured, the command, commit, machine and date: the table's provenance line
+comes from them), then a CSV header and rows, as the tool that measured them
+wrote it (e.g. scripts/quality_controller.py --results). Nobody types a
+number into a table: tests/python/test_docs.py fails when a table and its
+file disagree.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import re
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "docs" / "results"
+DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+BLOCK = re.compile(r"(<!-- results: ([\w-]+) -->\n)(.*?)(<!-- /results -->)", re.S)
+
+
+def read_results(path: Path) -> tuple[dict[str, str], list[dict[str, str]]]:
+    """(provenance by key, rows) of a result file."""
+    meta, body = {}, []
+    for line in path.read_text().splitlines():
+        if line.startswith("#"):
+            key, _, value = line[1:].partition(":")
+            meta[key.strip()] = value.strip()
+        elif line.strip():
+            body.append(line)
+    return meta, list(csv.DictReader(body))
+
+
+def render(name: str) -> str:
+    """The Markdown of table NAME: provenance line, then the table."""
+    path = RESULTS / f"{name}.csv"
+    if not path.is_file():
+        raise SystemExit(f"render_results: no result file {path.relative_to(REPO)} for table "
+                         f"'{name}'")
+    meta, rows = read_results(path)
+    means = [c for c in rows[0] if c.startswith("mean_") and c != "mean_1_9"]
+    head = ["method", *(c.removeprefix("mean_") for c in means), "mean 1-9"]
+    lines = [f"Measured by `{meta.get('command', '?')}` ({meta.get('what', '')}), "
+             f"commit {meta.get('commit', '?')[:12]}, {meta.get('machine', '?')}, "
+             f"{meta.get('date', '?')}; file `docs/results/{name}.csv`.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        lines.append("| " + " | ".join([r["label"], *(r[c] for c in means), r["mean_1_9"]])
+                     + " |")
+    return "\n".join(lines) + "\n"
+
+
+def rendered(text: str) -> str:
+    """``text`` with every results block rendered from its file."""
+    return BLOCK.sub(lambda m: m.group(1) + render(m.group(2)) + m.group(4), text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--check", action="store_true",
+                   help="write nothing; exit 1 naming every table that differs from its file")
+    args = p.parse_args(argv)
+    stale = []
+    for doc in DOCUMENTS:
+        text = doc.read_text()
+        new = rendered(text)
+        if new != text:
+            stale.append(str(doc.relative_to(REPO)))
+            if not args.check:
+                doc.write_text(new)
+    if args.check and stale:
+        print(f"render_results: tables differ from docs/results in {', '.join(stale)}; run "
+              "scripts/render_results.py", file=sys.stderr)
+        return 1
+    if stale:
+        print(f"render_results: rendered {', '.join(stale)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
