@@ -162,5 +162,42 @@ TEST(Dynamics, RootFunctionsArePositiveInsideTheirMode) {
   for (int k = 0; k < kNumRoots; ++k) EXPECT_GT(r[k], 0.0) << "root " << k;
 }
 
+TEST(Dynamics, ALevelBelowZeroEndsTheModeOfASinkOnlyOnceItIsNoLongerFilled) {
+  // Engine 1 (demand 0.1) fed by empty tanks 3 and 2 through the conduit from
+  // tank 1 (pump dead): tank 3 is pinned, passing q = 0.1 x1, and tank 2 may
+  // draw the rest, 0.1 - q. With x1 = 0.5 + 1e-6, tank 2's inflow q exceeds
+  // that by 2e-7 m^3/s: it rises off the bottom, towards the level x_eq =
+  // x1 - (0.1 - q) R / g = 2e-6 m at which its inflow would equal its draw.
+  PlantParams p;
+  p.pump[0] = 0.0;
+  p.demand[0] = 0.1;
+  const Valves u = MakeValves({1, 1, 1, 0, 0, 0});
+  Vec6 x = MakeLevels({0.5 + 1e-6, 0.0, 0.0, 0.5, 0.5, 0.5});
+  const Mode mode = ComputeMode(x, u, p);
+  ASSERT_TRUE(mode.pinned[2]);
+  ASSERT_TRUE(mode.pumping[1] && mode.sink[1] && !mode.pinned[1]);
+  // At or above 0 the level root is the level (plus a 1e-15 offset) ...
+  const double at_zero = RootFunctions(x, u, p, mode)[1];
+  EXPECT_GT(at_zero, 0.0);
+  EXPECT_LT(at_zero, 1e-14);
+  x[1] = 0.25;
+  EXPECT_NEAR(RootFunctions(x, u, p, mode)[1], 0.25, 1e-14);
+  // ... but an integrated level 1e-12 below 0 while the tank is filled (inside
+  // any tolerance we integrate at) does not end the mode: min(x_eq, 1e-12).
+  x[1] = -1e-12;
+  const double filled = RootFunctions(x, u, p, mode)[1];
+  EXPECT_GT(filled, 0.9e-12);
+  EXPECT_LT(filled, 1.1e-12);
+  // Once the inflow has fallen below the draw (x_eq < 0) it does, and at
+  // x_2 = 0 ComputeMode pins the tank: the located root changes the mode.
+  x[0] = 0.5 - 1e-6;
+  EXPECT_LT(RootFunctions(x, u, p, mode)[1], 0.0);
+  x[1] = 0.0;
+  EXPECT_TRUE(ComputeMode(x, u, p).pinned[1]);
+  // A draining sink's level below 0 is its bottom, as before.
+  x = MakeLevels({0.4, -1e-12, 0.0, 0.5, 0.5, 0.5});  // inflow 0.04 < draw 0.06
+  EXPECT_NEAR(RootFunctions(x, u, p, mode)[1], -1e-12 + 1e-15, 1e-20);
+}
+
 }  // namespace
 }  // namespace ftc

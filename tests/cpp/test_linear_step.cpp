@@ -134,6 +134,38 @@ TEST(LinearConduitStep, HandsOverWhereAPumpAfterAPinnedTankCannotCoverItsEngine)
   EXPECT_EQ(r.x, x0);
 }
 
+TEST(LinearConduitStep, RisingOffTheBottomByLessThanTheToleranceIsExact) {
+  // test_integrator.cpp's grazing cases where the closed form handles the mode:
+  // an empty tank whose inflow exceeds its draw by 0.1 eps or 0.2 eps m^3/s
+  // (eps from 1e-14 to 1e-4 m) rises by ~eps^2 m and returns. The closed
+  // form's levels are exact to rounding, so it samples the level roots only at
+  // levels >= 0, where they are the bare levels (dynamics.cpp); it must locate
+  // the return once and end where tight CVODE ends.
+  IntegratorOptions tight;
+  tight.rtol = 1e-12;
+  tight.atol = 1e-14;
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  for (int k = 0; k < 400; ++k) {
+    const double eps = std::pow(10.0, -14 + 10 * unit(rng)) * (k % 4 < 2 ? 1 : -1);
+    PlantParams p;
+    Vec6 x = Vec6::Zero();
+    x[0] = 0.5 + eps;
+    int code = 0b001001;  // tank 4 fed by tank 1
+    if (k % 2 == 1) {     // tank 3 pinned, tank 2 draws 0.1 - 0.1 x1, tank 1 the rest
+      p.demand[0] = 0.1;
+      code = 0b000111;
+    }
+    const Valves u = FromCode(code);
+    LinearStepResult r;
+    ASSERT_NO_THROW(r = LinearConduitStep(x, u, p, 1.0)) << "case " << k << " eps " << eps;
+    ASSERT_EQ(r.t, 1.0) << k;
+    EXPECT_LE(r.events, 2) << k;
+    StepIntegrator reference(tight);
+    EXPECT_LT((r.x - reference.Step(x, u, p, 1.0).x).cwiseAbs().maxCoeff(), 1e-9) << k;
+  }
+}
+
 TEST(BatchRollout, ClosedFormActiveStepsAgreeWithCvodeRollouts) {
   // The planner's batch (64 settings held 3 steps, then closed) from a mid-
   // episode state: totals within CVODE's own error at the plant's tolerances

@@ -9,6 +9,26 @@
 // mode must be recomputed; ComputeMode applies the matching test with the
 // boundary itself on the side the crossing leads to, so a located root always
 // yields the new mode.
+//
+// A sink off the bottom (pumping, not pinned) relaxes towards its equilibrium
+// level x_eq = x_ref - want * R / g, at which its inflow g (x_ref - x) / R
+// equals its pump draw (time constant c R / g, 10 s nominal): it is filled
+// while x_eq > x and drains while x_eq < x, and it can reach 0 only once x_eq
+// is below 0, where ComputeMode pins it. Where the inflow exceeds the draw
+// only marginally (e.g. an empty tank whose draw is what a pinned tank
+// upstream leaves of the demand, near inflow = draw), the tank rises by some
+// 1e-12 m for some 1e-5 s and returns: far below what CVODE resolves at the
+// rollouts' atol of 1e-8. Its first step overshoots the excursion, the
+// interpolated level crosses -kRootOffset within ~1e-7 s, the restart at 0
+// finds the same mode (inflow still > draw), and so on: over 1000 switches in
+// 1e-5 s, the oracle's "chattering" (tests/cpp/test_integrator.cpp). So a
+// level below 0 counts as reached only if the tank drains there; while it is
+// filled the level root is min(x_eq, -x) (continuous at x = 0, and positive
+// until x_eq has fallen below 0). Wherever x >= 0 or the tank drains the root
+// is the bare level, as before (every ordinary return to 0, and every point
+// the closed-form steps of linear_step.cpp sample); and at a located root
+// x_eq <= -kRootOffset, so the inflow at x = 0 is below the draw and
+// ComputeMode pins the tank: the located root always changes the mode.
 #include "plant/core/dynamics.h"
 
 #include <algorithm>
@@ -219,9 +239,16 @@ std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
   const Evaluation e = Evaluate(x, p, mode);
   for (int i = 0; i < kTanks; ++i) {
     // Slot i: a draining tank reaching the bottom (a live pump, or a source
-    // member paying for sinks).
-    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink && e.rho > 0)))
-      r[i] = x[i] + kRootOffset;
+    // member paying for sinks). A sink's level below 0 while it is still
+    // being filled is an integration error, not the bottom (file header).
+    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink && e.rho > 0))) {
+      double bottom = x[i];
+      if (mode.sink[i] && x[i] < 0) {
+        const double equilibrium = e.xref - e.want[i] * p.resistance[i] / p.g;
+        if (equilibrium > x[i]) bottom = std::min(equilibrium, -x[i]);
+      }
+      r[i] = bottom + kRootOffset;
+    }
     // Slot kTanks + i: the tank's place in the conduit changes.
     double& b = r[kTanks + i];
     if (mode.pinned[i]) {

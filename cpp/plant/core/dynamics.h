@@ -57,9 +57,11 @@ void EvaluateField(const Vec6& x, const PlantParams& p, const Mode& mode, Vec6* 
 constexpr int kNumRoots = 2 * kTanks;
 
 // Root functions g(x) whose sign change ends the current mode: a pumping tank
-// reaching 0, a sink reaching the conduit level, a pinned tank's inflow
-// crossing its pump draw, a source-group member leaving. Entries that cannot
-// fire under `mode` are held at a constant 1.
+// reaching 0 (for a sink still being filled, a level below 0 is an
+// integration error and does not count: dynamics.cpp), a sink reaching the
+// conduit level, a pinned tank's inflow crossing its pump draw, a
+// source-group member leaving. Entries that cannot fire under `mode` are held
+// at a constant 1.
 std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& u, const PlantParams& p,
                                             const Mode& mode);
 
