@@ -182,6 +182,7 @@ def test_cli_writes_the_controllers_outputs(tmp_path, scenarios, method):
         # measured: oracle 2.65 / 2.59, model 2.53 / 2.42 (seed 0)
         assert float(r["reward_per_step"]) > 2.3 and float(r["eval_reward_per_step"]) > 2.3
         assert (r["model_r2"] != "") == (method == "model")
+        assert r["refused_rollouts"] == ("0" if method == "oracle" else "")  # no integrator: blank
     assert json.loads((out / "done.json").read_text())["intervals"] == 2
     config = json.loads((out / "config.json").read_text())
     assert config["mpc"]["method"] == method and "git_revision" in config

@@ -49,9 +49,9 @@ from ftc.plant.link import PlantObservation
 class AdaptiveAgent(MPCAgent):
     """MPC on identified physics; see the module docstring."""
 
+    # (refused_rollouts: one of MPCAgent's columns)
     extra_columns = (*MPCAgent.extra_columns, "identify_seconds", "identified_pump_min",
-                     "identified_demand_max", "refused_rollouts", "detected_changes",
-                     "mispredicted_steps")
+                     "identified_demand_max", "detected_changes", "mispredicted_steps")
 
     def __init__(self, cfg: MPCConfig) -> None:
         super().__init__(cfg)

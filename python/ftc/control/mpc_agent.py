@@ -55,7 +55,10 @@ from ftc.plant.link import PlantObservation
 
 METHODS = ("oracle", "model", "adaptive")
 PLANNERS = ("hold", "cem")
-MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs")
+# refused_rollouts: candidates whose rollout the integrator refused (scored -inf),
+# for the MPCs that plan on the C++ physics (oracle, adaptive); blank for the model
+MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
+               "refused_rollouts")
 
 
 @dataclass
@@ -210,7 +213,11 @@ class MPCAgent(Agent):
                 "decisions_per_second": (self.decisions - decisions0) / plan if plan else None}
 
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
-        """The model MPC refits its world model as PPO's offline phase does."""
+        """The model MPC refits its world model as PPO's offline phase does; the
+        oracle reports the candidates whose rollout was refused in the interval."""
+        if self.oracle is not None:
+            refused, self.oracle.refused = self.oracle.refused, 0
+            return {"refused_rollouts": refused}
         if self.model is None:
             return {}
         start = time.perf_counter()

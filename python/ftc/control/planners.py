@@ -107,6 +107,29 @@ class CEMPlanner:
 # Evaluators: where the candidates are simulated
 # --------------------------------------------------------------------------
 
+def guarded_rollout(rollout: Any, x0: np.ndarray, sequences: np.ndarray, params: Any
+                    ) -> tuple[np.ndarray, int]:
+    """Summed rewards (K,) of candidate valve sequences (K, L, 6) from levels x0
+    (6,) m on ``rollout`` (a ``_core.BatchRollout``) under ``params``, and how
+    many candidates the integrator refused.
+
+    The integrator refuses a step it cannot integrate (RuntimeError: more mode
+    switches than its limit, i.e. chattering, or a SUNDIALS failure). The batch
+    is then rolled out again one candidate at a time: a refused candidate
+    scores -inf (a plan whose rollout did not happen is never chosen) and the
+    others are planned on, instead of the run ending."""
+    try:
+        return rollout.run(x0, sequences, params), 0
+    except RuntimeError:
+        totals, refused = np.full(len(sequences), -np.inf), 0
+        for k in range(len(sequences)):
+            try:
+                totals[k] = rollout.run(x0, sequences[k:k + 1], params)[0]
+            except RuntimeError:
+                refused += 1
+        return totals, refused
+
+
 class OracleEvaluator:
     """The true physics in force at an operating step (C++ batch rollouts).
 
@@ -115,7 +138,9 @@ class OracleEvaluator:
     out with. Valves stuck at that step replace the candidates' entries before
     the rollout, as the plant replaces the command's; the activity term is then
     charged for the commanded valves, as the runner's reward is. Events later
-    than the step are not anticipated within the horizon.
+    than the step are not anticipated within the horizon. A candidate whose
+    rollout the integrator refuses scores -inf (:func:`guarded_rollout`);
+    ``refused`` counts them.
     """
 
     def __init__(self, scenario: Any, rtol: float = 1e-6, atol: float = 1e-8) -> None:
@@ -128,6 +153,7 @@ class OracleEvaluator:
         self._event_steps = np.array([e["at_step"] for e in scenario.events], np.int64)  # sorted
         self._stuck: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
         self.stuck: tuple[np.ndarray, np.ndarray] | None = None  # (mask (6,) bool, state (6,))
+        self.refused = 0  # candidates whose rollout the integrator refused
 
     def set_age(self, age: float) -> None:
         """Plan at an age (intervals) with the scenario's own factors, no events."""
@@ -155,10 +181,13 @@ class OracleEvaluator:
     def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
         x0 = np.asarray(x0, np.float64)
         if self.stuck is None:
-            return self.rollout.run(x0, sequences, self.params)
+            totals, refused = guarded_rollout(self.rollout, x0, sequences, self.params)
+            self.refused += refused
+            return totals
         mask, state = self.stuck
         applied = np.where(mask, state, sequences)
-        totals = self.rollout.run(x0, applied, self.params)
+        totals, refused = guarded_rollout(self.rollout, x0, applied, self.params)
+        self.refused += refused
         # r = shape(x') - mean(u): the rollout charged the applied valves.
         return totals + (applied.mean(-1) - np.asarray(sequences).mean(-1)).sum(-1)
 
@@ -204,7 +233,7 @@ class ParamsEvaluator:
     Estimated parameters can make a candidate's rollout ill-posed where the true
     ones are not (the integrator refuses a step that would switch modes without
     end: chattering); such a candidate scores -inf and the others are planned
-    on, one rollout each. ``refused`` counts them."""
+    on (:func:`guarded_rollout`). ``refused`` counts them."""
 
     def __init__(self, rollout: Any) -> None:
         self.rollout = rollout
@@ -219,13 +248,6 @@ class ParamsEvaluator:
             sequences = sequences.copy()
             for i, state in self.stuck.items():
                 sequences[:, :, i] = state
-        try:
-            return self.rollout.run(x0, sequences, self.params)
-        except RuntimeError:
-            totals = np.full(len(sequences), -np.inf)
-            for k in range(len(sequences)):
-                try:
-                    totals[k] = self.rollout.run(x0, sequences[k:k + 1], self.params)[0]
-                except RuntimeError:
-                    self.refused += 1
-            return totals
+        totals, refused = guarded_rollout(self.rollout, x0, sequences, self.params)
+        self.refused += refused
+        return totals

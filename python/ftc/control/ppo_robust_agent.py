@@ -48,7 +48,7 @@ class RobustPPOAgent(PPOAgent):
     extra_columns = ("distill_loss", "distill_agreement", "distill_epochs", "teacher_labels",
                      "teacher_plans", "teacher_memory", "teach_seconds",
                      "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
-                     "mispredicted_steps", "checks", "check_refits")
+                     "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         from ftc import _core  # native: the plant's integrator for the teacher's rollouts
@@ -126,6 +126,8 @@ class RobustPPOAgent(PPOAgent):
         self.teacher_eval.params = ahead.as_core()
         metrics = self._guided_fit(next_level, interval)
         teach_seconds = time.perf_counter() - start - refit_seconds
+        # the teacher's candidates refused in the interval (its refits and this fit)
+        refused, self.teacher_eval.refused = self.teacher_eval.refused, 0
         rew, updates, errors = float("nan"), 0, 0
         if cfg.offline_steps:  # then PPO on the identified physics (also fits the critic)
             env = PhysicsEnv(ahead.as_core(), cfg.offline_envs,
@@ -153,7 +155,7 @@ class RobustPPOAgent(PPOAgent):
                 "guided_refits": self.refits, "detected_changes": self.online_id.changes,
                 "mispredicted_steps": self.online_id.mispredicted,
                 "checks": self.checks, "check_refits": self.check_refits,
-                "offline_model_errors": errors}
+                "offline_model_errors": errors, "refused_rollouts": refused}
 
     def _guided_fit(self, observed: np.ndarray, interval: int,
                     rounds: int | None = None) -> dict[str, Any]:
