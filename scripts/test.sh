@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs every test: sets up what a fresh clone lacks (idempotent, quick when
 # done), then the C++ suite (ctest) and the Python suite (pytest).
-# Extra arguments go to pytest (e.g. -k physics, -m slow).
+# Extra arguments go to pytest (e.g. -k physics, -m slow; --quick: the fast tier,
+# tests/python/conftest.py).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"

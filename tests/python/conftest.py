@@ -1,5 +1,8 @@
 """Shared fixtures: paths, and skipping nothing: the build must exist
-(scripts/test.sh builds it first)."""
+(scripts/test.sh builds it first). ``--quick`` (``scripts/test.sh --quick``)
+keeps the fast tier: the unit files below, plus the tests marked
+``@pytest.mark.quick`` (one real-plant integration per boundary: the LCM
+link, the orchestrator, the Gymnasium env)."""
 
 from __future__ import annotations
 
@@ -11,6 +14,31 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 SCENARIOS = REPO / "scenarios"
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # reference_sim for the tests
+
+
+# Test files that start no plant process, orchestrator or subprocess-heavy run.
+QUICK_FILES = {
+    "test_cli_inputs.py", "test_log_threads.py", "test_native_distill.py", "test_native_ppo.py",
+    "test_physics_vs_reference.py", "test_ppo.py", "test_ppo_numpy.py", "test_properties.py",
+    "test_reference_sim.py", "test_small_mlp.py", "test_world_model.py", "test_docs.py",
+    "test_layers.py",
+}
+
+
+def pytest_addoption(parser):
+    parser.addoption("--quick", action="store_true",
+                     help="the fast tier: unit files and one integration per boundary")
+
+
+def pytest_collection_modifyitems(config, items):
+    if not config.getoption("--quick"):
+        return
+    keep, drop = [], []
+    for item in items:
+        quick = Path(str(item.fspath)).name in QUICK_FILES or item.get_closest_marker("quick")
+        (keep if quick else drop).append(item)
+    config.hook.pytest_deselected(items=drop)
+    items[:] = keep
 
 
 @pytest.fixture

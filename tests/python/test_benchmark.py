@@ -145,6 +145,7 @@ def _results(out: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.quick  # the fast tier's integration of this boundary
 def test_results_csv_has_every_run_and_interval(bench):
     rows = _results(bench)
     header = list(rows[0])

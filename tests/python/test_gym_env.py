@@ -91,6 +91,7 @@ def test_env_checker_passes_with_no_warnings(env_id):
     assert [str(w.message) for w in caught] == []
 
 
+@pytest.mark.quick  # the fast tier's integration of this boundary
 def test_both_links_give_the_same_trajectory_and_seeded_resets_repeat_it(scenarios):
     # A noisy scenario, so the seed matters: reset(seed=s) starts a fresh plant
     # seeded s on either link, identical to the bit; another seed differs.

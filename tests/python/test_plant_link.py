@@ -19,6 +19,7 @@ from ftc.plant import (CorePlant, LinkConfig, PlantError, PlantGoneError, launch
 from ftc.plant.reward import reward
 
 
+@pytest.mark.quick  # the fast tier's integration of this boundary
 def test_lcm_plant_reproduces_in_process_core_step_for_step(scenarios):
     # Same scenario, seed and valves: the process over LCM and the core in this
     # process must produce bit-identical levels (same code, same arithmetic), and
