@@ -27,6 +27,8 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import csv
+import io
+import json
 import os
 import subprocess
 import sys
@@ -86,28 +88,46 @@ def _machine() -> str:
     return f"{model}, {os.cpu_count()} cores"
 
 
-def write_results(path: Path, exp: dict[str, np.ndarray], args: argparse.Namespace,
-                  argv: list[str] | None) -> None:
-    """The table as a small CSV with its provenance in '#' lines (commit,
-    machine, command, date): what the docs' tables are rendered from."""
+def _run_revisions(args: argparse.Namespace) -> str:
+    """The commits the runs were made at (their config.json), for --reuse."""
+    revisions = set()
+    for config in Path(args.out).glob("*/seed*/config.json"):
+        try:
+            revisions.add(json.loads(config.read_text()).get("git_revision") or "unknown")
+        except (OSError, ValueError):
+            revisions.add("unreadable")
+    return " ".join(sorted(r[:12] + ("-dirty" if r.endswith("-dirty") else "")
+                           for r in revisions)) or "none"
+
+
+def write_results(path: Path, exp: dict[str, np.ndarray], ev: dict[str, np.ndarray],
+                  args: argparse.Namespace) -> None:
+    """The table as a small CSV with its provenance in '#' lines (what, the
+    measuring command, the commit it was written at and those its runs were
+    made at, machine, date): what the docs' tables are rendered from."""
     sys.path.insert(0, str(REPO / "python"))
     from ftc.common.atomic import atomic_write_text
     from ftc.common.build_info import git_revision
 
     n = args.intervals
-    command = " ".join(["scripts/quality_controller.py", *(sys.argv[1:] if argv is None else argv)])
-    lines = [f"# what: mean reward per step experienced, mean and std over {args.seeds} seeds, "
-             f"{args.scenario}, --link {args.link}",
-             f"# command: {command}", f"# commit: {git_revision()}", f"# machine: {_machine()}",
-             f"# date: {time.strftime('%Y-%m-%d')}",
-             ",".join(["method", "label", "seeds", *(f"mean_{k}" for k in range(n)),
-                       "mean_1_9", *(f"std_{k}" for k in range(n))])]
+    command = (f"scripts/quality_controller.py --seeds {args.seeds} --jobs {args.jobs} "
+               f"--link {args.link} --intervals {n} --scenario {args.scenario}"
+               + (" -- " + " ".join(args.extra) if args.extra else ""))
+    buf = io.StringIO()
+    for line in (f"what: mean reward per step experienced, over {args.seeds} seeds",
+                 f"command: {command}", f"commit: {git_revision()}",
+                 f"runs made at: {_run_revisions(args)}", f"machine: {_machine()}",
+                 f"date: {time.strftime('%Y-%m-%d')}"):
+        buf.write(f"# {line}\n")
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["method", "label", "seeds", *(f"mean_{k}" for k in range(n)), "mean_1_9",
+                     *(f"std_{k}" for k in range(n)), *(f"eval_{k}" for k in range(n))])
     for m in args.methods:
         mean, std = exp[m].mean(0), exp[m].std(0)
-        lines.append(",".join([m, LABELS.get(m, m), str(len(exp[m])),
-                               *(f"{v:.3f}" for v in mean), f"{mean[1:].mean():.3f}",
-                               *(f"{v:.3f}" for v in std)]))
-    atomic_write_text(path, "\n".join(lines) + "\n")
+        evals = [f"{v:.3f}" for v in ev[m].mean(0)] if m.startswith("ppo") else [""] * n
+        writer.writerow([m, LABELS.get(m, m), len(exp[m]), *(f"{v:.3f}" for v in mean),
+                         f"{mean[1:].mean():.3f}", *(f"{v:.3f}" for v in std), *evals])
+    atomic_write_text(path, buf.getvalue())
     print(f"\ntable written to {path}")
 
 
@@ -176,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     if failed:
         print(f"\nFAILED runs (left out of the means): {', '.join(failed)}")
     if args.results:
-        write_results(Path(args.results), exp, args, argv)
+        write_results(Path(args.results), exp, ev, args)
     verdict = {True: "PASS", False: "FAIL"}
     checked: dict[str, bool] = {}  # check -> passed (a check fails if any of its lines fails)
 

@@ -29,7 +29,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "docs" / "results"
 DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
-BLOCK = re.compile(r"(<!-- results: ([\w-]+) -->\n)(.*?)(<!-- /results -->)", re.S)
+BLOCK = re.compile(r"(<!-- results: ([\w-]+)(?::(\w+))? -->\n)(.*?)(<!-- /results -->)", re.S)
+# What a block shows of its file: NAME (the means, and their mean over
+# intervals 1-9), NAME:std (the spread over seeds), NAME:eval (deterministic
+# evaluation), each a column per interval; rows without values are left out.
+KINDS = {"mean": "mean over seeds", "std": "std over seeds",
+         "eval": "deterministic evaluation (open iff p > 0.5), mean over seeds"}
 
 
 def read_results(path: Path) -> tuple[dict[str, str], list[dict[str, str]]]:
@@ -44,28 +49,35 @@ def read_results(path: Path) -> tuple[dict[str, str], list[dict[str, str]]]:
     return meta, list(csv.DictReader(body))
 
 
-def render(name: str) -> str:
-    """The Markdown of table NAME: provenance line, then the table."""
+def render(name: str, kind: str = "mean") -> str:
+    """The Markdown of table NAME (its ``kind`` of columns): a provenance line,
+    then the table."""
     path = RESULTS / f"{name}.csv"
     if not path.is_file():
         raise SystemExit(f"render_results: no result file {path.relative_to(REPO)} for table "
                          f"'{name}'")
+    if kind not in KINDS:
+        raise SystemExit(f"render_results: table '{name}:{kind}': no such kind "
+                         f"({', '.join(KINDS)})")
     meta, rows = read_results(path)
-    means = [c for c in rows[0] if c.startswith("mean_") and c != "mean_1_9"]
-    head = ["method", *(c.removeprefix("mean_") for c in means), "mean 1-9"]
-    lines = [f"Measured by `{meta.get('command', '?')}` ({meta.get('what', '')}), "
-             f"commit {meta.get('commit', '?')[:12]}, {meta.get('machine', '?')}, "
-             f"{meta.get('date', '?')}; file `docs/results/{name}.csv`.", "",
+    columns = [c for c in rows[0] if re.fullmatch(rf"{kind}_\d+", c)]
+    head = ["method", *(c.removeprefix(f"{kind}_") for c in columns)]
+    head += ["mean 1-9"] if kind == "mean" else []
+    lines = [f"{KINDS[kind].capitalize()}, {meta.get('what', '')}: "
+             f"`{meta.get('command', '?')}`, {meta.get('machine', '?')}, {meta.get('date', '?')} "
+             f"(file `docs/results/{name}.csv`, with the commits measured).", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        lines.append("| " + " | ".join([r["label"], *(r[c] for c in means), r["mean_1_9"]])
-                     + " |")
+        cells = [r[c] for c in columns] + ([r["mean_1_9"]] if kind == "mean" else [])
+        if any(cells):
+            lines.append("| " + " | ".join([r["label"], *cells]) + " |")
     return "\n".join(lines) + "\n"
 
 
 def rendered(text: str) -> str:
     """``text`` with every results block rendered from its file."""
-    return BLOCK.sub(lambda m: m.group(1) + render(m.group(2)) + m.group(4), text)
+    return BLOCK.sub(lambda m: m.group(1) + render(m.group(2), m.group(3) or "mean")
+                     + m.group(5), text)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,6 +20,7 @@ so a check that could never fail is caught too:
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import re
 from pathlib import Path
 
@@ -33,10 +34,8 @@ CHECKED_ROOTS = ("python", "scripts", "tests", "docs", "scenarios", "cpp", "lcmt
                  "examples", r"\.ci")
 ROOMS = ("common", "plant", "learning", "control", "experiments", "tools")
 
-# The section of docs/controller.md another change owns (its measurements are
-# being redone); the history check skips it until that change lands. Names
-# and paths in it are still checked.
-HISTORY_EXEMPT_SECTIONS = {"docs/controller.md": ("## Quality bar",)}
+# Sections the history check skips (names and paths in them are still checked).
+HISTORY_EXEMPT_SECTIONS: dict[str, tuple[str, ...]] = {}
 
 
 # ----------------------------------------------------------------------------
@@ -261,3 +260,33 @@ def test_the_docs_carry_no_development_history(doc):
     text = _drop_sections(doc.read_text(), HISTORY_EXEMPT_SECTIONS.get(_rel(doc), ()))
     found = history(text)
     assert not found, "history belongs in CHANGELOG.md:\n" + "\n".join(found)
+
+
+# ----------------------------------------------------------------------------
+# result tables come from files
+
+def _render_module():
+    spec = importlib.util.spec_from_file_location("render_results",
+                                                  REPO / "scripts" / "render_results.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_table_that_disagrees_with_its_file_is_rendered_anew():
+    render = _render_module()
+    name = sorted(p.stem for p in (REPO / "docs" / "results").glob("*.csv"))[0]
+    good = render.rendered(f"x\n<!-- results: {name} -->\nstale\n<!-- /results -->\ny\n")
+    assert "stale" not in good and good.startswith("x\n") and good.endswith("y\n")
+    assert render.rendered(good) == good  # rendering is idempotent
+    tampered = good.replace("|", "| 9.999 |", 1)
+    assert render.rendered(tampered) != tampered
+    with pytest.raises(SystemExit):
+        render.rendered("<!-- results: no-such-table -->\n<!-- /results -->")
+
+
+def test_every_result_table_in_the_docs_equals_its_file():
+    render = _render_module()
+    blocks = [m.group(2) for doc in DOCS for m in render.BLOCK.finditer(doc.read_text())]
+    assert blocks, "no rendered result tables in the docs"
+    assert render.main(["--check"]) == 0
