@@ -255,7 +255,16 @@ def test_two_intervals_extended_by_two_equal_four_uninterrupted(tmp_path):
     _assert_same(a["agent"], b["agent"], "agent")
     _assert_same(a["torch_rng"], b["torch_rng"], "torch_rng")
     doc = json.loads((two / "config.json").read_text())
-    assert doc["controller"]["intervals"] == 4 and doc["extended"][0]["from"] == 2
+    assert doc["controller"]["intervals"] == 4 and "intervals" not in doc["ppo"]
+    assert [e["to"] for e in doc["extended"]] == [4] and doc["extended"][0]["from"] == 2
+    # a run stopped, resumed and stopped again resumes again (config.json stays readable)
+    three = tmp_path / "three"
+    Controller(_short(three, intervals=4), PPOConfig()).run(stop_after=1)
+    cfg, ppo = controller_cli.resume_config(str(three))
+    Controller(cfg, ppo).run(stop_after=2)
+    assert controller_cli.main(["--resume", str(three), "--quiet"]) == 0
+    assert _rows(three) == _rows(tmp_path / "four")
+    assert "extended" not in json.loads((three / "config.json").read_text())
 
 
 @pytest.fixture(scope="module")
@@ -315,7 +324,7 @@ def test_a_baseline_refuses_ppo_options_that_would_have_no_effect(tmp_path, meth
 def test_experiment_args_go_only_to_methods_that_take_them(tmp_path):
     proc = _tool("ftc.experiments", "benchmark", *BENCH, "--controller-args",
                  "--update-every 32", "--out", str(tmp_path / "b"))
-    _one_error_line(proc, "ftc.experiments benchmark", "--update-every 32", "no method")
+    _one_error_line(proc, "ftc.experiments benchmark", "--update-every", "no method")
     assert not (tmp_path / "b").exists()
 
 
@@ -393,3 +402,104 @@ def test_resume_and_overwrite_exclude_each_other(closed_run):
     _one_error_line(_tool("ftc.controller", "--resume", str(closed_run), "--overwrite"),
                     "ftc.controller", "--overwrite", "--resume")
     assert _digest(closed_run) == before
+
+
+# ---------------------------------------------------------------------------
+# Cut short: stashes, locks and runs that fail before their first interval
+# ---------------------------------------------------------------------------
+
+def _replacement(d: Path):
+    from ftc.common.replacing import Replacement
+
+    return Replacement(d, ["a", "b"], lambda p: (p / "b").exists())
+
+
+def _files(d: Path) -> dict[str, str]:
+    return {str(p.relative_to(d)): p.read_text() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def test_a_killed_overwrite_keeps_the_original_until_its_replacement_proves_itself(tmp_path):
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "a").write_text("old a")
+    (d / "b").write_text("old b")
+    _replacement(d).stash_old()  # --overwrite started ... and was killed with a partial result
+    (d / "a").write_text("partial a")
+    _replacement(d).stash_old()  # the next --overwrite: the partial goes, the original stays
+    assert _files(d) == {".replaced/a": "old a", ".replaced/b": "old b"}
+    _replacement(d).restore()  # which fails before proving itself: the original is back
+    assert _files(d) == {"a": "old a", "b": "old b"}
+    _replacement(d).stash_old()
+    (d / "a").write_text("new a")
+    (d / "b").write_text("new b")  # proven; killed before it could commit
+    _replacement(d).settle()  # whoever holds it next commits the stash
+    assert _files(d) == {"a": "new a", "b": "new b"}
+
+
+def test_a_proven_replacement_is_never_taken_for_a_partial_one(tmp_path):
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "a").write_text("old a")
+    _replacement(d).stash_old()
+    (d / "a").write_text("new a")
+    (d / "b").write_text("new b")  # proven, then killed before the commit
+    _replacement(d).stash_old()  # a later --overwrite replaces the proven run, not the old one
+    assert _files(d) == {".replaced/a": "new a", ".replaced/b": "new b"}
+
+
+def test_a_restore_cut_short_is_completed_by_the_next_holder(tmp_path):
+    from ftc.common.replacing import BUILDING
+
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "a").write_text("old a")
+    (d / "b").write_text("old b")
+    _replacement(d).stash_old()
+    os.rename(d / ".replaced", d / BUILDING)  # restore() stopped after taking the stash apart
+    os.rename(d / BUILDING / "a", d / "a")   # ... and moving one entry back
+    _replacement(d).stash_old()  # the next holder first puts the rest back, then stashes all
+    assert _files(d) == {".replaced/a": "old a", ".replaced/b": "old b"}
+
+
+def test_a_lock_on_a_file_its_holder_unlinked_meanwhile_is_not_taken(tmp_path):
+    import fcntl
+
+    from ftc.common.run_lock import RunLock, _still_linked
+
+    first = RunLock(tmp_path, "first").acquire()
+    late = os.open(first.path, os.O_RDWR)  # opened just before the holder released it
+    first.release()
+    fcntl.flock(late, fcntl.LOCK_EX | fcntl.LOCK_NB)  # locks the unlinked file: nothing
+    assert not _still_linked(late, first.path)
+    second = RunLock(tmp_path, "second").acquire()  # on the file that is there
+    assert _still_linked(second._fd, second.path)
+    os.close(late)
+    second.release()
+
+
+def test_a_fresh_run_that_fails_before_its_first_interval_leaves_nothing(tmp_path):
+    out = tmp_path / "run"
+    proc = _tool("ftc.controller", "--method", "open", "--scenario", SINGLE, "--attach",
+                 "--lcm-url", "udpm://239.255.76.97:7992?ttl=0", "--link-give-up-timeout",
+                 "0.3", "--link-retry-timeout", "0.1", "--out", str(out))
+    assert proc.returncode == 3, proc.stderr
+    assert not out.exists() or os.listdir(out) == []  # the same command can simply run again
+
+
+def test_each_experiment_option_goes_to_the_methods_it_acts_on():
+    from ftc.experiments.method_args import method_args, untaken
+    from ftc.experiments.methods import METHODS
+
+    extra = ["--update-every", "32", "--model-episodes", "4", "--link-retry-timeout", "0.1"]
+    assert method_args(METHODS["ppo-online"], extra) == extra
+    assert method_args(METHODS["model-mpc"], extra) == extra[2:]  # MPC: its own option
+    assert method_args(METHODS["closed"], extra) == extra[4:]  # a baseline: run options only
+    assert untaken(["closed", "oracle-mpc"], ["--update-every", "32", "--nope"]) == [
+        "--update-every", "--nope"]
+
+
+def test_an_orchestrator_overwrites_only_an_experiment(tmp_path):
+    (tmp_path / "notes.txt").write_text("mine")
+    proc = _tool("ftc.experiments", "benchmark", *BENCH, "--overwrite", "--out", str(tmp_path))
+    _one_error_line(proc, "ftc.experiments benchmark", "holds no benchmark")
+    assert _files(tmp_path) == {"notes.txt": "mine"}

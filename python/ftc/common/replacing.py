@@ -6,9 +6,12 @@ directory's lock. They are deleted only when the new results have proved
 themselves (:meth:`Replacement.commit`: an interval run's first checkpoint,
 an orchestrator's completed run list), and moved back if the new run fails
 before that (:meth:`Replacement.restore`). A holder killed in between leaves
-``.replaced`` behind; the next ``--overwrite`` keeps that original and
-discards the partial results it replaces, and the next finished checkpoint
-of a resumed run commits it.
+``.replaced`` behind: whoever next holds the directory commits it once the
+results beside it have proved themselves (``proven``), and a next
+``--overwrite`` before that keeps the original and discards the unproven
+partial results it replaces. Every move is a rename within the directory,
+and a stash is complete before it counts: it is built under a temporary
+name and renamed to ``.replaced`` last.
 """
 
 from __future__ import annotations
@@ -21,47 +24,72 @@ from typing import Callable, Iterable
 from ftc.common.errors import StorageError
 
 STASH = ".replaced"
+BUILDING = ".replacing"  # a stash being built (or taken apart): never the original
 
 
 class Replacement:
     """The replacement of the results in ``directory``. ``entries``: which of
     its entries are results (names, or a function of the directory giving
-    them); the lock files and the stash itself never are."""
+    them); the lock files and the stash itself never are. ``proven``: whether
+    the results now in the directory have proved themselves (an interval
+    run's checkpoint, an orchestrator's finished run)."""
 
     def __init__(self, directory: Path | str,
-                 entries: Iterable[str] | Callable[[Path], Iterable[str]]) -> None:
+                 entries: Iterable[str] | Callable[[Path], Iterable[str]],
+                 proven: Callable[[Path], bool]) -> None:
         self.directory = Path(directory)
         self.stash = self.directory / STASH
+        self._building = self.directory / BUILDING
         self._entries = entries
+        self._proven = proven
 
     def _present(self) -> list[str]:
         names = self._entries(self.directory) if callable(self._entries) else self._entries
-        return [n for n in names if n != STASH and not n.endswith(".lock")
+        return [n for n in names if not n.startswith(".replac") and not n.endswith(".lock")
                 and os.path.lexists(self.directory / n)]
+
+    def pending(self) -> bool:
+        """Whether replaced results wait in the stash."""
+        return self.stash.is_dir()
 
     def stash_old(self) -> list[str]:
         """Move the present results into the stash; returns their names. With a
-        stash already there (an earlier --overwrite that never finished), that
-        original is kept and the partial results beside it are removed."""
+        stash already there, the results beside it either proved themselves
+        (the stash is deleted, then they are stashed) or are the partial ones
+        of an --overwrite that never finished (they are removed; the stash,
+        the original, stays)."""
         try:
+            self._settle_building()
             if self.stash.is_dir():
-                for name in self._present():
-                    _remove(self.directory / name)
-                return sorted(os.listdir(self.stash))
+                if not self._proven(self.directory):
+                    for name in self._present():
+                        _remove(self.directory / name)
+                    return sorted(os.listdir(self.stash))
+                self.commit()
             present = self._present()
             if present:
-                self.stash.mkdir()
+                self._building.mkdir()
                 for name in present:
-                    os.rename(self.directory / name, self.stash / name)
+                    os.rename(self.directory / name, self._building / name)
+                os.rename(self._building, self.stash)  # complete: now it counts
             return present
         except OSError as e:
             raise StorageError(f"cannot move the results of {self.directory} aside into "
                                f"{self.stash}: {e.strerror or e}") from None
 
+    def settle(self) -> None:
+        """Commit a stash whose replacement has proved itself (a resumed run's
+        holder calls it: the one whose --overwrite was killed never did)."""
+        if self.stash.is_dir() and self._proven(self.directory):
+            self.commit()
+
     def commit(self) -> None:
-        """The new results stand: the replaced ones are deleted."""
+        """The new results stand: the replaced ones are deleted (renamed out of
+        the way first, so that a cut-short deletion leaves no half stash)."""
         if self.stash.is_dir():
-            shutil.rmtree(self.stash, ignore_errors=True)
+            trash = self.directory / f".replaced-deleting-{os.getpid()}"
+            os.rename(self.stash, trash)
+            shutil.rmtree(trash, ignore_errors=True)
 
     def restore(self) -> None:
         """The new run failed before it proved itself: its results are removed
@@ -71,12 +99,24 @@ class Replacement:
         try:
             for name in self._present():
                 _remove(self.directory / name)
-            for name in os.listdir(self.stash):
-                os.rename(self.stash / name, self.directory / name)
-            self.stash.rmdir()
+            os.rename(self.stash, self._building)  # taken apart from here on
+            self._settle_building()
         except OSError as e:
             raise StorageError(f"cannot move the replaced results back from {self.stash}: "
                                f"{e.strerror or e}") from None
+
+    def _settle_building(self) -> None:
+        """A stash cut short while being built or taken apart: its entries go
+        back (the results they were are the newest complete ones)."""
+        if not self._building.is_dir():
+            return
+        for name in os.listdir(self._building):
+            target = self.directory / name
+            if not os.path.lexists(target):
+                os.rename(self._building / name, target)
+            else:
+                _remove(self._building / name)
+        self._building.rmdir()
 
 
 def _remove(path: Path) -> None:

@@ -59,8 +59,8 @@ def holder_alive(holder: dict) -> bool:
 
 def describe(holder: dict) -> str:
     """'ftc.controller, pid 123 on host h, started 2026-...' (what is known)."""
-    parts = [holder["tool"]] if holder.get("tool") else []
-    who = f"pid {holder['pid']}" if holder.get("pid") else "another process"
+    parts = [holder["tool"]] if holder.get("tool") else ["writer"]
+    who = f"pid {holder['pid']}" if holder.get("pid") else "of unknown pid"
     if holder.get("host"):
         who += f" on {holder['host']}"
     parts.append(who)
@@ -93,18 +93,13 @@ class RunLock:
     def acquire(self) -> "RunLock":
         """Take the lock (creating the directory it lives in); raises InUse
         naming a live holder, StorageError when the lock cannot be written."""
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as e:
-            raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as e:
+        for _ in range(100):  # a holder releasing meanwhile unlinks the file: open anew
+            fd = self._open_and_flock()
+            if _still_linked(fd, self.path):
+                break
             os.close(fd)
-            if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-                raise StorageError(f"cannot lock {self.path}: {e.strerror or e}") from None
-            raise InUse(in_use_message(self.target, self.path, read_lock(self.path))) from None
+        else:
+            raise StorageError(f"cannot lock {self.path}: it keeps being removed")
         holder = read_lock(self.path)
         if holder and holder.get("pid") != os.getpid() and holder_alive(holder):
             os.close(fd)  # a file system without flock: the record tells
@@ -124,6 +119,21 @@ class RunLock:
         self._fd = fd
         return self
 
+    def _open_and_flock(self) -> int:
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)  # less the umask
+        except OSError as e:
+            raise StorageError(f"cannot write {self.path}: {e.strerror or e}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            if e.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise StorageError(f"cannot lock {self.path}: {e.strerror or e}") from None
+            raise InUse(in_use_message(self.target, self.path, read_lock(self.path))) from None
+        return fd
+
     def took_over_line(self) -> str | None:
         """The one line announcing a stale lock taken over, or None."""
         if not self.took_over:
@@ -142,6 +152,22 @@ class RunLock:
 
     def __exit__(self, *exc: object) -> None:
         self.release()
+
+
+def _still_linked(fd: int, path: Path) -> bool:
+    """Whether the locked descriptor is still the file at ``path`` (a holder
+    that released meanwhile unlinked it: a lock on the old file locks nothing)."""
+    try:
+        mine, there = os.fstat(fd), os.stat(path)
+    except OSError:
+        return False
+    return (mine.st_dev, mine.st_ino) == (there.st_dev, there.st_ino)
+
+
+def refuse_existing(out: Path, overwrite: bool) -> None:
+    """An output file that exists is replaced only with --overwrite (UsageError)."""
+    if out.exists() and not overwrite:
+        raise UsageError(f"--out {out}: exists (--overwrite replaces it)")
 
 
 def check_free(target: Path | str, name: str = "run.lock", beside: bool = False) -> None:

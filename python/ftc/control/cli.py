@@ -16,8 +16,10 @@ from ftc.common.cli import (add_dataclass_options, check_config, flag, given_opt
                             out_dir_problem)
 from ftc.common.errors import CheckpointError, RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
+from ftc.common.replacing import STASH
 from ftc.common.run_lock import InUse, check_free
 from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RUN_LOCAL_FIELDS, RunConfig
+from ftc.control.runner import replacement
 
 # RunConfig's fields before and after the tool's own in --help
 RUN_HEAD = ("scenario", "seed", "out", "intervals", "steps_per_interval")
@@ -86,6 +88,8 @@ def run_held(out: str | Path) -> str | None:
     intervals"), or None when it holds none."""
     out = Path(out)
     present = [n for n in RUN_FILES if (out / n).exists()]
+    if replacement(out).pending():
+        return f"an --overwrite that never finished; the run it replaced is in {out / STASH}"
     if not present:
         return None
     try:
@@ -97,7 +101,7 @@ def run_held(out: str | Path) -> str | None:
         rows = max(len((out / "metrics.csv").read_text().splitlines()) - 1, 0)
     except OSError:
         rows = 0
-    return f"stopped after {rows} finished intervals" if rows else f"started ({', '.join(present)})"
+    return f"stopped after {rows} finished intervals" if rows else f"started: {', '.join(present)}"
 
 
 def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,

@@ -74,33 +74,56 @@ def _driving(plant: PlantLink, out: Path) -> Iterator[None]:
                 pid_file.unlink(missing_ok=True)
 
 
+def _checkpointed(out: Path) -> bool:
+    return (out / "checkpoint.pt").exists()
+
+
+def replacement(out: Path) -> Replacement:
+    """--overwrite of the run in ``out``: proven by its first checkpoint."""
+    return Replacement(out, RUN_FILES, _checkpointed)
+
+
 @contextlib.contextmanager
 def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
     """The block writes the run in ``out`` as its only writer (OUT/run.lock; a
     live holder raises InUse, a stale one is taken over with a note). A new
     run refuses a directory holding a run unless cfg.overwrite, which moves
     the old one aside until the new one's first checkpoint (the runner's
-    checkpoint() then deletes it) and back if the block fails before."""
+    checkpoint() then deletes it). A new run that fails before its first
+    checkpoint leaves the directory as it found it: what it wrote removed,
+    a replaced run moved back."""
     lock = RunLock(out, tool).acquire()
     try:
         if lock.took_over_line():
             print(lock.took_over_line(), file=sys.stderr, flush=True)
-        replacement = None
-        if not cfg.resume:
-            held = [n for n in RUN_FILES if (out / n).exists()]
+        fresh = not cfg.resume
+        if fresh:
+            held = run_files_held(out)
             if held and not cfg.overwrite:
-                raise UsageError(f"{out} already holds a run ({', '.join(held)}): "
-                                 f"--resume {out} continues it, --overwrite replaces it")
-            replacement = Replacement(out, RUN_FILES)
-            replacement.stash_old()
+                raise UsageError(f"{out} already holds a run ({held}): --resume {out} "
+                                 "continues it, --overwrite replaces it")
+            replacement(out).stash_old()
         try:
             yield
         except BaseException:
-            if replacement is not None and not (out / "checkpoint.pt").exists():
-                replacement.restore()  # failed before its first interval: the old run back
+            if fresh and not _checkpointed(out):  # failed before its first interval
+                replaced = replacement(out)
+                if replaced.pending():
+                    replaced.restore()
+                else:
+                    for name in RUN_FILES:
+                        (out / name).unlink(missing_ok=True)
             raise
     finally:
         lock.release()
+
+
+def run_files_held(out: Path) -> str | None:
+    """What makes ``out`` hold a run (its files, or a replaced run waiting), or None."""
+    held = [n for n in RUN_FILES if (out / n).exists()]
+    if replacement(out).pending():
+        held.append(f"a replaced run in {out / '.replaced'}")
+    return ", ".join(held) or None
 
 
 def record_extension(out: Path, parts: list[str], intervals: int) -> bool:
@@ -112,10 +135,10 @@ def record_extension(out: Path, parts: list[str], intervals: int) -> bool:
         doc = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise CheckpointError(f"{path}: unreadable ({e})") from None
-    parts = [p for p in parts if isinstance(doc.get(p), dict)]
-    if all(doc[p].get("intervals") == intervals for p in parts):
+    parts = [p for p in parts if isinstance(doc.get(p), dict) and "intervals" in doc[p]]
+    if not parts or all(doc[p]["intervals"] == intervals for p in parts):
         return False
-    before = doc[parts[0]].get("intervals") if parts else None
+    before = doc[parts[0]]["intervals"]
     for p in parts:
         doc[p]["intervals"] = intervals
     doc.setdefault("extended", []).append({"from": before, "to": intervals, "argv": sys.argv})
@@ -294,7 +317,7 @@ class IntervalRunner:
             "interval": self.interval, "rows": self.rows, "info": self.info,
             "torch_rng": torch.get_rng_state(), "config": checkpoint.config_stamp(self.configs),
             "agent": self.agent.state_dict()})
-        Replacement(self.out, RUN_FILES).commit()
+        replacement(self.out).commit()
 
     def restore(self) -> None:
         path = self.out / "checkpoint.pt"

@@ -39,9 +39,9 @@ from typing import Sequence, TextIO
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError, StorageError
-from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report
+from ftc.experiments.method_args import PARSERS, method_args, untaken
 from ftc.experiments.methods import METHODS
 from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
 from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorReplacement,
@@ -58,8 +58,6 @@ ORACLE = benchmark_report.ORACLE
 MAX_JOBS = 256
 MAX_RUN_TIMEOUT = 1e6  # seconds; 0 means no timeout
 SEED = at_least(0, 2**31 - 1)  # the controller's --seed range
-# The command line each method's module is started with, for checking run options.
-PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli}
 
 
 def default_methods() -> tuple[str, ...]:
@@ -78,7 +76,7 @@ class BenchmarkConfig:
     intervals: degradation intervals per run
     steps_per_interval: real control steps per interval (overrides the files' value)
     link: core (physics in the controller's process) or lcm (a plant process, recorded)
-    controller_args: extra arguments for the PPO methods' runs (MethodSpec.takes_controller_args)
+    controller_args: extra controller arguments, each to the methods it acts on (method_args)
     run_timeout: seconds after which a run is killed and counted failed (0: never)
     nice: niceness added to each controller
     """
@@ -155,9 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="core: the physics in each controller's process (default, fast); "
                              "lcm: a plant process per run, its traffic recorded and checked")
     parser.add_argument("--controller-args", default=None,
-                        help="extra arguments for the runs of the PPO methods (their "
-                             "ftc.controller), one string (e.g. \"--update-every 32\" for "
-                             "intervals shorter than PPO's 128 steps)")
+                        help="extra arguments for the methods' controllers, one string (e.g. "
+                             "\"--update-every 32\" for intervals shorter than PPO's 128 steps); "
+                             "each option goes to the methods it acts on")
     parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
                         default=None,
                         help="kill a run after this many seconds and count it failed (0: never)")
@@ -213,6 +211,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error(f"--out {out}: cannot write there ({problem})")
     if args.overwrite and args.resume:
         parser.error("--overwrite replaces a benchmark, --resume completes it: give one")
+    if args.overwrite and not (out / "benchmark.json").is_file():
+        parser.error(f"--overwrite: {out} holds no benchmark (benchmark.json) to replace")
+    try:  # a live writer first: the benchmark it holds is not finished
+        check_out_free(out)
+    except OutInUse as e:
+        parser.error(f"--out: {e}")
     stored = None if args.overwrite else _stored_config(parser, out, args.resume)
     given = {k: getattr(args, k) for k in ("intervals", "steps_per_interval", "link")
              if getattr(args, k) is not None}
@@ -248,10 +252,6 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     problem = _run_options_problem(config, out)
     if problem:  # e.g. --steps-per-interval not a multiple of PPO's --update-every
         parser.error(problem)
-    try:
-        check_out_free(out)
-    except OutInUse as e:
-        parser.error(f"--out: {e}")
     return argparse.Namespace(**vars(args), out_dir=out, config=config, texts=texts)
 
 
@@ -259,10 +259,10 @@ def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
     """Why a method's module would refuse its runs' command line, or None: its own
     parser reads the command line (writing nothing), so a run option it refuses
     is an error here instead of a failure of every run."""
-    if config.controller_args and not any(METHODS[m].takes_controller_args
-                                          for m in config.methods):
-        return (f"--controller-args {' '.join(config.controller_args)}: no method here takes "
-                "them (they go to the runs of PPO methods, e.g. ppo-online)")
+    unused = untaken(config.methods, config.controller_args)
+    if unused:
+        return (f"--controller-args {' '.join(unused)}: no method here takes it (each option "
+                "goes to the methods whose runs it acts on)")
     for name in config.methods:
         method = METHODS[name]
         module = PARSERS.get(method.module)
@@ -272,7 +272,7 @@ def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
                 "--intervals", str(config.intervals),
                 "--steps-per-interval", str(config.steps_per_interval), "--link", config.link,
                 f"--out={out / 'runs' / 'check'}",  # --out=: a path may start with '-'
-                *(config.controller_args if method.takes_controller_args else ())]
+                *method_args(method, config.controller_args)]
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
@@ -349,19 +349,21 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
     if lock.took_over_line():
         print(lock.took_over_line(), file=stream)
     guardian = Guardian()
+    replacing = OrchestratorReplacement(out, overwrite)
     try:
-        with OrchestratorReplacement(out, overwrite) as replacing:
+        with replacing:
             prepare_directory(out, config, texts)
             failed = _run_all(out, config, jobs, stream, guardian, ray, fork_server)
+            collect_benchmark(out)  # with the lock held: no one else writes meanwhile
+            benchmark_report.write_report(out)
     finally:
         guardian.close()
         lock.release()
+        if replacing.restored:
+            print(f"{TOOL}: no run finished; the benchmark that was in {out} is back in "
+                  "place", file=stream)
     if replacing.restored:
-        print(f"{TOOL}: no run finished; the benchmark that was in {out} is back in place",
-              file=stream)
         return len(failed)
-    collect_benchmark(out)
-    benchmark_report.write_report(out)
     print(f"{TOOL}: results in {out / 'results.csv'}, report at {out / 'report.md'}"
           + (f"; {len(failed)} runs failed: {', '.join(sorted(failed))}" if failed else ""),
           file=stream)

@@ -49,10 +49,10 @@ from typing import Sequence
 
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
-from ftc.control import controller_cli, mpc_cli
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark, report
 from ftc.experiments.collect import collect
+from ftc.experiments.method_args import PARSERS, method_args, untaken
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
@@ -68,8 +68,6 @@ MAX_TRIALS = 10_000
 MAX_RUN_TIMEOUT = 1e6  # seconds (11.6 days); 0 means no timeout
 SEED = at_least(0, 2**31 - 1)  # the controller's --seed range
 SCENARIO_SEED = at_least(0, 2**63 - 1)  # numpy's default_rng takes any non-negative int
-# The command line each method's module is started with, for --controller-args.
-PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -115,9 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="pass --pretrain to the PPO methods' controllers (nominal "
                              "pretraining in simulation; default: from scratch as in the paper)")
     parser.add_argument("--controller-args", default="",
-                        help="extra arguments for the runs of the PPO methods (their "
-                             "ftc.controller), one string (e.g. \"--model-episodes 10 "
-                             "--offline-steps 512\"); other methods' runs do not get them")
+                        help="extra arguments for the methods' controllers, one string (e.g. "
+                             "\"--model-episodes 10 --offline-steps 512\"); each option goes to "
+                             "the methods it acts on (ftc.experiments.method_args)")
     parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
                         default=0.0,
                         help="kill a run after this many seconds and count it failed (0: never)")
@@ -138,9 +136,10 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
     """Why a run's controller would refuse ``extra``, or None: each method's own
     parser reads the run's command line (writing nothing), so a bad
     --controller-args is refused here instead of failing every run."""
-    if extra and not any(METHODS[name].takes_controller_args for name in methods):
-        return (f"{' '.join(extra)}: no method here takes them (they go to the runs of "
-                "PPO methods, e.g. ppo-online)")
+    unused = untaken(methods, extra)
+    if unused:
+        return (f"{' '.join(unused)}: no method here takes it (each option goes to the "
+                "methods whose runs it acts on)")
     for name in methods:
         method = METHODS[name]
         module = PARSERS.get(method.module)
@@ -150,7 +149,7 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
                 "--intervals", str(config.intervals),
                 "--steps-per-interval", str(config.steps_per_interval),
                 f"--out={out / 'runs' / 'check'}",
-                *(extra if method.takes_controller_args else ())]
+                *method_args(method, extra)]
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
@@ -230,6 +229,8 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     if args.overwrite and args.resume:
         parser.error("--overwrite replaces an experiment, --resume completes it: give one")
     meta = out / "experiment.json"
+    if args.overwrite and not meta.is_file():
+        parser.error(f"--overwrite: {out} holds no experiment (experiment.json) to replace")
     if meta.is_file() and not args.overwrite:
         if not args.resume:
             parser.error(f"--out {out} already holds an experiment: --resume completes it, "
@@ -242,17 +243,24 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     return ns
 
 
+def _note_took_over(lock: OrchestratorLock) -> None:
+    if lock.took_over_line():
+        print(lock.took_over_line(), file=sys.stderr)
+
+
 def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
     out = args.out_dir
     if args.command == "report":
-        with OrchestratorLock(out):  # one writer: not beside a running experiment
+        with OrchestratorLock(out) as lock:  # one writer: not beside a running experiment
+            _note_took_over(lock)
             collect(out)
             report.write_report(out)
         print(f"report at {out / 'report.md'}")
         return 0
     if args.command == "model-search":
         out.mkdir(parents=True, exist_ok=True)
-        with OrchestratorLock(out):
+        with OrchestratorLock(out) as lock:
+            _note_took_over(lock)
             model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(),
                          args.jobs)
             if (out / "experiment.json").is_file():
@@ -261,7 +269,8 @@ def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
         return 0
     if args.command == "all" and args.model_search:  # on this machine, also with --executor ray
         out.mkdir(parents=True, exist_ok=True)
-        with OrchestratorLock(out):
+        with OrchestratorLock(out) as lock:
+            _note_took_over(lock)
             model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
     failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray,
                              fork_server=args.fork_server, overwrite=args.overwrite)

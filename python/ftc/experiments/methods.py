@@ -37,14 +37,6 @@ class MethodSpec:
     learns: bool = False
     benchmark: bool = True
 
-    @property
-    def takes_controller_args(self) -> bool:
-        """Whether its runs get the experiment's extra controller arguments
-        (--controller-args, --pretrain): those configure PPO, so only the
-        learning methods of ftc.controller take them; every other method's
-        command line would refuse them as having no effect."""
-        return self.module == "ftc.controller" and self.learns
-
 
 METHODS: dict[str, MethodSpec] = {}
 

@@ -312,27 +312,33 @@ class OrchestratorLock(RunLock):
         super().release()
 
 
+def a_run_finished(out: Path) -> bool:
+    return any(Path(out).glob("runs/**/result.json"))
+
+
 class OrchestratorReplacement:
     """--overwrite of an orchestrator's directory (:mod:`ftc.common.replacing`):
-    everything in OUT moved aside once the lock is held; deleted once the new
-    experiment has finished a run, moved back if it ends before any."""
+    what is in OUT moved aside once the lock is held; deleted once the new
+    experiment has finished a run (checked when it ends, and by whoever next
+    holds OUT if it was killed), moved back if it ends before any."""
 
     def __init__(self, out: Path, overwrite: bool) -> None:
         self.out = Path(out)
-        self.replacement = Replacement(self.out, os.listdir) if overwrite else None
+        self.overwrite = overwrite
+        self.replacement = Replacement(self.out, os.listdir, a_run_finished)
         self.restored = False
 
     def __enter__(self) -> "OrchestratorReplacement":
-        if self.replacement is not None:
+        if self.overwrite:
             self.replacement.stash_old()
+        else:
+            self.replacement.settle()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.replacement is None:
-            return
-        if any(self.out.glob("runs/**/result.json")):
+        if a_run_finished(self.out):
             self.replacement.commit()
-        else:
+        elif self.overwrite:
             self.replacement.restore()
             self.restored = True
 

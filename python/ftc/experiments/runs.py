@@ -28,6 +28,7 @@ from typing import Callable, TextIO
 from ftc.common.atomic import atomic_write_csv, atomic_write_json
 from ftc.common.errors import EXIT_STORAGE, StorageError
 from ftc.control.baselines import baseline_valves
+from ftc.experiments.method_args import method_args
 from ftc.experiments.methods import METHODS
 from ftc.experiments.processes import (LcmLogger, RunFailed, RunHandle, die_with_parent,
                                        record_process, stop_leftover_processes)
@@ -126,7 +127,7 @@ def controller_command(spec: RunSpec, config: ExperimentConfig, scenario_path: P
             else ["--lcm-url", url, "--prefix", prefix])
     if config.tensorboard is not None:
         cmd += ["--tensorboard", str(tensorboard_dir(spec, config))]
-    return cmd + (list(config.controller_args) if method.takes_controller_args else [])
+    return cmd + method_args(method, config.controller_args)
 
 
 def execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunHandle) -> dict:

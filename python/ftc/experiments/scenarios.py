@@ -33,8 +33,8 @@ class ExperimentConfig:
     scenario_seed: seed of the aggregate trials' random faults
     intervals: degradation intervals per run (paper: 10)
     steps_per_interval: real control steps per interval, t_online (paper: 512)
-    controller_args: extra arguments for the PPO methods' runs (e.g. --pretrain;
-        MethodSpec.takes_controller_args)
+    controller_args: extra controller arguments (e.g. --pretrain), each to the
+        methods it acts on (ftc.experiments.method_args)
     run_timeout: seconds after which a run is killed and counted as failed (0: none)
     nice: niceness added to each controller and its plant (the recorder keeps the
         normal priority, so that it keeps up on a loaded machine)

@@ -49,7 +49,7 @@ from ftc.common.atomic import atomic_write_bytes
 from ftc.common.build_info import git_revision
 from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import CheckpointError, NonFiniteError, RunError
-from ftc.common.run_lock import RunLock
+from ftc.common.run_lock import RunLock, refuse_existing
 from ftc.control import checkpoint
 from ftc.control.cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
@@ -232,6 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with RunLock(args.out, TOOL, beside=True) as lock:
             if lock.took_over_line():
                 print(lock.took_over_line(), file=sys.stderr)
+            refuse_existing(args.out, args.overwrite)  # again, now that no one else writes
             path = checkpoint_path(args.checkpoint)
             policy, source = load_policy(path)
             model = export_model(policy, source)

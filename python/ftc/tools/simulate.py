@@ -33,7 +33,7 @@ from ftc.common.atomic import atomic_write_csv
 from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
-from ftc.common.run_lock import RunLock
+from ftc.common.run_lock import RunLock, refuse_existing
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         with stop_signals(), RunLock(args.out, "ftc.simulate", beside=True) as lock:
             if lock.took_over_line():
                 print(lock.took_over_line(), file=sys.stderr)
+            refuse_existing(args.out, args.overwrite)  # again, now that no one else writes
             n = run(str(args.scenario) if args.scenario else None, args.policy, args.seed,
                     args.steps, args.out, extra)
     except (KeyboardInterrupt, Stopped) as e:  # the plant shut down, nothing written

@@ -1,0 +1,71 @@
+"""Which of an experiment's extra controller arguments (--controller-args,
+--pretrain) the runs of each method get.
+
+Each option (a ``--flag`` and the values after it) goes to the methods whose
+command line has it and on which it acts: an ``ftc.mpc`` method gets the
+MPC options it declares (``--model-episodes`` reaches model-mpc and
+adaptive), a PPO method of ``ftc.controller`` all of the controller's, and a
+baseline of ``ftc.controller`` only the options every run shares (the link,
+the console), since it refuses PPO options as having no effect. An option no
+chosen method takes is refused before anything runs.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import fields
+from typing import Sequence
+
+from ftc.control import controller_cli, mpc_cli
+from ftc.control.config import RunConfig
+from ftc.experiments.methods import METHODS, MethodSpec
+
+# The command line each method's module is started with.
+PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli}
+
+
+def option_groups(extra: Sequence[str]) -> list[list[str]]:
+    """``--a 1 2 --b --c=3`` -> [["--a", "1", "2"], ["--b"], ["--c=3"]]; words
+    before the first option form a group of their own (taken by no method)."""
+    groups: list[list[str]] = []
+    for word in extra:
+        if word.startswith("--") or not groups:
+            groups.append([word])
+        else:
+            groups[-1].append(word)
+    return groups
+
+
+@functools.cache
+def _flags(module: str) -> tuple[frozenset[str], frozenset[str]]:
+    """(every option of the module's command line, those of RunConfig's fields)."""
+    parser = PARSERS[module].build_parser()
+    shared = {f.name for f in fields(RunConfig)}
+    every, run = set(), set()
+    for action in parser._actions:  # noqa: SLF001 - the parser's own options
+        every.update(action.option_strings)
+        if action.dest in shared:
+            run.update(action.option_strings)
+    return frozenset(every), frozenset(run)
+
+
+def takes(spec: MethodSpec, option: str) -> bool:
+    """Whether the runs of ``spec`` get ``option`` (a flag, ``--x`` or ``--x=v``)."""
+    if spec.module not in PARSERS:  # a module of another kind: it gets everything
+        return True
+    every, run = _flags(spec.module)
+    flag = option.split("=", 1)[0]
+    if flag not in every:
+        return False
+    return flag in run or spec.module != "ftc.controller" or spec.learns
+
+
+def method_args(spec: MethodSpec, extra: Sequence[str]) -> list[str]:
+    """The extra arguments the runs of ``spec`` get, in the order given."""
+    return [w for g in option_groups(extra) if takes(spec, g[0]) for w in g]
+
+
+def untaken(methods: Sequence[str], extra: Sequence[str]) -> list[str]:
+    """The options of ``extra`` that none of ``methods`` takes."""
+    return [g[0] for g in option_groups(extra)
+            if not any(takes(METHODS[m], g[0]) for m in methods)]
