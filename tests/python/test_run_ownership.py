@@ -503,3 +503,26 @@ def test_an_orchestrator_overwrites_only_an_experiment(tmp_path):
     proc = _tool("ftc.experiments", "benchmark", *BENCH, "--overwrite", "--out", str(tmp_path))
     _one_error_line(proc, "ftc.experiments benchmark", "holds no benchmark")
     assert _files(tmp_path) == {"notes.txt": "mine"}
+
+
+def test_the_runner_itself_refuses_a_live_writer_past_the_command_lines_check(tmp_path):
+    """The command line's check is early; the lock the runner takes is what
+    holds when a second writer starts between the two."""
+    from ftc.common.run_lock import InUse
+
+    out = tmp_path / "run"
+    with Writer(out) as writer:
+        with pytest.raises(InUse, match=f"pid {writer.pid}"):
+            Controller(_short(out, method="closed"), PPOConfig()).run()
+    assert sorted(os.listdir(out)) == ["run.lock"]  # the writer's own (SIGKILLed) lock only
+
+
+@pytest.mark.parametrize("kind", ["simulate", "export"])
+def test_overwrite_replaces_a_file_atomically(finished, kind, tmp_path):
+    out = tmp_path / finished[kind].name
+    shutil.copy(finished[kind], out)
+    out.write_bytes(b"old")
+    proc = _tool(*_argv(kind, finished, out, "--overwrite"))
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes() != b"old" and out.stat().st_size > 100
+    assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.lock"))
