@@ -281,9 +281,10 @@ def closed_run(tmp_path_factory) -> Path:
     (["--scenario", MULTIPLE], "--scenario"),
     (["--method", "open"], "--method open"),
     (["--steps-per-interval", "32"], "--steps-per-interval 32"),
-    (["--ppo-trunk-sizes", "32", "32"], "--ppo-trunk-sizes 32 32"),
+    (["--ppo-trunk-sizes", "32", "32"], "--ppo-trunk-sizes"),  # no effect on a baseline
     (["--intervals", "1"], "below the run's 2"),
     (["--out", "elsewhere"], "--out elsewhere"),
+    (["--ppo-learning-rate", "0.5"], "no effect with --method closed"),
 ])
 def test_resume_refuses_an_option_that_fixes_results(closed_run, given, named):
     before = _digest(closed_run)

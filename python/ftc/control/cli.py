@@ -105,7 +105,9 @@ def run_held(out: str | Path) -> str | None:
 
 
 def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
-                   given: dict[str, tuple[Any, str]], classes: dict[str, type]) -> dict[str, Any]:
+                   given: dict[str, tuple[Any, str]], classes: dict[str, type],
+                   check_given: Callable[[dict[str, Any], set[str]], None] | None = None
+                   ) -> dict[str, Any]:
     """The configs of the run ``--resume DIR`` continues, read from its
     config.json, with every option given on this command line honoured or
     refused (exit 2, one line): the run-local ones (link, console, TensorBoard)
@@ -114,7 +116,8 @@ def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
 
     given: the configs parsed from this command line by part, with their
     option prefix ({"controller": (cfg, ""), "ppo": (ppo, "ppo-")}); classes:
-    the config class of each part."""
+    the config class of each part; check_given(stored configs, options given)
+    refuses options first on the tool's own grounds (exit 2)."""
     here = next(iter(given.values()))[0]
     out = here.resume
     try:
@@ -122,6 +125,8 @@ def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     except CheckpointError as e:
         parser.error(str(e))
     named = given_options(parser, argv)
+    if check_given is not None:
+        check_given(stored, named)
     if "out" in named and Path(here.out).resolve() != Path(out).resolve():
         parser.error(f"--out {here.out} with --resume {out}: a resumed run stays in its "
                      "directory (give only --resume)")

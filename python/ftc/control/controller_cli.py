@@ -118,8 +118,13 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPO
     ppo = config_from_namespace(PPOConfig, ns, "ppo-")
     check_or_exit(parser, cfg, {"ppo-": ppo})
     if cfg.resume:
+        def no_ppo_options_for_a_baseline(stored: dict, named: set[str]) -> None:
+            if stored["controller"].method not in PPO_METHODS:
+                _refuse_ppo_options(parser, named, stored["controller"].method)
+
         configs = resume_configs(parser, argv, {"controller": (cfg, ""), "ppo": (ppo, "ppo-")},
-                                 {"controller": ControllerConfig, "ppo": PPOConfig})
+                                 {"controller": ControllerConfig, "ppo": PPOConfig},
+                                 no_ppo_options_for_a_baseline)
         return configs["controller"], configs["ppo"]
     if cfg.method not in PPO_METHODS:
         _refuse_ppo_options(parser, given_options(parser, argv), cfg.method)
