@@ -126,8 +126,7 @@ class RobustPPOAgent(PPOAgent):
         self.teacher_eval.params = ahead.as_core()
         metrics = self._guided_fit(next_level, interval)
         teach_seconds = time.perf_counter() - start - refit_seconds
-        # the teacher's candidates refused in the interval (its refits and this fit)
-        refused, self.teacher_eval.refused = self.teacher_eval.refused, 0
+        refused, self.teacher_eval.refused = self.teacher_eval.refused, 0  # this interval's
         rew, updates, errors = float("nan"), 0, 0
         if cfg.offline_steps:  # then PPO on the identified physics (also fits the critic)
             env = PhysicsEnv(ahead.as_core(), cfg.offline_envs,
