@@ -374,11 +374,12 @@ def test_benchmark_overwrite_with_no_run_finished_puts_the_old_one_back(finished
 def test_benchmark_overwrite_replaces_it_once_a_run_finished(finished, tmp_path):
     out = tmp_path / "bench"
     shutil.copytree(finished["benchmark"], out)
-    proc = _tool("ftc.experiments", "benchmark", *BENCH[:3], "open", *BENCH[4:],
-                 "--overwrite", "--out", str(out))
+    # another method and seed (closed always runs, as the normalized score's 0)
+    proc = _tool("ftc.experiments", "benchmark", *BENCH[:3], "open", BENCH[4], "1",
+                 *BENCH[6:], "--overwrite", "--out", str(out))
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert not (out / ".replaced").exists()
-    assert not list(out.glob("runs/*/t00/closed")) and list(out.glob("runs/*/t00/open"))
+    assert not list(out.glob("runs/*/t00/*/s0")) and list(out.glob("runs/*/t00/open/s1"))
 
 
 # ---------------------------------------------------------------------------

@@ -1,9 +1,15 @@
 """The benchmark suite: every method on every scenario file and seed, then
-results.csv and a report of each method's reward as a fraction of the oracle MPC.
+results.csv and a report of each method's normalized score (0: all valves
+closed, 1: the reference method) beside its reward as a fraction of the oracle MPC.
 
     python -m ftc.experiments benchmark --out runs/bench --jobs 2
     python -m ftc.experiments benchmark --scenarios scenarios/single.toml \\
         --methods closed balance --seeds 0 --intervals 2 --steps-per-interval 128 --out DIR
+
+The reference (--reference, default oracle-mpc) and closed always run beside
+the methods asked for: in every scenario, seed and interval a method's
+normalized score is (r - closed) / (reference - closed) of the rewards per
+step, empty where the reference earns exactly what closed earns.
 
 Without --scenarios the suite's default scenarios (ftc.experiments.suite: the
 paper's single and multiple faults and 20 random ones) are written and run.
@@ -16,9 +22,10 @@ Run directory (--out):
   benchmark.json        resolved config, git revision, methods, scenarios
   scenarios/STEM.toml   the scenario files, as the runs read them
   runs/STEM/t00/METHOD/sS/  one run (controller/, controller.log, metrics.csv, result.json)
-  results.csv, results.json  every finished run's per-interval metrics
+  results.csv, results.json  every finished run's per-interval metrics, with the
+                        reference's and closed's reward per step and the normalized score
   fractions.csv         reward per step as a fraction of the oracle's, per cell
-  figures/benchmark_fraction.png, report.md, report.html
+  figures/benchmark_score.png, report.md, report.html
 """
 
 from __future__ import annotations
@@ -55,15 +62,17 @@ from ftc.experiments.suite import default_suite
 
 TOOL = "ftc.experiments benchmark"
 ORACLE = benchmark_report.ORACLE
+CLOSED = benchmark_report.CLOSED
 MAX_JOBS = 256
 MAX_RUN_TIMEOUT = 1e6  # seconds; 0 means no timeout
 SEED = at_least(0, 2**31 - 1)  # the controller's --seed range
 
 
-def default_methods() -> tuple[str, ...]:
-    """Every registered method not marked ``benchmark=False``, the oracle included."""
+def default_methods(reference: str = ORACLE) -> tuple[str, ...]:
+    """Every registered method not marked ``benchmark=False``, the reference and
+    closed included."""
     names = [m for m, spec in METHODS.items() if spec.benchmark]
-    return tuple(names if ORACLE in names else [*names, ORACLE])
+    return tuple(dict.fromkeys((*names, reference, CLOSED)))
 
 
 @dataclass(frozen=True)
@@ -71,7 +80,7 @@ class BenchmarkConfig:
     """Everything that determines a benchmark's results (jobs does not).
 
     scenarios: scenario stems, files scenarios/STEM.toml of the run directory
-    methods: registered method names; the oracle MPC is always one of them
+    methods: registered method names; the reference and closed are always among them
     seeds: controller (and plant) seeds; every scenario and method runs each
     intervals: degradation intervals per run
     steps_per_interval: real control steps per interval (overrides the files' value)
@@ -79,6 +88,7 @@ class BenchmarkConfig:
     controller_args: extra controller arguments, each to the methods it acts on (method_args)
     run_timeout: seconds after which a run is killed and counted failed (0: never)
     nice: niceness added to each controller
+    reference: the method whose normalized score is 1 (closed's is 0), in every cell
     """
 
     scenarios: tuple[str, ...]
@@ -90,6 +100,7 @@ class BenchmarkConfig:
     controller_args: tuple[str, ...] = ()
     run_timeout: float = 0.0
     nice: int = 5
+    reference: str = ORACLE
 
     def run_config(self) -> ExperimentConfig:
         """What runs.execute_run reads of a run's settings."""
@@ -131,9 +142,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help="scenario TOML files, named in the results by their stem "
                              "(default: the suite's 22, see ftc.experiments.suite)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="NAME",
-                        help="methods to run; the oracle MPC (oracle-mpc) is always added, as "
-                             "it is the reference of every fraction (default: every registered "
-                             f"method for benchmarks: {', '.join(default_methods())})")
+                        help="methods to run; the --reference method and closed are always "
+                             "added, as the normalized score's 1 and 0 (default: every "
+                             "registered method for benchmarks: "
+                             f"{', '.join(default_methods())})")
+    parser.add_argument("--reference", default=None, metavar="METHOD",
+                        help=f"the method whose normalized score is 1 (default: {ORACLE}); a "
+                             "cheaper one makes a quick run. The fraction of the oracle is "
+                             f"taken of {ORACLE} whenever it runs")
     parser.add_argument("--seeds", type=checked(int, SEED), nargs="+", default=None,
                         help="controller seeds; every scenario and method runs each "
                              "(default: 0 1 2)")
@@ -205,6 +221,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     unknown = [m for m in args.methods or () if m not in METHODS]
     if unknown:
         parser.error(f"--methods: unknown methods {unknown}; registered: {', '.join(METHODS)}")
+    if args.reference is not None and args.reference not in METHODS:
+        parser.error(f"--reference: unknown method '{args.reference}'; registered: "
+                     f"{', '.join(METHODS)}")
+    if args.reference == CLOSED:
+        parser.error(f"--reference: {CLOSED} is the normalized score's 0; choose another method")
     out = args.out or Path("runs") / f"benchmark-{time.strftime('%Y%m%d-%H%M%S')}"
     problem = out_dir_problem(out)
     if problem:
@@ -218,8 +239,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     except OutInUse as e:
         parser.error(f"--out: {e}")
     stored = None if args.overwrite else _stored_config(parser, out, args.resume)
-    given = {k: getattr(args, k) for k in ("intervals", "steps_per_interval", "link")
-             if getattr(args, k) is not None}
+    given = {k: getattr(args, k) for k in ("intervals", "steps_per_interval", "link",
+                                             "reference") if getattr(args, k) is not None}
     if args.controller_args is not None:
         try:
             given["controller_args"] = tuple(shlex.split(args.controller_args))
@@ -243,11 +264,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                 and old.read_text() != text:
             parser.error(f"--scenarios: {source} differs from {old}, which the stored runs "
                          f"of scenario {stem} used; rename the file or choose another --out")
-    methods = args.methods or (() if stored is not None else default_methods())
+    methods = args.methods or (() if stored is not None else default_methods(base.reference))
     seeds = args.seeds or (() if stored is not None else (0, 1, 2))
     config = dataclasses.replace(
         base, scenarios=tuple(dict.fromkeys((*base.scenarios, *texts))),
-        methods=tuple(dict.fromkeys((*base.methods, *methods, ORACLE))),
+        methods=tuple(dict.fromkeys((*base.methods, *methods, base.reference, CLOSED))),
         seeds=tuple(dict.fromkeys((*base.seeds, *(int(s) for s in seeds)))))
     problem = _run_options_problem(config, out)
     if problem:  # e.g. --steps-per-interval not a multiple of PPO's --update-every
@@ -331,8 +352,9 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
                   texts: dict[str, tuple[str, str]], stream: TextIO = sys.stderr,
                   ray: RaySession | None = None, fork_server: bool = True,
                   overwrite: bool = False) -> int:
-    """Run (or complete) the benchmark in ``out``, then write results.csv,
-    fractions.csv, the figure and the report. Returns the number of failed runs.
+    """Run (or complete) the benchmark in ``out``, then write results.csv (with
+    the normalized scores), fractions.csv, the figure and the report. Returns
+    the number of failed runs.
     ``ray``: run them as tasks of that Ray session (else on the local pool, each
     run forked from a fork server unless ``fork_server`` is false).
     ``overwrite``: replace the benchmark already in ``out``
@@ -396,13 +418,15 @@ def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextI
 
 
 FIRST_COLUMNS = ("scenario", "method", "seed", "interval", "reward_per_step",
-                 "eval_reward_per_step")
+                 "eval_reward_per_step", *benchmark_report.SCORE_COLUMNS)
 
 
 def collect_benchmark(out: Path) -> None:
     """Every finished run's per-interval metrics into results.csv and results.json
     (columns scenario, method, seed, interval, reward_per_step,
-    eval_reward_per_step, then the controllers' other metrics)."""
+    eval_reward_per_step, reference_reward_per_step, closed_reward_per_step,
+    normalized_score (benchmark_report.normalized_scores), then the controllers'
+    other metrics)."""
     out = Path(out)
     config = BenchmarkConfig.from_json(json.loads((out / "benchmark.json").read_text())["config"])
     rows, runs = [], []
@@ -420,6 +444,7 @@ def collect_benchmark(out: Path) -> None:
                     row = {"scenario": stem, "method": method, "seed": seed, **m}
                     columns += [k for k in row if k not in columns]
                     rows.append(row)
+    rows = benchmark_report.normalized_scores(rows, config.reference)
     atomic_write_csv(out / "results.csv", columns,
                      [["" if r.get(c) is None else r.get(c) for c in columns] for r in rows])
     atomic_write_json(out / "results.json", {"runs": runs, "metrics": rows})
