@@ -183,11 +183,12 @@ def per_scenario(rows: Sequence[dict], scenario: str,
 # ---------------------------------------------------------------------------
 
 def draw_figure(run_dir: Path, methods: Sequence[str], labels: dict[str, str],
-                reference: str = ORACLE) -> Path | None:
+                reference: str = ORACLE, intervals: int | None = None) -> Path | None:
     """figures/benchmark_score.png: left, each method's normalized score per
     interval (mean over scenarios and seeds; closed is the line at 0, the reference
-    the line at 1); right, its spread over scenarios (one point per scenario: the
-    mean over seeds and intervals; box: quartiles)."""
+    the line at 1; ``intervals``: the x axis spans them all, so an interval without
+    a score is a visible gap); right, its spread over scenarios (one point per
+    scenario: the mean over seeds and intervals; box: quartiles)."""
     import matplotlib.pyplot as plt  # Agg is selected by ftc.experiments.figures
 
     scores = read_scores(Path(run_dir) / "results.csv")
@@ -219,6 +220,8 @@ def draw_figure(run_dir: Path, methods: Sequence[str], labels: dict[str, str],
         left.set_ylabel("(r - closed) / (reference - closed)")
         left.set_title("Normalized score (mean over scenarios and seeds)")
         left.xaxis.set_major_locator(plt.MaxNLocator(integer=True))
+        if intervals:
+            left.set_xlim(-0.5, intervals - 0.5)
         left.legend(loc="upper center", bbox_to_anchor=(0.5, -0.3), frameon=False, ncol=2)
         right.boxplot(spread, showfliers=False, widths=0.5)
         rng = np.random.default_rng(0)  # jitter only
@@ -441,7 +444,7 @@ def write_report(run_dir: Path) -> tuple[Path, Path]:
                       for r in fractions])
     labels = {m: spec["label"] for m, spec in meta.get("methods", {}).items()}
     draw_figure(run_dir, meta["config"]["methods"], labels,
-                meta["config"].get("reference", ORACLE))
+                meta["config"].get("reference", ORACLE), int(meta["config"]["intervals"]))
     blocks = build_blocks(run_dir)
     md, page = run_dir / "report.md", run_dir / "report.html"
     atomic_write_text(md, to_markdown(blocks))
