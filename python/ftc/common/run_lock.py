@@ -20,8 +20,10 @@ import fcntl
 import json
 import os
 import socket
+import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 from ftc.common.errors import StorageError, UsageError
 
@@ -134,12 +136,12 @@ class RunLock:
             raise InUse(in_use_message(self.target, self.path, read_lock(self.path))) from None
         return fd
 
-    def took_over_line(self) -> str | None:
-        """The one line announcing a stale lock taken over, or None."""
-        if not self.took_over:
-            return None
-        return (f"{self.tool}: note: taking over the stale lock {self.path} of "
-                f"{describe(self.took_over)} (no longer running)")
+    def announce_takeover(self, stream: TextIO | None = None) -> None:
+        """One line on ``stream`` (stderr) when a stale lock was taken over."""
+        if self.took_over:
+            print(f"{self.tool}: note: taking over the stale lock {self.path} of "
+                  f"{describe(self.took_over)} (no longer running)",
+                  file=stream or sys.stderr, flush=True)
 
     def release(self) -> None:
         if self._fd is not None:

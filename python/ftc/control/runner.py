@@ -94,8 +94,7 @@ def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
     a replaced run moved back."""
     lock = RunLock(out, tool).acquire()
     try:
-        if lock.took_over_line():
-            print(lock.took_over_line(), file=sys.stderr, flush=True)
+        lock.announce_takeover()
         fresh = not cfg.resume
         if fresh:
             held = run_files_held(out)

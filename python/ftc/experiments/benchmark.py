@@ -368,8 +368,7 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
     except OSError as e:
         raise StorageError(f"cannot write {out}: {e.strerror or e}") from None
     lock = OrchestratorLock(out, TOOL).acquire()
-    if lock.took_over_line():
-        print(lock.took_over_line(), file=stream)
+    lock.announce_takeover(stream)
     guardian = Guardian()
     replacing = OrchestratorReplacement(out, overwrite)
     try:

@@ -243,16 +243,11 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     return ns
 
 
-def _note_took_over(lock: OrchestratorLock) -> None:
-    if lock.took_over_line():
-        print(lock.took_over_line(), file=sys.stderr)
-
-
 def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
     out = args.out_dir
     if args.command == "report":
         with OrchestratorLock(out) as lock:  # one writer: not beside a running experiment
-            _note_took_over(lock)
+            lock.announce_takeover()
             collect(out)
             report.write_report(out)
         print(f"report at {out / 'report.md'}")
@@ -260,7 +255,7 @@ def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
     if args.command == "model-search":
         out.mkdir(parents=True, exist_ok=True)
         with OrchestratorLock(out) as lock:
-            _note_took_over(lock)
+            lock.announce_takeover()
             model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(),
                          args.jobs)
             if (out / "experiment.json").is_file():
@@ -270,7 +265,7 @@ def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
     if args.command == "all" and args.model_search:  # on this machine, also with --executor ray
         out.mkdir(parents=True, exist_ok=True)
         with OrchestratorLock(out) as lock:
-            _note_took_over(lock)
+            lock.announce_takeover()
             model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
     failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray,
                              fork_server=args.fork_server, overwrite=args.overwrite)

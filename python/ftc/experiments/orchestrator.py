@@ -174,8 +174,7 @@ def run_experiments(out: Path, config: ExperimentConfig, jobs: int | None, resum
     except OSError as e:
         raise StorageError(f"cannot write {out}: {e.strerror or e}") from None
     lock = OrchestratorLock(out).acquire()
-    if lock.took_over_line():
-        print(lock.took_over_line(), file=stream)
+    lock.announce_takeover(stream)
     guardian = Guardian()
     replacing = OrchestratorReplacement(out, overwrite)
     try:

@@ -230,8 +230,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def run() -> None:
         with RunLock(args.out, TOOL, beside=True) as lock:
-            if lock.took_over_line():
-                print(lock.took_over_line(), file=sys.stderr)
+            lock.announce_takeover()
             refuse_existing(args.out, args.overwrite)  # again, now that no one else writes
             path = checkpoint_path(args.checkpoint)
             policy, source = load_policy(path)

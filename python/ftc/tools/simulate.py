@@ -113,8 +113,7 @@ def main(argv: list[str] | None = None) -> int:
              else ["--steps-per-interval", str(args.steps_per_interval)])
     try:
         with stop_signals(), RunLock(args.out, "ftc.simulate", beside=True) as lock:
-            if lock.took_over_line():
-                print(lock.took_over_line(), file=sys.stderr)
+            lock.announce_takeover()
             refuse_existing(args.out, args.overwrite)  # again, now that no one else writes
             n = run(str(args.scenario) if args.scenario else None, args.policy, args.seed,
                     args.steps, args.out, extra)
