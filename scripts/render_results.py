@@ -32,9 +32,15 @@ DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 BLOCK = re.compile(r"(<!-- results: ([\w-]+)(?::(\w+))? -->\n)(.*?)(<!-- /results -->)", re.S)
 # What a block shows of its file: NAME (the means, and their mean over
 # intervals 1-9), NAME:std (the spread over seeds), NAME:eval (deterministic
-# evaluation), each a column per interval; rows without values are left out.
+# evaluation), NAME:score and NAME:fraction (a benchmark's per-interval means,
+# scripts/suite_results.py), each a column per interval; NAME:summary, every
+# column that is not per interval. Rows without values are left out.
 KINDS = {"mean": "mean over seeds", "std": "std over seeds",
-         "eval": "deterministic evaluation (open iff p > 0.5), mean over seeds"}
+         "eval": "deterministic evaluation (open iff p > 0.5), mean over seeds",
+         "score": "normalized score per interval, mean over scenarios and seeds",
+         "fraction": "fraction of the oracle per interval, mean over scenarios and seeds",
+         "summary": "per method"}
+PER_INTERVAL = re.compile(r"\w+_\d+")
 
 
 def read_results(path: Path) -> tuple[dict[str, str], list[dict[str, str]]]:
@@ -43,7 +49,8 @@ def read_results(path: Path) -> tuple[dict[str, str], list[dict[str, str]]]:
     for line in path.read_text().splitlines():
         if line.startswith("#"):
             key, _, value = line[1:].partition(":")
-            meta[key.strip()] = value.strip()
+            key, value = key.strip(), value.strip()  # a key given again (several runs): joined
+            meta[key] = f"{meta[key]}; {value}" if key in meta and value != meta[key] else value
         elif line.strip():
             body.append(line)
     return meta, list(csv.DictReader(body))
@@ -60,8 +67,13 @@ def render(name: str, kind: str = "mean") -> str:
         raise SystemExit(f"render_results: table '{name}:{kind}': no such kind "
                          f"({', '.join(KINDS)})")
     meta, rows = read_results(path)
-    columns = [c for c in rows[0] if re.fullmatch(rf"{kind}_\d+", c)]
-    head = ["method", *(c.removeprefix(f"{kind}_") for c in columns)]
+    if kind == "summary":
+        columns = [c for c in rows[0] if c not in ("method", "label", "mean_1_9")
+                   and not PER_INTERVAL.fullmatch(c)]
+        head = ["method", *columns]
+    else:
+        columns = [c for c in rows[0] if re.fullmatch(rf"{kind}_\d+", c)]
+        head = ["method", *(c.removeprefix(f"{kind}_") for c in columns)]
     head += ["mean 1-9"] if kind == "mean" else []
     lines = [f"{KINDS[kind].capitalize()}, {meta.get('what', '')}: "
              f"`{meta.get('command', '?')}`, {meta.get('machine', '?')}, {meta.get('date', '?')} "

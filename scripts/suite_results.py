@@ -1,0 +1,130 @@
+#!/usr/bin/env python3
+"""Summarise benchmark runs into a committed result file (docs/results/NAME.csv).
+
+    .venv/bin/python scripts/suite_results.py runs/benchmark-A [runs/benchmark-B ...] \\
+        --out docs/results/suite.csv [--reference METHOD]
+
+Reads each directory's results.csv (``ftc.experiments benchmark`` writes it)
+and their union's cells, a (scenario, method, seed, interval) each, scores
+every method as the benchmark's report does
+(``ftc.experiments.benchmark_report``): the normalized score against
+``--reference`` (default: the first directory's) and all valves closed, and
+the fraction of ``oracle-mpc``. Several directories let a reference run made
+apart (for instance on its own, once per scenario) rebase the others: a cell
+given twice must hold the same reward, or nothing is written.
+
+The file has one row per method: its label, the mean normalized score and
+fraction, the worst interval, seed, scenario and scenario-interval of the
+score, the cell count, then the per-interval means (``score_K``,
+``fraction_K``), after '#' provenance lines (the directories' commands,
+commits, machine, dates and wall times). scripts/render_results.py renders
+its tables in README.md and docs/*.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import platform
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "python"))
+
+from ftc.common.atomic import atomic_write_text  # noqa: E402
+from ftc.experiments import benchmark_report as br  # noqa: E402
+
+
+def _machine() -> str:
+    try:
+        names = [line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
+                 if line.startswith("model name")]
+    except OSError:
+        names = []
+    return f"{names[0] if names else platform.processor() or '?'}, {len(names) or '?'} cores"
+
+
+def read_cells(dirs: list[Path]) -> tuple[list[dict], list[dict]]:
+    """(rows, provenance per directory); SystemExit naming the cell given twice
+    with different rewards, or a directory that is not a finished benchmark."""
+    rows: dict[tuple, dict] = {}
+    meta = []
+    for d in dirs:
+        results, info = d / "results.csv", d / "benchmark.json"
+        if not results.is_file() or not info.is_file():
+            raise SystemExit(f"suite_results: {d} holds no benchmark results "
+                             "(results.csv and benchmark.json); run ftc.experiments benchmark")
+        meta.append(json.loads(info.read_text()))
+        with open(results, newline="") as f:
+            for r in csv.DictReader(f):
+                key = (r["scenario"], r["method"], int(r["seed"]), int(r["interval"]))
+                if key in rows and rows[key]["reward_per_step"] != r["reward_per_step"]:
+                    raise SystemExit(f"suite_results: {key} is given twice with different "
+                                     f"rewards ({rows[key]['reward_per_step']} and "
+                                     f"{r['reward_per_step']}, the second in {results})")
+                rows[key] = {"scenario": key[0], "method": key[1], "seed": key[2],
+                             "interval": key[3], "reward_per_step": r["reward_per_step"]}
+    return list(rows.values()), meta
+
+
+def summary_rows(rows: list[dict], reference: str, labels: dict[str, str],
+                 methods: list[str], intervals: int) -> list[dict]:
+    scores = br.summarise(br.normalized_scores(rows, reference), methods, "normalized_score")
+    fractions = {s.method: s for s in br.summarise(br.oracle_fractions(rows), methods)}
+    out = []
+    for s in scores:
+        f = fractions.get(s.method)
+        worst = br._worst_columns(s)
+        out.append({
+            "method": s.method, "label": f"`{s.method}` ({labels.get(s.method, s.method)})",
+            "normalized score": br._f(s.mean), "fraction of the oracle": br._f(f and f.mean),
+            **dict(zip(br.WORST_HEADER, worst)), "cells": str(s.cells),
+            **{f"score_{k}": br._f(s.per_interval.get(k)) for k in range(intervals)},
+            **{f"fraction_{k}": br._f(f.per_interval.get(k) if f else None)
+               for k in range(intervals)}})
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dirs", nargs="+", type=Path, metavar="DIR",
+                   help="benchmark run directories (ftc.experiments benchmark --out DIR)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="the result file to write (e.g. docs/results/suite.csv)")
+    p.add_argument("--reference", help="the method whose normalized score is 1 (default: "
+                                       "the first directory's --reference)")
+    args = p.parse_args(argv)
+    rows, meta = read_cells(args.dirs)
+    reference = args.reference or meta[0]["config"].get("reference", br.ORACLE)
+    labels = {m: spec["label"] for info in meta for m, spec in info.get("methods", {}).items()}
+    methods = list(dict.fromkeys(m for info in meta for m in info["config"]["methods"]))
+    if reference not in methods:
+        raise SystemExit(f"suite_results: the reference '{reference}' has no runs in "
+                         f"{', '.join(map(str, args.dirs))}")
+    intervals = max(int(info["config"]["intervals"]) for info in meta)
+    table = summary_rows(rows, reference, labels, methods, intervals)
+    text = io.StringIO()
+    for info in meta:
+        c = info["config"]
+        text.write(f"# what: {len(c['scenarios'])} scenarios x {len(c['seeds'])} seeds, "
+                   f"{c['intervals']} x {c['steps_per_interval']} steps, normalized score "
+                   f"against {reference} and closed, fraction of {br.ORACLE}\n")
+        text.write(f"# command: ftc.experiments benchmark --methods {' '.join(c['methods'])} "
+                   f"--seeds {' '.join(map(str, c['seeds']))} --jobs {info.get('jobs', '?')}\n")
+        text.write(f"# commit: {info.get('git_revision', '?')}\n")
+        text.write(f"# date: {info.get('created', '?')[:10]}\n")
+        text.write(f"# wall time: {info.get('wall_time_s', 0):.0f} s\n")
+    text.write(f"# machine: {_machine()}\n")
+    w = csv.DictWriter(text, fieldnames=list(table[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(table)
+    atomic_write_text(args.out, text.getvalue())
+    print(f"suite_results: {len(table)} methods, {len(rows)} cells -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
