@@ -9,5 +9,5 @@ cd "$root"
 bash scripts/setup.sh
 status=0
 (cd build && ctest --output-on-failure -j2) || status=$?
-.venv/bin/python -m pytest -q "$@" || status=$?
+.venv/bin/python -m pytest -q --durations=20 "$@" || status=$?
 exit $status
