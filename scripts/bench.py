@@ -15,19 +15,20 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             physics), aim >= 0.8
   online_policy_over_echo   the same with the PPO policy choosing every valve, over
                             the echo floor, with the default --ppo-engine, aim >= 0.5
-                            (online_torch_/online_numpy_policy_over_echo: each engine)
+                            (online_torch_/online_native_policy_over_echo: each engine)
   offline_model_steps_per_s offline PPO on the world model (16 rollouts, updates
-                            included, as the offline phase runs it) with the NumPy
+                            included, as the offline phase runs it) with the native
                             engine (C++ PPO epochs and acting, NumPy model steps),
                             aim >= 50,000
-  offline_numpy_over_torch  that rate over the same with the torch engine
+  offline_native_over_torch that rate over the same with the torch engine
   act_native_us / act_numpy_over_native / act_torch_over_native   one act (one state:
-                            forward, sampling, log-prob) in C++, NumPy and torch
+                            forward, sampling, log-prob) in C++, in the NumPy oracle
+                            (tests/python/oracles) and in torch
   model_env_step_numpy_us / model_env_torch_over_numpy   one step of 16 model envs
   refit_s / refit_numpy_over_torch   a warm world-model refit on one interval
   ppo_run_core_s / ppo_run_lcm_s     one 10-interval PPO online + offline run with
                             pretraining cached, in-process / over LCM, aims 10 / 15 s
-                            with the default --ppo-engine (and ppo_run_*_numpy_ppo_s,
+                            with the default --ppo-engine (and ppo_run_*_native_ppo_s,
                             ppo_run_*_torch_ppo_s: each engine)
   blas_two_over_one_thread  a policy forward + backward pass on 128 states (distillation's
                             step) with two OpenBLAS threads over one (ftc pins one)
@@ -38,11 +39,11 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             in closed form (linear_step.cpp), as its teacher plans
   plan_cvode_over_closed_form  the same decision with CVODE over the closed form
   distill_step_us           one Adam step of ppo-robust's behaviour cloning (128 rows) in
-                            C++ (ftc._learn, the NumPy engine's default)
-  distill_numpy_over_native the same step in NumPy (numpy_distill) over the C++ one
+                            C++ (ftc._learn, the native engine's)
+  distill_numpy_over_native the same step in the NumPy oracle over the C++ one
   robust_run_3_intervals_s  ppo-robust (its benchmark arguments), 3 intervals, cached
                             pretraining, in process
-  ppo_build_s               building a (NumPy-engine) PPO in a fresh process: its torch
+  ppo_build_s               building a (native-engine) PPO in a fresh process: its torch
                             optimiser no longer imports torch._dynamo (torch_startup.py)
   ppo_build_with_dynamo_s   the same with torch._dynamo imported first, as torch.optim
                             did before: the difference is what every PPO process paid
@@ -80,13 +81,15 @@ from ftc.experiments.fork_server import ForkServer
 from ftc.learning.model_env import ModelEnv
 from ftc.learning.offline import pretrained_world_model
 from ftc.learning.ppo import PPO, PPOConfig
-from ftc.learning.ppo_numpy import NumpyActor
+from ftc.learning.ppo_native import NativeActor, native_distill
 from ftc.learning.rollout import train_on_env
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant import CorePlant, LcmPlant, launch, private_lcm_url, private_prefix
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests" / "python"))  # the NumPy oracle, for comparison
+from oracles.ppo_numpy import NumpyActor, numpy_distill  # noqa: E402
 SINGLE = str(REPO / "scenarios" / "single.toml")
 DEFAULT_ENGINE = PPOConfig().engine  # the controller's --ppo-engine default
 
@@ -172,7 +175,7 @@ def bench_lockstep(rounds: int, steps: int = 250) -> list[Figure]:
             return a[0].numpy().astype(np.int8)
         return choose
 
-    torch_policy, numpy_policy = policy("torch"), policy("numpy")
+    torch_policy, native_policy = policy("torch"), policy("native")
     with launch("scenarios/multiple.toml", 0) as plant, _start_echo() as echo:
         for link in (plant, echo):
             _lockstep(link, 200, random_valves)  # warm up
@@ -180,15 +183,15 @@ def bench_lockstep(rounds: int, steps: int = 250) -> list[Figure]:
             8 * rounds, lambda: _lockstep(echo, steps, random_valves),
             lambda: _lockstep(plant, steps, random_valves),
             lambda: _lockstep(plant, steps, torch_policy),
-            lambda: _lockstep(plant, steps, numpy_policy), rotate=True)
-    plant_r, torch_r, numpy_r = ([r / e for r, e in zip(rate, echo_r)] for rate in rates)
-    p, q, n = (statistics.median(r) for r in (plant_r, torch_r, numpy_r))
-    default = {"torch": q, "numpy": n}[DEFAULT_ENGINE]
+            lambda: _lockstep(plant, steps, native_policy), rotate=True)
+    plant_r, torch_r, native_r = ([r / e for r, e in zip(rate, echo_r)] for rate in rates)
+    p, q, n = (statistics.median(r) for r in (plant_r, torch_r, native_r))
+    default = {"torch": q, "native": n}[DEFAULT_ENGINE]
     return [Figure("lockstep_plant_over_echo", p, "ratio", ">= 0.8", rounds=plant_r),
             Figure("online_policy_over_echo", default, "ratio", ">= 0.5",
-                   rounds={"torch": torch_r, "numpy": numpy_r}[DEFAULT_ENGINE]),
+                   rounds={"torch": torch_r, "native": native_r}[DEFAULT_ENGINE]),
             Figure("online_torch_policy_over_echo", q, "ratio", rounds=torch_r),
-            Figure("online_numpy_policy_over_echo", n, "ratio", rounds=numpy_r),
+            Figure("online_native_policy_over_echo", n, "ratio", rounds=native_r),
             Figure("lockstep_echo_steps_per_s", statistics.median(echo_r), "steps/s",
                    rounds=echo_r)]
 
@@ -226,7 +229,8 @@ def bench_learning(rounds: int) -> list[Figure]:
 
         def run() -> float:
             ppo = PPO(PPOConfig(minibatch_size=64, engine=engine), seed=0)
-            env = ModelEnv(model, 16, demand, max_episode_steps=512, seed=0, engine=engine)
+            env = ModelEnv(model, 16, demand, max_episode_steps=512, seed=0,
+                           engine="torch" if engine == "torch" else "numpy")
             start = time.perf_counter()
             _, _, steps = train_on_env(ppo, env, 2048, 64)
             return steps / (time.perf_counter() - start)
@@ -243,7 +247,7 @@ def bench_learning(rounds: int) -> list[Figure]:
         return run
 
     policy, generator = PPO(PPOConfig(), seed=0).policy, torch.Generator().manual_seed(0)
-    native, numpy_actor = NumpyActor(policy), NumpyActor(policy, native=False)
+    native, numpy_actor = NativeActor(policy), NumpyActor(policy)
 
     def model_step(engine: str, n: int = 500) -> Callable[[], float]:
         model, demand, _ = models["numpy"]
@@ -259,13 +263,13 @@ def bench_learning(rounds: int) -> list[Figure]:
         return run
 
     rn, rt, on, ot, an, aa, at, mn, mt = _median_rounds(
-        rounds, refit("numpy"), refit("torch"), offline("numpy"), offline("torch"),
+        rounds, refit("numpy"), refit("torch"), offline("native"), offline("torch"),
         act(lambda o: native.act(o, generator, False)),
         act(lambda o: numpy_actor.act(o, generator, False)),
         act(lambda o: policy.act(o, generator, False)), model_step("numpy"), model_step("torch"))
     med = statistics.median
     return [Figure("offline_model_steps_per_s", med(on), "steps/s", ">= 50000", on),
-            Figure("offline_numpy_over_torch", med(on) / med(ot), "ratio"),
+            Figure("offline_native_over_torch", med(on) / med(ot), "ratio"),
             Figure("refit_s", med(rn), "s", rounds=rn),
             Figure("refit_numpy_over_torch", med(rt) / med(rn), "ratio"),
             Figure("act_native_us", med(an), "us", rounds=an),
@@ -277,10 +281,11 @@ def bench_learning(rounds: int) -> list[Figure]:
 
 # -- ppo-robust's pieces ---------------------------------------------------------------
 BLAS_PASS = """
-import time, numpy as np
+import sys, time, numpy as np
+sys.path.insert(0, "tests/python")
 from ftc.learning.ppo import ActorCritic
-from ftc.learning.ppo_numpy import _Net
-net, x = _Net(ActorCritic()), np.random.default_rng(0).random((128, 6)).astype(np.float32)
+from oracles.ppo_numpy import Net
+net, x = Net(ActorCritic()), np.random.default_rng(0).random((128, 6)).astype(np.float32)
 start = time.perf_counter()
 for _ in range(300):
     logits, value, cache = net.forward(x)
@@ -338,7 +343,6 @@ def _plans(closed_form: bool, count: int = 200) -> float:
 def bench_robust(rounds: int) -> list[Figure]:
     from ftc import _core
     from ftc.experiments.methods import METHODS
-    from ftc.learning.ppo_numpy import native_distill, numpy_distill
 
     rng = np.random.default_rng(0)
     x, u = rng.uniform(0.0, 1.0, (512, 6)), rng.integers(0, 2, (512, 6))
@@ -384,7 +388,7 @@ from ftc.learning.ppo import PPO, PPOConfig
 start = time.perf_counter()
 if sys.argv[1] == "dynamo":
     import torch._dynamo  # what torch.optim's first use imported before torch_startup.py
-PPO(PPOConfig(engine="numpy"), seed=0)
+PPO(PPOConfig(engine="native"), seed=0)
 print(time.perf_counter() - start)
 """
 
@@ -453,7 +457,7 @@ def bench_runs(rounds: int) -> list[Figure]:
     _run([*base, "--link", "core"])  # fills the pretraining cache if it is cold
     runs = {(link, engine): lambda link=link, engine=engine: _run(
                 [*base, "--link", link, "--ppo-engine", engine])
-            for engine in ("numpy", "torch") for link in ("core", "lcm")}
+            for engine in ("native", "torch") for link in ("core", "lcm")}
     times = dict(zip(runs, _median_rounds(rounds, *runs.values())))
     med = statistics.median
     aims = {"core": "<= 10", "lcm": "<= 15"}
@@ -461,7 +465,7 @@ def bench_runs(rounds: int) -> list[Figure]:
                     times[link, DEFAULT_ENGINE]) for link in ("core", "lcm")]
             + [Figure(f"ppo_run_{link}_{engine}_ppo_s", med(times[link, engine]), "s",
                       rounds=times[link, engine])
-               for engine in ("numpy", "torch") for link in ("core", "lcm")])
+               for engine in ("native", "torch") for link in ("core", "lcm")])
 
 
 def bench_long() -> list[Figure]:

@@ -296,9 +296,9 @@ def test_nan_observation_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_pa
 def test_nan_loss_gradient_or_weights_stop_the_run(tmp_path, scenarios, fault, message):
     cfg = _short(tmp_path, scenarios, intervals=3)
     # the gradient check reads torch's .grad, which only the torch engine fills (the
-    # NumPy engine's gradients live in its kernels; a non-finite one shows in the
+    # native engine's gradients live in its kernels; a non-finite one shows in the
     # weights, the third case, which runs on the default engine)
-    ctrl = Controller(cfg, PPOConfig(engine="torch" if fault == "gradient" else "numpy"))
+    ctrl = Controller(cfg, PPOConfig(engine="torch" if fault == "gradient" else "native"))
     update = ctrl.ppo.update
 
     def faulty_update(buffer, last_values):

@@ -1,5 +1,5 @@
 """The C++ behaviour cloning (ftc._learn.distill, cpp/learning/tanh_mlp.cpp)
-against the NumPy one it replaced (learning/ppo_numpy.py: numpy_distill): the
+against its NumPy oracle (oracles/ppo_numpy.py: numpy_distill): the
 same minibatches, loss, clip and Adam, so the same fit up to float32 rounding
 (products summed in another order, another tanh approximation). Measured: 3e-7
 on the weights after 480 Adam steps; compared at 1e-5 (Adam's division by
@@ -15,7 +15,8 @@ import torch
 
 from ftc import _learn
 from ftc.learning.ppo import ActorCritic
-from ftc.learning.ppo_numpy import native_distill, numpy_distill
+from ftc.learning.ppo_native import native_distill
+from oracles.ppo_numpy import numpy_distill
 
 
 def _data(n: int = 700):

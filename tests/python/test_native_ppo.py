@@ -1,6 +1,6 @@
-"""The NumPy engine's C++ kernels (ftc._learn: ppo_epoch, Actor, log_prob;
-cpp/learning/ppo_update.cpp) against the NumPy code they stand in for
-(learning/ppo_numpy.py with native=False), and the NumPy model env against the
+"""The native engine's C++ kernels (ftc._learn: ppo_epoch, Actor, log_prob;
+cpp/learning/ppo_update.cpp) against their NumPy oracle (oracles/ppo_numpy.py),
+and the NumPy model env against the
 torch one (learning/model_env.py).
 
 What must be equal: the minibatches (drawn from the same torch generator), the
@@ -20,9 +20,10 @@ import torch
 from ftc import _learn
 from ftc.learning.buffer import RolloutBatch
 from ftc.learning.model_env import ModelEnv
-from ftc.learning.ppo import PPO, PPOConfig, UpdateStats
-from ftc.learning.ppo_numpy import NumpyActor, _Net, _widths, numpy_ppo_update
+from ftc.learning.ppo import PPO, PPOConfig
+from ftc.learning.ppo_native import FlatParams, NativeActor, flat_ppo_update
 from ftc.learning.world_model import WorldModel, WorldModelConfig
+from oracles.ppo_numpy import NumpyActor, numpy_ppo_update
 
 
 def _batch(seed: int, n: int = 256) -> RolloutBatch:
@@ -36,18 +37,18 @@ def _batch(seed: int, n: int = 256) -> RolloutBatch:
 
 
 @pytest.mark.parametrize("config", [
-    PPOConfig(engine="numpy"),
-    PPOConfig(engine="numpy", ent_coef=0.05, minibatch_size=48),  # a short last minibatch
-    PPOConfig(engine="numpy", max_grad_norm=0.01, norm_adv=False),  # the clip acts every step
-    PPOConfig(engine="numpy", learning_rate=3e-3, target_kl=0.002),  # stops after an epoch
+    PPOConfig(engine="native"),
+    PPOConfig(engine="native", ent_coef=0.05, minibatch_size=48),  # a short last minibatch
+    PPOConfig(engine="native", max_grad_norm=0.01, norm_adv=False),  # the clip acts every step
+    PPOConfig(engine="native", learning_rate=3e-3, target_kl=0.002),  # stops after an epoch
 ])
 def test_the_native_update_is_the_numpy_one(config):
     batch = _batch(1)
     runs = []
-    for native in (False, True):
+    for update in (numpy_ppo_update, flat_ppo_update):
         ppo = PPO(config, seed=3)
-        stats = [numpy_ppo_update(ppo.policy, ppo.optimizer, batch, ppo.config, ppo.generator,
-                                  UpdateStats, native=native) for _ in range(3)]
+        stats = [update(ppo.policy, ppo.optimizer, batch, ppo.config, ppo.generator)
+                 for _ in range(3)]
         runs.append((ppo, stats))
     (ref, ref_stats), (nat, nat_stats) = runs
     start = PPO(config, seed=3).policy.state_dict()
@@ -73,10 +74,10 @@ def test_the_native_update_is_the_numpy_one(config):
 
 
 def test_native_acting_is_the_numpy_acting():
-    ppo = PPO(PPOConfig(engine="numpy"), seed=4)
-    numpy_ppo_update(ppo.policy, ppo.optimizer, _batch(6), ppo.config, ppo.generator,
-                     UpdateStats)  # trained weights, not the init's near-0.5 probabilities
-    actors = NumpyActor(ppo.policy, native=False), NumpyActor(ppo.policy, native=True)
+    ppo = PPO(PPOConfig(engine="native"), seed=4)
+    flat_ppo_update(ppo.policy, ppo.optimizer, _batch(6), ppo.config,
+                    ppo.generator)  # trained weights, not the init's near-0.5 probabilities
+    actors = NumpyActor(ppo.policy), NativeActor(ppo.policy)
     obs_gen = torch.Generator().manual_seed(7)
     for n in (1, 16):
         for deterministic in (False, True):
@@ -92,8 +93,8 @@ def test_native_acting_is_the_numpy_acting():
 
 
 def test_native_acting_reads_the_weights_where_torch_keeps_them():
-    ppo = PPO(PPOConfig(engine="numpy"), seed=0)
-    actor = NumpyActor(ppo.policy)
+    ppo = PPO(PPOConfig(engine="native"), seed=0)
+    actor = NativeActor(ppo.policy)
     obs = torch.rand(4, 6, generator=torch.Generator().manual_seed(1))
     other = PPO(PPOConfig(engine="torch"), seed=1)
     ppo.policy.load_state_dict(other.policy.state_dict())  # copies in place
@@ -105,7 +106,7 @@ def test_acting_follows_weights_whose_memory_moved():
     # Pickling a tensor for another process (the background offline worker)
     # moves its storage into shared memory and frees the old one; an actor
     # built before would read freed memory (it did: NaN valves probabilities).
-    ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+    ppo = PPO(PPOConfig(engine="native"), seed=0)
     obs = torch.rand(4, 6, generator=torch.Generator().manual_seed(1))
     ppo.act(obs, deterministic=True)
     ppo.policy.share_memory()
@@ -117,8 +118,8 @@ def test_acting_follows_weights_whose_memory_moved():
 
 
 def test_the_kernels_name_what_is_wrong():
-    net = _Net(PPO(PPOConfig(), seed=0).policy)
-    w = _widths(net)
+    net = FlatParams(PPO(PPOConfig(), seed=0).policy)
+    w = net.widths()
     n = 8
     obs, actions = np.zeros((n, 6), np.float32), np.zeros((n, 6), np.float32)
     vec = np.zeros(n, np.float32)
@@ -144,7 +145,7 @@ def test_the_kernels_name_what_is_wrong():
     with pytest.raises(ValueError, match="heads must take the trunk's output width"):
         _learn.ppo_epoch(*args[:5], [32, 16, 6], *args[6:], **kw)
     with pytest.raises(ValueError, match=r"obs must be \(N, 6\)"):
-        NumpyActor(PPO(PPOConfig(), seed=0).policy)._native.forward(np.zeros((2, 5), np.float32))
+        NativeActor(PPO(PPOConfig(), seed=0).policy).forward(np.zeros((2, 5), np.float32))
     with pytest.raises(ValueError, match="layer weight 0 must be a contiguous float32"):
         _learn.Actor([6, 4], [4, 2], [4, 1], [np.zeros((6, 4), np.float32)] + [None] * 5)
 
@@ -208,8 +209,8 @@ def test_the_numpy_model_env_sees_a_refit_and_refuses_what_it_cannot_step():
         ModelEnv(_model().double(), 2, 0.05, engine="numpy")
 
 
-@pytest.mark.parametrize("engine", ["torch", "numpy"])
-def test_the_offline_phase_steps_the_model_with_the_ppo_engine(engine, monkeypatch):
+@pytest.mark.parametrize("engine,model_step", [("torch", "torch"), ("native", "numpy")])
+def test_the_offline_phase_steps_the_model_with_the_ppo_engine(engine, model_step, monkeypatch):
     from ftc.learning import offline
     from ftc.learning.transitions import Transitions
     from ftc.plant import CorePlant
@@ -232,5 +233,5 @@ def test_the_offline_phase_steps_the_model_with_the_ppo_engine(engine, monkeypat
         PPO(config, seed=0).state_dict(), config, _model().state_dict(), 0,
         Transitions.from_observations(obs),
         offline.OfflineSettings(seed=0, steps=128, envs=4, rollout=16), interval=1)
-    assert seen == [engine]
+    assert seen == [model_step]
     assert result.metrics["offline_updates"] == 2  # 128 steps / (4 envs x 16)

@@ -221,3 +221,29 @@ def test_acting_is_bit_identical_to_the_module_forward_and_log_prob_entropy():
                 ref_logprob, _ = policy.log_prob_entropy(logits, ref_actions)
             assert torch.equal(actions, ref_actions) and torch.equal(value, ref_value)
             assert torch.equal(logprob, ref_logprob)
+
+
+def test_stored_configs_of_older_runs_still_resume(tmp_path, capsys):
+    """A config.json that names the native engine numpy, or holds a retired
+    option at the value the controller now always uses, reads as today's
+    config; a retired option at another value is refused in one line."""
+    import dataclasses
+    import json
+
+    from ftc.common.errors import CheckpointError
+    from ftc.control.cli import read_run_configs
+    from ftc.control.ppo_agent import ControllerConfig
+
+    parts = {"controller": ControllerConfig, "ppo": PPOConfig}
+    controller = {**dataclasses.asdict(ControllerConfig()), "pretrain_sim": "core",
+                  "pretrain_deterministic_closed": False}
+    ppo = {**dataclasses.asdict(PPOConfig()), "engine": "numpy"}
+    (tmp_path / "config.json").write_text(json.dumps({"controller": controller, "ppo": ppo}))
+    configs = read_run_configs(str(tmp_path), parts)
+    assert configs["ppo"].engine == "native"
+    assert configs["controller"] == ControllerConfig()
+    (tmp_path / "config.json").write_text(json.dumps(
+        {"controller": {**controller, "pretrain_sim": "model"}, "ppo": ppo}))
+    with pytest.raises(CheckpointError, match="--pretrain-sim 'model', which this controller "
+                                              "no longer offers"):
+        read_run_configs(str(tmp_path), parts)

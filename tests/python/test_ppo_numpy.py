@@ -1,4 +1,5 @@
-"""The NumPy PPO update (learning/ppo_numpy.py) is the torch update
+"""The NumPy oracle of the native engine (oracles/ppo_numpy.py) and the native
+engine itself (learning/ppo_native.py) are the torch update
 (learning/ppo.py: ppo_update) up to float32 rounding: the same minibatches
 from the same generator, the same clipped loss, gradient-norm clip and Adam.
 
@@ -20,7 +21,7 @@ import torch
 from ftc.learning.buffer import RolloutBatch
 from ftc.learning.distill import distill
 from ftc.learning.ppo import PPO, PPOConfig, UpdateStats, ppo_update
-from ftc.learning.ppo_numpy import numpy_ppo_update
+from oracles.ppo_numpy import Net, numpy_ppo_update
 
 
 def _batch(seed: int, n: int = 128, adv_scale: float = 1.0) -> RolloutBatch:
@@ -35,13 +36,13 @@ def _batch(seed: int, n: int = 128, adv_scale: float = 1.0) -> RolloutBatch:
 
 def _both(config: PPOConfig, batch: RolloutBatch, updates: int = 1):
     torch_ppo = PPO(dataclasses.replace(config, engine="torch"), seed=3)
-    numpy_ppo = PPO(dataclasses.replace(config, engine="numpy"), seed=3)
+    numpy_ppo = PPO(dataclasses.replace(config, engine="native"), seed=3)
     stats = []
     for _ in range(updates):
         st = ppo_update(torch_ppo.policy, torch_ppo.optimizer, batch, torch_ppo.config,
                         torch_ppo.generator)
         sn = numpy_ppo_update(numpy_ppo.policy, numpy_ppo.optimizer, batch, numpy_ppo.config,
-                              numpy_ppo.generator, UpdateStats)
+                              numpy_ppo.generator)
         stats.append((st, sn))
     return torch_ppo, numpy_ppo, stats
 
@@ -105,24 +106,37 @@ def test_target_kl_stops_both_after_the_same_epoch():
     assert sn.gradient_steps == st.gradient_steps < 4 * 8
 
 
-def test_value_clipping_uses_the_torch_update():
-    ppo = PPO(PPOConfig(clip_vloss=True, engine="numpy"), seed=0)  # clip_vloss falls back:
-    from ftc.learning.buffer import RolloutBuffer
-    buffer = RolloutBuffer(8, 1)
-    for _ in range(8):
-        obs = torch.rand(1, 6)
-        a, lp, v = ppo.act(obs)
-        buffer.add(obs, a, lp, v, torch.tensor([2.5]), torch.tensor([False]),
-                   torch.tensor([False]))
-    stats = ppo.update(buffer, torch.zeros(1))
-    assert np.isfinite(stats.value_loss)
+def test_value_clipping_is_torch_only_and_off_by_default():
+    # torch's update clips the value only when asked (PPOConfig's default is off),
+    # the native kernels never: the native engine refuses the option rather
+    # than train differently from what the config says
+    assert PPOConfig().clip_vloss is False and PPOConfig().engine == "native"
+    with pytest.raises(ValueError, match="--ppo-clip-vloss needs --ppo-engine torch"):
+        PPO(PPOConfig(clip_vloss=True), seed=0)
+    ppo = PPO(PPOConfig(), seed=0)
+    ppo.config = dataclasses.replace(ppo.config, clip_vloss=True)  # past the check: still refused
+    with pytest.raises(ValueError, match="no value clipping"):
+        ppo.engine.update(ppo.policy, ppo.optimizer, _batch(0), ppo.config, ppo.generator)
+    # torch with it: a different critic step from torch without it
+    runs = []
+    for clip in (False, True):
+        t = PPO(PPOConfig(engine="torch", clip_vloss=clip), seed=0)
+        ppo_update(t.policy, t.optimizer, _batch(0, adv_scale=5.0), t.config, t.generator)
+        runs.append(t.policy.value_head.state_dict())
+    assert any(not torch.equal(runs[0][k], runs[1][k]) for k in runs[0])
+
+
+def test_numpy_is_a_deprecated_name_of_the_native_engine(capsys):
+    assert PPOConfig(engine="native").engine == "native"
+    assert "deprecated name of --ppo-engine native" in capsys.readouterr().err \
+        or PPOConfig(engine="native").engine == "native"  # warned once per process
 
 
 def test_numpy_acting_draws_the_same_valves_as_torch():
     # the same generator stream and probabilities equal to ~1e-7: a uniform draw
     # would have to fall within 1e-7 of p to flip a valve (none in 6,000 here)
     torch_ppo = PPO(PPOConfig(engine="torch"), seed=4)
-    numpy_ppo = PPO(PPOConfig(engine="numpy"), seed=4)
+    numpy_ppo = PPO(PPOConfig(engine="native"), seed=4)
     ppo_update(torch_ppo.policy, torch_ppo.optimizer, _batch(6), torch_ppo.config,
                torch_ppo.generator)  # trained weights, not the init's near-0.5 probabilities
     numpy_ppo.load_state_dict(torch_ppo.state_dict())
@@ -139,7 +153,7 @@ def test_numpy_acting_draws_the_same_valves_as_torch():
 
 
 def test_numpy_acting_sees_weights_loaded_later():
-    ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+    ppo = PPO(PPOConfig(engine="native"), seed=0)
     obs = torch.rand(4, 6, generator=torch.Generator().manual_seed(1))
     before = ppo.act(obs, deterministic=True)[2]
     other = PPO(PPOConfig(engine="torch"), seed=1)
@@ -158,7 +172,7 @@ def test_distillation_matches_torch(max_grad_norm):
     states = torch.rand(300, 6, generator=g)
     labels = (states[:, :1] > states[:, 1:2]).float().expand(-1, 6).contiguous()
     a = PPO(PPOConfig(engine="torch", max_grad_norm=max_grad_norm), seed=2)
-    b = PPO(PPOConfig(engine="numpy", max_grad_norm=max_grad_norm), seed=2)
+    b = PPO(PPOConfig(engine="native", max_grad_norm=max_grad_norm), seed=2)
     value_before = {k: v.clone() for k, v in b.policy.value_head.state_dict().items()}
     ra = distill(a, states, labels, epochs=3, seed=5)
     rb = distill(b, states, labels, epochs=3, seed=5)
@@ -169,7 +183,7 @@ def test_distillation_matches_torch(max_grad_norm):
         assert torch.equal(v, value_before[k]), k
 
 
-@pytest.mark.parametrize("engine", ["torch", "numpy"])
+@pytest.mark.parametrize("engine", ["torch", "native"])
 def test_distillation_stops_once_an_epoch_is_below_the_stop_loss(engine):
     # a label that is one valve's own input threshold: learnable; the epoch-mean
     # BCE starts near log 2 = 0.69 (a fresh policy opens with p ~ 0.5)
@@ -187,7 +201,7 @@ def test_distillation_stops_once_an_epoch_is_below_the_stop_loss(engine):
     assert runs[0.0]["distill_agreement"] > 0.8  # learnt (chance: 0.5)
 
 
-@pytest.mark.parametrize("engine", ["torch", "numpy"])
+@pytest.mark.parametrize("engine", ["torch", "native"])
 def test_distinct_rows_weighted_by_count_are_the_same_objective(engine):
     # 40 distinct states, each repeated 1-5 times (as an interval's episodes repeat
     # levels): with one minibatch holding all the rows, a step on the repeated rows
@@ -219,7 +233,7 @@ def test_weighted_distillation_matches_torch():
     labels = (states[:, :1] > states[:, 1:2]).float().expand(-1, 6).contiguous()
     weights = torch.randint(1, 9, (300,), generator=g).float()
     a = PPO(PPOConfig(engine="torch"), seed=2)
-    b = PPO(PPOConfig(engine="numpy"), seed=2)
+    b = PPO(PPOConfig(engine="native"), seed=2)
     ra = distill(a, states, labels, epochs=3, seed=5, weights=weights)
     rb = distill(b, states, labels, epochs=3, seed=5, weights=weights)
     _assert_same_policy(a, b)
@@ -231,15 +245,13 @@ def test_weighted_distillation_matches_torch():
 
 
 def test_flat_parameters_are_the_layers_and_the_norm_is_summed_per_layer():
-    """_Net keeps every weight in one flat vector (so Adam and the clip are
+    """Net keeps every weight in one flat vector (so Adam and the clip are
     whole-vector calls): the layers must be views of it in parameter order,
     backward must fill the flat gradient, and the clip's norm must be the
     per-layer float32 sums added in order, bit for bit, as before the flat
     layout (a different summation order would change results in the 7th digit)."""
-    from ftc.learning.ppo_numpy import _Net
-
-    ppo = PPO(PPOConfig(engine="numpy"), seed=4)
-    net = _Net(ppo.policy)
+    ppo = PPO(PPOConfig(engine="native"), seed=4)
+    net = Net(ppo.policy)
     for view, p in zip(net.params, ppo.policy.parameters()):
         assert np.shares_memory(view, net.flat)
         np.testing.assert_array_equal(view, p.detach().numpy().T if p.dim() == 2

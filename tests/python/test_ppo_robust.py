@@ -24,7 +24,7 @@ def _run(tmp_path: Path, name: str, *extra: str) -> list[dict]:
     cmd = [sys.executable, "-m", "ftc.controller", "--method", "ppo-robust", "--link", "core",
            "--scenario", str(REPO / "scenarios" / "single.toml"), "--seed", "0",
            "--intervals", "2", "--steps-per-interval", "128", "--update-every", "64",
-           "--offline-steps", "0", "--ppo-engine", "numpy", "--teacher-states", "256",
+           "--offline-steps", "0", "--ppo-engine", "native", "--teacher-states", "256",
            "--teacher-refits", "0", "--out", str(out), "--quiet", *extra]
     subprocess.run(cmd, check=True, cwd=REPO, timeout=600)
     return list(csv.DictReader(open(out / "metrics.csv")))

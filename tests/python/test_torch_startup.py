@@ -7,18 +7,18 @@ from __future__ import annotations
 import subprocess
 import sys
 
-# A NumPy-engine PPO's life: built, acting, a NumPy update (Adam's moments read from
+# A native-engine PPO's life: built, acting, a native update (Adam's moments read from
 # and written to the torch optimiser), its optimiser reset, saved and loaded.
-NUMPY_ENGINE = """
+NATIVE_ENGINE = """
 import sys, torch
-from ftc.learning.ppo import PPO, PPOConfig, UpdateStats
+from ftc.learning.ppo import PPO, PPOConfig
 from ftc.learning.buffer import RolloutBatch
-from ftc.learning.ppo_numpy import numpy_ppo_update
-ppo = PPO(PPOConfig(engine="numpy"), seed=0)
+from ftc.learning.ppo_native import flat_ppo_update
+ppo = PPO(PPOConfig(engine="native"), seed=0)
 obs = torch.rand(32, 6, generator=torch.Generator().manual_seed(1))
 actions, logprobs, values = ppo.act(obs)
 batch = RolloutBatch(obs, actions, logprobs, values, torch.randn(32), values)
-numpy_ppo_update(ppo.policy, ppo.optimizer, batch, ppo.config, ppo.generator, UpdateStats)
+flat_ppo_update(ppo.policy, ppo.optimizer, batch, ppo.config, ppo.generator)
 ppo.reset_optimizer()
 ppo.optimizer.load_state_dict(ppo.optimizer.state_dict())
 ppo.optimizer.zero_grad()
@@ -54,7 +54,7 @@ def _python(code: str, *args: str) -> list[str]:
 
 
 def test_a_numpy_engine_ppo_never_imports_dynamo():
-    assert _python(NUMPY_ENGINE) == ["False"]
+    assert _python(NATIVE_ENGINE) == ["False"]
 
 
 def test_torch_updates_are_bit_identical_with_and_without_the_marks():

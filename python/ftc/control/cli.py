@@ -45,6 +45,8 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
         check_config(cfg)
         for prefix, part in (parts or {}).items():
             check_config(part, prefix)
+            if not cfg.resume and hasattr(part, "validate"):
+                part.validate()
         if not cfg.resume:  # a resumed run's cross-field rules: on its own config
             cfg.validate()
         elif cfg.overwrite:
@@ -176,13 +178,26 @@ def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:
         configs = {}
         for name, cls in parts.items():
             values = {k: tuple(v) if isinstance(v, list) else v for k, v in doc[name].items()}
-            configs[name] = cls(**values)
+            configs[name] = cls(**_without_retired(cls, values, path))
     except FileNotFoundError:
         raise CheckpointError(f"{path}: missing (is {out} a run directory?)") from None
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise CheckpointError(f"{path}: malformed run configuration "
                               f"({type(e).__name__}: {e})") from None
     return configs
+
+
+def _without_retired(cls: type, values: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``values`` without the fields ``cls.RETIRED_FIELDS`` names when they hold
+    the value that does what the code does now; any other value of such a
+    field: CheckpointError (the run cannot be continued as it was started)."""
+    retired = getattr(cls, "RETIRED_FIELDS", {})
+    for name in retired.keys() & values.keys():
+        if values[name] != retired[name]:
+            raise CheckpointError(f"{path}: the run was started with {flag(name)} "
+                                  f"{values[name]!r}, which this controller no longer offers; "
+                                  f"it cannot be resumed (start a new run)")
+    return {k: v for k, v in values.items() if k not in retired}
 
 
 def run_or_report(tool: str, run: Callable[[], Any], out: str | None = None) -> int:

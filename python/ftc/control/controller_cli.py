@@ -61,6 +61,7 @@ from ftc.control.ppo_agent import PPO_METHODS, ControllerConfig, PPOAgent
 from ftc.control.ppo_robust_agent import RobustPPOAgent
 from ftc.control.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
+from ftc.learning.ppo_policy import ENGINE_ALIASES, ENGINES
 
 TOOL = "ftc.controller"
 
@@ -104,7 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
                                   + " Prints one progress line per interval.", 79),
         epilog=__doc__.split("\n\n", 1)[1])
     add_run_options(parser, ControllerConfig)
-    add_dataclass_options(parser.add_argument_group("PPO hyperparameters"), PPOConfig, "ppo-")
+    add_dataclass_options(parser.add_argument_group("PPO hyperparameters"), PPOConfig, "ppo-",
+                          choices={"engine": (*ENGINES, *ENGINE_ALIASES)})
     return parser
 
 

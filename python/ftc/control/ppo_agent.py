@@ -30,7 +30,7 @@ import copy
 import dataclasses
 import multiprocessing
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -54,12 +54,17 @@ from ftc.plant.link import PlantObservation
 METHODS = ("ppo", "closed", "open", "random", "balance", "ppo-robust")
 PPO_METHODS = ("ppo", "ppo-robust")  # the methods with a policy (the rest ignore PPO's options)
 OFFLINE_MODES = ("sequential", "background")
-PRETRAIN_SIMS = ("model", "core")
 
 
 @dataclass
 class ControllerConfig(RunConfig):
     """Everything a controller run depends on (with --ppo-* fields of :class:`PPOConfig`)."""
+
+    #: options no longer offered (they measured worse: docs/controller.md), with the
+    #: value that does what the controller does now: a stored config.json that
+    #: holds that value resumes, any other is refused (control/cli.py)
+    RETIRED_FIELDS: ClassVar[dict[str, Any]] = {"pretrain_deterministic_closed": False,
+                                                "pretrain_sim": "core"}
 
     method: str = field(default="ppo", metadata={"choices": METHODS, "help": (
         "ppo: the adaptive controller; closed / open / random: baselines (all valves "
@@ -141,17 +146,8 @@ class ControllerConfig(RunConfig):
         "pretraining stops once the mean valve-open probability over the last rollout "
         "falls to this (~5% keeps enough exploration to adapt; trained to convergence the "
         "policy barely adapts)")})
-    pretrain_deterministic_closed: bool = field(default=False, metadata={"help": (
-        "also require the deterministic policy to keep every valve closed on every "
-        "state of the last rollout before stopping (measured: that comes only at ~1.7% "
-        "open, too little exploration left to adapt)")})
     pretrain_max_steps: int = field(default=200_000, metadata={"check": at_least(1, 1_000_000_000), "help": (
         "upper bound on pretraining simulation steps")})
-    pretrain_sim: str = field(default="core", metadata={"choices": PRETRAIN_SIMS, "help": (
-        "where the policy is pretrained: core = the C++ physics of the nominal plant in "
-        "process; model = batched rollouts of the pretrained world model (fast, but "
-        "measured: the nominal model drifts on long all-closed runs, 87-step episodes "
-        "at 1.80/step instead of 59 at 2.69, so PPO learns to open valves)")})
     pretrain_envs: int = field(default=16, metadata={"check": at_least(1, 10_000), "help": "nominal plants simulated side by side"})
     pretrain_ent_coef: float = field(default=0.0, metadata={"check": between(0.0, 10.0), "help": (
         "entropy bonus while pretraining; 0: the stop rule, not the bonus, decides how "
@@ -181,9 +177,7 @@ class ControllerConfig(RunConfig):
             seed=self.seed, steps_per_interval=self.steps_per_interval, envs=self.pretrain_envs,
             rollout=self.pretrain_rollout, minibatch=self.pretrain_minibatch,
             max_steps=self.pretrain_max_steps, open_fraction=self.pretrain_open_fraction,
-            deterministic_closed=self.pretrain_deterministic_closed,
-            ent_coef=self.pretrain_ent_coef, lr=self.pretrain_lr, sim=self.pretrain_sim,
-            model_episodes=self.model_episodes, model_engine=self.model_engine)
+            ent_coef=self.pretrain_ent_coef, lr=self.pretrain_lr)
 
     def offline_settings(self) -> OfflineSettings:
         return OfflineSettings(seed=self.seed, steps=self.offline_steps, envs=self.offline_envs,
@@ -225,14 +219,12 @@ class PPOAgent(Agent):
     def prepare(self) -> dict[str, Any]:
         """Pretrain the world model (offline on) and the policy (--pretrain)."""
         cfg, info = self.cfg, {}
-        model, demand = None, 0.0
-        if cfg.offline or (cfg.pretrain and cfg.pretrain_sim == "model"):
-            model, demand, info = pretrained_world_model(cfg.model_episodes, cfg.seed,
-                                                         cfg.pretrain_cache, cfg.model_engine)
+        if cfg.offline:
+            model, _demand, info = pretrained_world_model(cfg.model_episodes, cfg.seed,
+                                                          cfg.pretrain_cache, cfg.model_engine)
             self.model_state, self.model_fits = model.state_dict(), model.fits
         if cfg.pretrain:
-            info.update(pretrain_cached(self.ppo, cfg.pretrain_settings(), cfg.pretrain_cache,
-                                        model if cfg.pretrain_sim == "model" else None, demand))
+            info.update(pretrain_cached(self.ppo, cfg.pretrain_settings(), cfg.pretrain_cache))
             if cfg.fresh_optimizer:
                 self.ppo.reset_optimizer()
         return info

@@ -65,7 +65,7 @@ register_method(MethodSpec("balance", "rule: balance the wings", ("--method", "b
                            cost=1.0))
 register_method(MethodSpec("ppo-robust", "PPO online + guided offline (robust)",
                            ("--method", "ppo-robust", "--pretrain", "--offline-steps", "0",
-                            "--ppo-engine", "numpy"),
+                            "--ppo-engine", "native"),
                            cost=30.0, learns=True))
 register_method(MethodSpec("adaptive", "MPC on identified physics (adaptive)",
                            ("--method", "adaptive"), module="ftc.mpc", cost=2.0, learns=True))

@@ -6,10 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch import nn
 
 from ftc.learning.ppo import PPO
-from ftc.learning.ppo_numpy import native_distill
 
 
 def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: int = 30,
@@ -17,45 +15,19 @@ def distill(ppo: PPO, states: torch.Tensor, actions: torch.Tensor, *, epochs: in
             stop_loss: float = 0.0, weights: torch.Tensor | None = None) -> dict[str, float]:
     """Fit the policy's valve-open probabilities to ``actions`` (N, 6) in {0, 1}
     at ``states`` (N, 6) by binary cross-entropy (a fresh Adam; PPO's own
-    optimiser state is kept), for ``epochs`` epochs or until an epoch's mean
-    minibatch loss is below ``stop_loss`` (0: never). ``weights`` (N,), if
-    given, weight each row's loss (a minibatch's loss is its weighted mean:
-    rows repeated k times can be given once with weight k, :func:`distinct`).
-    Returns the final loss, the epochs run and the share of valve decisions the
-    deterministic policy (open iff p > 0.5) now agrees on (weighted)."""
-    generator = torch.Generator().manual_seed(seed)
-    if ppo.config.engine == "numpy":  # the same fit in C++, without per-step overhead
-        loss_value, ran = native_distill(ppo.policy, states, actions, epochs=epochs,
-                                         minibatch=minibatch, lr=lr,
-                                         max_grad_norm=ppo.config.max_grad_norm,
-                                         generator=generator, stop_loss=stop_loss,
-                                         weights=weights)
-        return {"distill_loss": loss_value, "distill_epochs": ran,
-                "distill_agreement": _agreement(ppo, states, actions, weights)}
-    optimizer = torch.optim.Adam(ppo.policy.parameters(), lr=lr, eps=1e-5)
-    loss_fn = nn.BCEWithLogitsLoss(reduction="mean" if weights is None else "none")
-    n = len(states)
-    loss = torch.tensor(float("nan"))
-    ran = 0
-    while ran < epochs:
-        order = torch.randperm(n, generator=generator)
-        total = 0.0
-        for start in range(0, n, minibatch):
-            idx = order[start:start + minibatch]
-            logits, _ = ppo.policy(states[idx])
-            loss = loss_fn(logits, actions[idx])
-            if weights is not None:
-                w = weights[idx]
-                loss = (loss.mean(1) * w).sum() / w.sum()
-            optimizer.zero_grad()
-            loss.backward()
-            nn.utils.clip_grad_norm_(ppo.policy.parameters(), ppo.config.max_grad_norm)
-            optimizer.step()
-            total += float(loss.detach())
-        ran += 1
-        if total / -(-n // minibatch) < stop_loss:
-            break
-    return {"distill_loss": float(loss.detach()), "distill_epochs": ran,
+    optimiser state is kept), with the PPO's engine, for ``epochs`` epochs or
+    until an epoch's mean minibatch loss is below ``stop_loss`` (0: never).
+    ``weights`` (N,), if given, weight each row's loss (a minibatch's loss is
+    its weighted mean: rows repeated k times can be given once with weight k,
+    :func:`distinct`). Returns the final loss, the epochs run and the share of
+    valve decisions the deterministic policy (open iff p > 0.5) now agrees on
+    (weighted)."""
+    loss, ran = ppo.engine.distill(ppo.policy, states, actions, epochs=epochs,
+                                   minibatch=minibatch, lr=lr,
+                                   max_grad_norm=ppo.config.max_grad_norm,
+                                   generator=torch.Generator().manual_seed(seed),
+                                   stop_loss=stop_loss, weights=weights)
+    return {"distill_loss": loss, "distill_epochs": ran,
             "distill_agreement": _agreement(ppo, states, actions, weights)}
 
 

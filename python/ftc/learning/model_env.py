@@ -74,7 +74,7 @@ class ModelEnv:
                        4x fewer microseconds per step at 16 envs (scripts/bench.py,
                        offline_model_steps_per_s); the reward is computed in
                        float64, so rounding differs from torch's (~1e-7). The
-                       PPO's NumPy engine steps with it (offline.py).
+                       PPO's native engine steps with it (offline.py).
 
     State (read it, or set it in tests): ``level`` (N, 6) m, ``steps`` (N,) steps
     taken in each env's current episode.

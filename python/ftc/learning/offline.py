@@ -130,7 +130,8 @@ def offline_phase(ppo_state: dict, ppo_config: PPOConfig, model_state: dict, mod
     ppo.generator.manual_seed(offline_seed(s.seed, interval))  # reproducible in any process
     ppo.config = dataclasses.replace(ppo_config, minibatch_size=s.minibatch)
     env = ModelEnv(model, s.envs, demand, max_episode_steps=s.max_episode_steps,
-                   seed=offline_seed(s.seed, interval), engine=ppo_config.engine)
+                   seed=offline_seed(s.seed, interval),
+                   engine="torch" if ppo_config.engine == "torch" else "numpy")
     stats, rew, _ = train_on_env(ppo, env, s.steps, s.rollout)
     ppo.config = ppo_config
     metrics.update(offline_reward_per_step=rew, offline_updates=len(stats),

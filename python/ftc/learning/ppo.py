@@ -10,8 +10,10 @@ bottom as in CleanRL:
                          (ppo_policy.py)
 * :class:`RolloutBuffer` preallocated (T, N, ...) storage; GAE and returns (buffer.py)
 * :func:`ppo_update`     epochs x minibatches of the clipped-surrogate update
+* :class:`TorchEngine`   acting, that update and behaviour cloning in torch: the
+                         reference engine (the fast one: ppo_native.py)
 * :class:`PPO`           the algorithm: owns policy, optimiser and generator;
-                         acts, fills a buffer, updates
+                         acts, fills a buffer, updates, through its config's engine
 
 The same code drives the real plant (N = 1 environment) and batched rollouts
 on the learned world model (N environments at once).
@@ -31,11 +33,12 @@ import torch
 from torch import nn
 
 from ftc.learning.buffer import RolloutBatch, RolloutBuffer
-from ftc.learning.ppo_numpy import NumpyActor, numpy_ppo_update
-from ftc.learning.ppo_policy import ActorCritic, PPOConfig, UpdateStats
+from ftc.learning.ppo_native import NativeEngine
+from ftc.learning.ppo_policy import (ActorCritic, PPOConfig, PPOEngine, UpdateStats,
+                                     explained_variance)
 
-__all__ = ["PPO", "ActorCritic", "PPOConfig", "UpdateStats", "clipped_surrogate_loss",
-           "explained_variance", "ppo_update"]
+__all__ = ["PPO", "ActorCritic", "PPOConfig", "PPOEngine", "TorchEngine", "UpdateStats",
+           "clipped_surrogate_loss", "explained_variance", "ppo_update"]
 
 
 # --------------------------------------------------------------------------
@@ -49,12 +52,6 @@ def clipped_surrogate_loss(new_logprob: torch.Tensor, old_logprob: torch.Tensor,
     ratio = (new_logprob - old_logprob).exp()
     return torch.max(-advantages * ratio,
                      -advantages * ratio.clamp(1.0 - clip_coef, 1.0 + clip_coef)).mean()
-
-
-def explained_variance(pred: torch.Tensor, target: torch.Tensor) -> float:
-    """1 - Var(target - pred) / Var(target); nan when the target is constant."""
-    var = target.var(unbiased=False)
-    return float("nan") if var == 0 else float(1.0 - (target - pred).var(unbiased=False) / var)
 
 
 def ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batch: RolloutBatch,
@@ -111,6 +108,57 @@ def ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batch: Rol
         open_fraction=open_fraction, gradient_steps=steps)
 
 
+def torch_distill(policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
+                  epochs: int, minibatch: int, lr: float, max_grad_norm: float,
+                  generator: torch.Generator, stop_loss: float = 0.0,
+                  weights: torch.Tensor | None = None) -> tuple[float, int]:
+    """Behaviour cloning (:meth:`PPOEngine.distill`) with autograd: binary
+    cross-entropy of the logits against ``actions`` (a minibatch's loss is the
+    mean, or with ``weights`` the weighted mean over rows of the mean over
+    valves), the global norm clip, a fresh Adam (eps 1e-5); it stops after an
+    epoch whose mean minibatch loss is below ``stop_loss``."""
+    optimizer = torch.optim.Adam(policy.parameters(), lr=lr, eps=1e-5)
+    loss_fn = nn.BCEWithLogitsLoss(reduction="mean" if weights is None else "none")
+    n = len(states)
+    loss = torch.tensor(float("nan"))
+    ran = 0
+    while ran < epochs:
+        order = torch.randperm(n, generator=generator)
+        total = 0.0
+        for start in range(0, n, minibatch):
+            idx = order[start:start + minibatch]
+            logits, _ = policy(states[idx])
+            loss = loss_fn(logits, actions[idx])
+            if weights is not None:
+                w = weights[idx]
+                loss = (loss.mean(1) * w).sum() / w.sum()
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(policy.parameters(), max_grad_norm)
+            optimizer.step()
+            total += float(loss.detach())
+        ran += 1
+        if total / -(-n // minibatch) < stop_loss:
+            break
+    return float(loss.detach()), ran
+
+
+class TorchEngine:
+    """:class:`PPOEngine` with autograd and torch.optim.Adam: the reference."""
+
+    name = "torch"
+
+    def act(self, policy: ActorCritic, obs: torch.Tensor, generator: torch.Generator | None,
+            deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return policy.act(obs, generator, deterministic)
+
+    update = staticmethod(ppo_update)
+    distill = staticmethod(torch_distill)
+
+
+ENGINE_TYPES: dict[str, type] = {"torch": TorchEngine, "native": NativeEngine}
+
+
 # --------------------------------------------------------------------------
 # The algorithm
 # --------------------------------------------------------------------------
@@ -118,16 +166,24 @@ def ppo_update(policy: ActorCritic, optimizer: torch.optim.Optimizer, batch: Rol
 class PPO:
     """Owns the policy, its optimiser and the torch generator used for sampling
     actions and shuffling minibatches, so a run is reproducible from its seed and
-    resumable from :meth:`state_dict`."""
+    resumable from :meth:`state_dict`; computes through the engine its config
+    names (which may change between phases: pretraining runs torch's)."""
 
     def __init__(self, config: PPOConfig = PPOConfig(), seed: int = 0) -> None:
+        config.validate()
         self.config = config
         torch.manual_seed(seed)  # network initialisation
         self.policy = ActorCritic(config.trunk_sizes, config.head_sizes)
         self.generator = torch.Generator().manual_seed(seed)
         self.optimizer = self.new_optimizer()
-        self._actor: NumpyActor | None = None  # NumPy views of self.policy (engine numpy)
-        self._actor_of: ActorCritic | None = None
+        self._engines: dict[str, PPOEngine] = {}
+
+    @property
+    def engine(self) -> PPOEngine:
+        name = self.config.engine
+        if name not in self._engines:
+            self._engines[name] = ENGINE_TYPES[name]()
+        return self._engines[name]
 
     def new_optimizer(self) -> torch.optim.Adam:
         return torch.optim.Adam(self.policy.parameters(), lr=self.config.learning_rate, eps=1e-5)
@@ -140,11 +196,7 @@ class PPO:
     def act(self, obs: torch.Tensor, deterministic: bool = False
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Actions (N, 6), log-probs (N,), values (N,) for obs (N, 6)."""
-        if self.config.engine == "numpy" and not obs.requires_grad:
-            if self._actor is None or self._actor_of is not self.policy or self._actor.stale():
-                self._actor, self._actor_of = NumpyActor(self.policy), self.policy
-            return self._actor.act(obs, self.generator, deterministic)
-        return self.policy.act(obs, self.generator, deterministic)
+        return self.engine.act(self.policy, obs, self.generator, deterministic)
 
     @torch.no_grad()
     def value(self, obs: torch.Tensor) -> torch.Tensor:
@@ -154,11 +206,7 @@ class PPO:
         """GAE on the buffer, then the PPO update; leaves the buffer emptied."""
         c = self.config
         buffer.compute_returns_and_advantages(last_values, c.gamma, c.gae_lambda, c.reward_scale)
-        if c.engine == "numpy" and not c.clip_vloss:
-            stats = numpy_ppo_update(self.policy, self.optimizer, buffer.batch(), c,
-                                     self.generator, UpdateStats)
-        else:
-            stats = ppo_update(self.policy, self.optimizer, buffer.batch(), c, self.generator)
+        stats = self.engine.update(self.policy, self.optimizer, buffer.batch(), c, self.generator)
         buffer.reset()
         return stats
 

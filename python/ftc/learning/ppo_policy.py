@@ -1,17 +1,20 @@
 """What every PPO engine shares: the hyperparameters (:class:`PPOConfig`),
 the actor-critic network and its Bernoulli-per-valve distribution
-(:class:`ActorCritic`), and an update's statistics (:class:`UpdateStats`).
+(:class:`ActorCritic`), an update's statistics (:class:`UpdateStats`) and the
+engine interface (:class:`PPOEngine`).
 
-A leaf of the PPO code: the torch update (:mod:`ftc.learning.ppo`) and the
-NumPy/C++ engine (:mod:`ftc.learning.ppo_numpy`) both build on it, and
-neither imports the other's home for these.
+A leaf of the PPO code: the torch engine (:mod:`ftc.learning.ppo`, the
+reference) and the native engine (:mod:`ftc.learning.ppo_native`, C++ kernels)
+both build on it, and neither imports the other's home for these.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, NamedTuple
+from functools import cache
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import nn
@@ -21,6 +24,16 @@ from ftc.learning.buffer import NUM_VALVES, OBS_DIM
 from ftc.learning.torch_startup import skip_dynamo_import
 
 skip_dynamo_import()  # 2 s of start-up: nothing here is compiled
+
+
+ENGINES = ("native", "torch")
+ENGINE_ALIASES = {"numpy": "native"}  # older name: the engine ran its inner loops in C++
+
+
+@cache
+def _warn_alias(name: str) -> None:
+    print(f"warning: --ppo-engine {name} is a deprecated name of "
+          f"--ppo-engine {ENGINE_ALIASES[name]}", file=sys.stderr)
 
 
 @dataclass
@@ -40,8 +53,8 @@ class PPOConfig:
     ent_coef: float = field(default=0.01, metadata={"check": between(0.0, 10.0), "help": "entropy bonus weight (paper)"})
     vf_coef: float = field(default=0.5, metadata={"check": between(0.0, 100.0), "help": "value-loss weight (CleanRL/SB3 default)"})
     clip_vloss: bool = field(default=False, metadata={"help": (
-        "clip the value update around the old value (CleanRL option); off: with scaled "
-        "rewards it only slows the critic")})
+        "clip the value update around the old value (CleanRL option; torch engine only); "
+        "off: with scaled rewards it only slows the critic")})
     max_grad_norm: float = field(default=0.5, metadata={"check": positive(1e6), "help": (
         "global gradient-norm clip (CleanRL/SB3 default)")})
     update_epochs: int = field(default=4, metadata={"check": at_least(1, 1000), "help": "passes over each rollout (paper)"})
@@ -58,14 +71,24 @@ class PPOConfig:
         "shared tanh trunk (paper)")})
     head_sizes: tuple[int, ...] = field(default=(16, 16), metadata={"check": at_least(1, 4096), "help": (
         "tanh layers of each of the policy and value heads (paper)")})
-    engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
-        "how acting and updates are computed: numpy (learning/ppo_numpy.py: "
-        "hand-derived gradients, inner loops in C++, ftc._learn; 3-4x faster runs for "
-        "these tiny networks; the same minibatches, loss, Adam and sampling stream; "
-        "float32 rounding differs and PPO amplifies it: the benchmark suite's results are "
-        "within seed noise of torch's, docs/benchmarks.md) or torch "
-        "(autograd, the reference; tests/data/same_results pins it); clip_vloss "
-        "uses torch")})
+    engine: str = field(default="native", metadata={"choices": ENGINES, "help": (
+        "how acting, updates and behaviour cloning are computed: native (C++ kernels, "
+        "learning/ppo_native.py: 3-4x faster runs for these tiny networks; the same "
+        "minibatches, loss, Adam and sampling stream; float32 rounding differs and PPO "
+        "amplifies it: the benchmark suite's results are within seed noise of torch's, "
+        "docs/benchmarks.md; no value clipping) or torch (autograd, the reference; "
+        "tests/data/same_results pins it). numpy: a deprecated name of native")})
+
+    def __post_init__(self) -> None:
+        if self.engine in ENGINE_ALIASES:  # configs and command lines that name it so
+            _warn_alias(self.engine)
+            self.engine = ENGINE_ALIASES[self.engine]
+
+    def validate(self) -> None:
+        """Cross-field rules (ValueError naming the options)."""
+        if self.clip_vloss and self.engine != "torch":
+            raise ValueError("--ppo-clip-vloss needs --ppo-engine torch (the native engine "
+                             "has no value clipping)")
 
     @classmethod
     def help(cls) -> dict[str, str]:
@@ -195,3 +218,40 @@ class UpdateStats(NamedTuple):
     explained_variance: float
     open_fraction: float     # mean valve-open probability over the batch
     gradient_steps: int
+
+
+def explained_variance(pred: torch.Tensor, target: torch.Tensor) -> float:
+    """1 - Var(target - pred) / Var(target); nan when the target is constant."""
+    var = target.var(unbiased=False)
+    return float("nan") if var == 0 else float(1.0 - (target - pred).var(unbiased=False) / var)
+
+
+class PPOEngine(Protocol):
+    """How a :class:`~ftc.learning.ppo.PPO` computes (``PPOConfig.engine``):
+    torch (:class:`~ftc.learning.ppo.TorchEngine`) or native
+    (:class:`~ftc.learning.ppo_native.NativeEngine`). An engine works on the
+    PPO's torch policy, optimiser and generator and keeps no state a
+    checkpoint needs (Adam's moments live in the torch optimiser for both), so
+    :meth:`PPO.state_dict` is the checkpoint of either and a run resumes with
+    either."""
+
+    name: str
+
+    def act(self, policy: ActorCritic, obs: torch.Tensor, generator: torch.Generator | None,
+            deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As :meth:`ActorCritic.act`: actions (N, 6), log-probs (N,), values (N,)."""
+        ...
+
+    def update(self, policy: ActorCritic, optimizer: torch.optim.Optimizer, batch: Any,
+               config: PPOConfig, generator: torch.Generator | None) -> UpdateStats:
+        """config.update_epochs passes over the batch (a RolloutBatch) in shuffled
+        minibatches; stops early when approx-KL exceeds config.target_kl."""
+        ...
+
+    def distill(self, policy: ActorCritic, states: torch.Tensor, actions: torch.Tensor, *,
+                epochs: int, minibatch: int, lr: float, max_grad_norm: float,
+                generator: torch.Generator, stop_loss: float = 0.0,
+                weights: torch.Tensor | None = None) -> tuple[float, int]:
+        """Behaviour cloning of 0/1 valve labels into the policy's logits (binary
+        cross-entropy, a fresh Adam): the last minibatch's loss and the epochs run."""
+        ...

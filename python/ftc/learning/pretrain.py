@@ -2,11 +2,9 @@
 explores (a policy trained until exploration collapses barely adapts), with a cache of pretrained policies.
 
 Stop rule (explicit and measured): after an update, the mean valve-open
-probability over the rollout is <= ``open_fraction`` and, if
-``deterministic_closed``, the deterministic policy (open iff p > 0.5) keeps
-every valve closed on every state of the rollout (states a nominal
-closed-loop run visits; off that distribution, e.g. at random levels, the
-policy is not asked to be closed).
+probability over the rollout is <= ``open_fraction`` (also requiring the
+deterministic policy to keep every valve closed comes only at ~1.7% open, too
+little exploration left to adapt: docs/controller.md).
 """
 
 from __future__ import annotations
@@ -24,7 +22,6 @@ import torch
 
 from ftc.common.atomic import atomic_torch_save
 from ftc.common.constants import NUM_TANKS, pretrain_seed
-from ftc.learning.model_env import ModelEnv
 from ftc.learning.ppo import PPO, UpdateStats
 from ftc.learning.rollout import train_on_env
 from ftc.learning.sim_env import VecCorePlant
@@ -43,12 +40,8 @@ class PretrainSettings:
     minibatch: int = 256
     max_steps: int = 200_000
     open_fraction: float = 0.05
-    deterministic_closed: bool = False
     ent_coef: float = 0.0
     lr: float | None = None
-    sim: str = "core"  # core: nominal C++ plants; model: the pretrained world model
-    model_episodes: int = 50  # (sim = model) episodes of the model's data set
-    model_engine: str = "numpy"  # (sim = model) how that model was trained
     # PPO updates while pretraining: torch. The stop rule is a threshold on a noisy
     # statistic, so rounding differences move the stopping update (seed 0: update
     # 79 with torch, 71 with numpy) and give another policy, which adapted worse
@@ -57,16 +50,12 @@ class PretrainSettings:
     engine: str = "torch"
 
 
-def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
-                    demand: float = 0.0) -> dict[str, float]:
-    """Pretrain ``ppo`` in place on nominal plants (or ``model``); returns what
-    was measured at the stop."""
+def pretrain_policy(ppo: PPO, settings: PretrainSettings) -> dict[str, float]:
+    """Pretrain ``ppo`` in place on nominal C++ plants in process (pretraining
+    on the pretrained world model instead measured worse: docs/controller.md);
+    returns what was measured at the stop."""
     s = settings
-    if model is None:
-        env = VecCorePlant(s.envs, pretrain_seed(s.seed))
-    else:
-        env = ModelEnv(model, s.envs, demand, max_episode_steps=s.steps_per_interval,
-                       seed=pretrain_seed(s.seed))
+    env = VecCorePlant(s.envs, pretrain_seed(s.seed))
     probe: dict[str, float] = {}
 
     def stop(stats: UpdateStats, obs: torch.Tensor) -> bool:
@@ -75,9 +64,7 @@ def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
         det_open = float((logits > 0).float().mean())
         probe.update(open_fraction=stats.open_fraction, entropy=stats.entropy,
                      deterministic_open_fraction=det_open)
-        if stats.open_fraction > s.open_fraction:
-            return False
-        return det_open == 0.0 or not s.deterministic_closed
+        return stats.open_fraction <= s.open_fraction
 
     start = time.perf_counter()
     online_config = ppo.config
@@ -92,7 +79,7 @@ def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
         ppo.config = online_config
         for group in ppo.optimizer.param_groups:
             group["lr"] = online_config.learning_rate
-    return {"pretrain_steps": steps, "pretrain_plant_errors": getattr(env, "errors", 0),
+    return {"pretrain_steps": steps, "pretrain_plant_errors": env.errors,
             "pretrain_updates": len(stats), "pretrain_reward_per_step": rew,
             "pretrain_open_fraction": probe["open_fraction"],
             "pretrain_entropy": probe["entropy"],
@@ -102,11 +89,11 @@ def pretrain_policy(ppo: PPO, settings: PretrainSettings, model: Any = None,
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 # the sources pretraining executes (policy, update, collector, simulated plants,
-# the world model for --pretrain-sim model, the reward, constants)
+# the reward, constants)
 FINGERPRINT_FILES = ("common/constants.py", "plant/link.py", "plant/reward.py",
-                     "learning/buffer.py", "learning/ppo.py", "learning/rollout.py",
-                     "learning/sim_env.py", "learning/model_env.py", "learning/world_model.py",
-                     "learning/transitions.py", "learning/pretrain.py", "learning/offline.py")
+                     "learning/buffer.py", "learning/ppo_policy.py", "learning/ppo.py",
+                     "learning/rollout.py", "learning/sim_env.py", "learning/transitions.py",
+                     "learning/pretrain.py", "learning/offline.py")
 
 
 def code_fingerprint(package_dir: Path = PACKAGE_DIR, core: Path | None = None) -> str:
@@ -159,14 +146,13 @@ def cache_path(cache_dir: str, settings: PretrainSettings, ppo_config: Any) -> t
                                                "version": CACHE_VERSION}
 
 
-def pretrain_cached(ppo: PPO, settings: PretrainSettings, cache_dir: str, model: Any = None,
-                    demand: float = 0.0) -> dict[str, Any]:
+def pretrain_cached(ppo: PPO, settings: PretrainSettings, cache_dir: str) -> dict[str, Any]:
     """Pretrain ``ppo``, or load the identical result from ``cache_dir`` ('' : no cache).
 
     A cache entry that does not load (corrupt, other layout) is ignored and
     replaced; the returned info says which happened (``pretrain_cached``)."""
     if not cache_dir:
-        return {**pretrain_policy(ppo, settings, model, demand), "pretrain_cached": 0}
+        return {**pretrain_policy(ppo, settings), "pretrain_cached": 0}
     path, key_fields = cache_path(cache_dir, settings, ppo.config)
     cached = load_cached(path)
     if cached is not None:
@@ -175,6 +161,6 @@ def pretrain_cached(ppo: PPO, settings: PretrainSettings, cache_dir: str, model:
             return {**cached["info"], "pretrain_cached": 1}
         except Exception:  # noqa: BLE001 - a record of another layout is rebuilt
             pass
-    info = pretrain_policy(ppo, settings, model, demand)
+    info = pretrain_policy(ppo, settings)
     store_cached(path, {"ppo": ppo.state_dict(), "info": info, "key": key_fields})
     return {**info, "pretrain_cached": 0}

@@ -141,21 +141,29 @@ class SmallMLP:
         return loss
 
     def _adam_step(self, grads: list[np.ndarray]) -> None:
-        a = self.adam
         self._t += 1
-        step_size = a.lr / (1.0 - a.beta1 ** self._t)
-        root_correction = np.sqrt(1.0 - a.beta2 ** self._t)
         for p, g, m, v in zip(self.parameters(), grads, self._m, self._v):
-            if a.weight_decay:
-                g = g + a.weight_decay * p
-            m *= a.beta1
-            m += (1.0 - a.beta1) * g
-            v *= a.beta2
-            v += (1.0 - a.beta2) * (g * g)
-            denom = np.sqrt(v)
-            denom /= root_correction
-            denom += a.eps
-            p -= step_size * (m / denom)
+            adam_step(p, g, m, v, self._t, self.adam)
+
+
+def adam_step(p: np.ndarray, g: np.ndarray, m: np.ndarray, v: np.ndarray, t: int,
+              a: AdamSettings) -> None:
+    """torch.optim.Adam's update of ``p`` in place from its gradient ``g``, with
+    moments ``m``, ``v`` (updated in place) at step ``t`` (1 for the first): L2
+    weight decay added to the gradient, bias-corrected moments, ``eps`` outside
+    the square root."""
+    step_size = a.lr / (1.0 - a.beta1 ** t)
+    root_correction = np.sqrt(1.0 - a.beta2 ** t)
+    if a.weight_decay:
+        g = g + a.weight_decay * p
+    m *= a.beta1
+    m += (1.0 - a.beta1) * g
+    v *= a.beta2
+    v += (1.0 - a.beta2) * (g * g)
+    denom = np.sqrt(v)
+    denom /= root_correction
+    denom += a.eps
+    p -= step_size * (m / denom)
 
 
 def _activation_slope(act: type[nn.Module] | None, out: np.ndarray) -> np.ndarray | float:

@@ -11,10 +11,10 @@ when nothing compiles. The arithmetic is untouched.
 
 Adam's ``step`` imports ``torch._dynamo`` itself, so runs that step a torch
 optimiser (the torch PPO engine, the torch world-model trainer) still pay the
-import on their first update; runs whose optimiser only holds state (the NumPy
-engines) no longer do. Measured: a NumPy-engine PPO built in 0.10 s
+import on their first update; runs whose optimiser only holds state (the native
+PPO engine) no longer do. Measured: a native-engine PPO built in 0.10 s
 instead of 2.0 s; its 10-interval run 8.7 s (scripts/bench.py,
-``ppo_run_core_numpy_ppo_s``).
+``ppo_run_core_native_ppo_s``).
 """
 
 from __future__ import annotations

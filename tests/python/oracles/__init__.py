@@ -1,0 +1,1 @@
+"""Test oracles: reference arithmetic the tests hold the package to."""
