@@ -56,8 +56,8 @@ COMMANDS = {
     "ppo-offline": ["ftc.controller", "--method", "ppo", *PPO_TORCH],
     "ppo-offline-pretrain": ["ftc.controller", "--method", "ppo", "--pretrain",
                              "--pretrain-cache", "", *PPO_TORCH],
-    "oracle-mpc": ["ftc.mpc", "--method", "oracle"],
-    "model-mpc": ["ftc.mpc", "--method", "model", "--pretrain-cache", "", *TORCH],
+    "oracle-mpc": ["ftc.mpc", "--method", "oracle-mpc"],
+    "model-mpc": ["ftc.mpc", "--method", "model-mpc", "--pretrain-cache", "", *TORCH],
 }
 CPU_CLASS = torch.backends.cpu.get_cpu_capability().lower()  # e.g. avx2, avx512
 # commands the ComputeMode fix changed, and the reference directories rewritten since
