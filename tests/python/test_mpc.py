@@ -13,7 +13,7 @@ import pytest
 
 from ftc import _core
 from ftc.control.metrics import METRIC_COLUMNS
-from ftc.control.mpc_agent import MPCConfig
+from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.mpc_cli import MPCController, main
 from ftc.control.planners import (CEMPlanner, HoldPlanner, OracleEvaluator, hold_candidates,
                                   valve_settings)
@@ -175,6 +175,7 @@ def test_cli_writes_the_controllers_outputs(tmp_path, scenarios, method):
         reader = csv.DictReader(f)
         rows = list(reader)
     assert reader.fieldnames[:len(METRIC_COLUMNS)] == METRIC_COLUMNS
+    assert set(MPCAgent.extra_columns) <= set(reader.fieldnames)
     assert [int(r["interval"]) for r in rows] == [0, 1]
     for r in rows:
         # well above every fixed rule (all open 1.39, random 1.85 per step) and near all
