@@ -215,7 +215,7 @@ def test_mpc_oracle_command_runs_an_abrupt_fault_scenario(files, tmp_path):
     for scenario in files:
         out = tmp_path / scenario.stem
         proc = subprocess.run(
-            [sys.executable, "-m", "ftc.mpc", "--method", "oracle", "--link", "core",
+            [sys.executable, "-m", "ftc.mpc", "--method", "oracle-mpc", "--link", "core",
              "--scenario", str(scenario), "--steps-per-interval", "64", "--intervals", "3",
              "--seed", "0", "--quiet", "--out", str(out)],
             cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
@@ -247,7 +247,7 @@ def test_triggered_relearning_recovers_from_an_abrupt_fault_within_a_few_steps(f
     for name, extra in (("triggered", []),
                         ("interval-ends", ["--identify-trigger", "0", "--identify-every", "0"])):
         out = tmp_path / name
-        subprocess.run([sys.executable, "-m", "ftc.mpc", "--method", "adaptive", "--link", "core",
+        subprocess.run([sys.executable, "-m", "ftc.mpc", "--method", "identified-mpc", "--link", "core",
                         "--scenario", str(abrupt), "--steps-per-interval", "64",
                         "--intervals", "2", "--seed", "0", "--quiet", "--out", str(out), *extra],
                        cwd=REPO, check=True, timeout=600)

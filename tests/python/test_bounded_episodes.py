@@ -87,8 +87,8 @@ def test_controller_and_both_mpcs_finish_on_a_dead_pump(tmp_path):
     runs = {
         "ppo": ["ftc.controller", "--method", "ppo", "--update-every", "64", "--offline-steps",
                 "256", "--model-episodes", "5", "--link", "lcm"],
-        "oracle": ["ftc.mpc", "--method", "oracle", "--link", "core"],
-        "model": ["ftc.mpc", "--method", "model", "--model-episodes", "5", "--link", "core"],
+        "oracle": ["ftc.mpc", "--method", "oracle-mpc", "--link", "core"],
+        "model": ["ftc.mpc", "--method", "model-mpc", "--model-episodes", "5", "--link", "core"],
     }
     for name, args in runs.items():
         rows = _run([*args, *SHORT, *scenario], tmp_path / name)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.adaptive_agent import AdaptiveAgent
+from ftc.control.identified_agent import IdentifiedAgent
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.planners import (HoldPlanner, OracleEvaluator, ParamsEvaluator, hold_candidates,
                                   valve_settings)
@@ -111,7 +111,7 @@ def test_a_refused_candidate_scores_minus_inf_and_is_counted(name):
 
 
 def test_the_oracle_mpc_reports_refused_rollouts_per_interval():
-    agent = MPCAgent(MPCConfig(method="oracle", scenario=""))
+    agent = MPCAgent(MPCConfig(method="oracle-mpc", scenario=""))
     agent.oracle.set_age(0.0)
     agent.oracle.rollout = RefusingRollout(np.ones(6, np.int64))
     agent.oracle(LEVELS["planned from"], hold_candidates(3, 10))
@@ -119,6 +119,6 @@ def test_the_oracle_mpc_reports_refused_rollouts_per_interval():
     assert agent.end_interval(1, None) == {"refused_rollouts": 0}  # counted per interval
 
 
-@pytest.mark.parametrize("agent", [MPCAgent, AdaptiveAgent, RobustPPOAgent])
+@pytest.mark.parametrize("agent", [MPCAgent, IdentifiedAgent, RobustPPOAgent])
 def test_every_agent_planning_on_the_integrator_has_the_column(agent):
     assert list(agent.extra_columns).count("refused_rollouts") == 1

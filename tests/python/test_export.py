@@ -134,7 +134,7 @@ def policyless(tmp_path_factory) -> dict[str, Path]:
               "--link", "core"]
     assert controller_cli.main(["--method", "closed", "--out", str(root / "closed"),
                                 *common]) == 0
-    assert mpc_cli.main(["--method", "oracle", "--out", str(root / "oracle"), *common]) == 0
+    assert mpc_cli.main(["--method", "oracle-mpc", "--out", str(root / "oracle"), *common]) == 0
     return {"closed": root / "closed" / "checkpoint.pt",
             "oracle": root / "oracle" / "checkpoint.pt"}
 
@@ -162,7 +162,7 @@ def test_bad_checkpoint_is_one_line_exit_2_and_no_file(exported, policyless, tmp
     assert str(source) in lines[0]
     assert {"missing": "no such checkpoint", "truncated": "corrupt or truncated",
             "not-a-checkpoint": "no format record", "closed": "--method closed run",
-            "oracle": "mpc --method oracle"}[case] in lines[0], lines[0]
+            "oracle": "mpc --method oracle-mpc"}[case] in lines[0], lines[0]
     assert list(out_dir.iterdir()) == []  # no file, no temporary file
 
 

@@ -13,7 +13,7 @@ import pytest
 
 from ftc import _core
 from ftc.control.metrics import METRIC_COLUMNS
-from ftc.control.mpc_agent import MPCConfig
+from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.mpc_cli import MPCController, main
 from ftc.control.planners import (CEMPlanner, HoldPlanner, OracleEvaluator, hold_candidates,
                                   valve_settings)
@@ -155,7 +155,7 @@ def _closed_reward_per_step(steps: int) -> float:
 
 def test_oracle_equals_all_closed_on_the_nominal_plant(tmp_path):
     steps = 128  # two full episodes and part of a third, over LCM
-    cfg = MPCConfig(method="oracle", scenario="", out=str(tmp_path), intervals=1,
+    cfg = MPCConfig(method="oracle-mpc", scenario="", out=str(tmp_path), intervals=1,
                     steps_per_interval=steps, quiet=True)
     rows = MPCController(cfg).run()
     closed = _closed_reward_per_step(steps)
@@ -164,25 +164,26 @@ def test_oracle_equals_all_closed_on_the_nominal_plant(tmp_path):
     assert rows[0]["open_fraction"] == 0.0
 
 
-@pytest.mark.parametrize("method", ["oracle", "model"])
+@pytest.mark.parametrize("method", ["oracle-mpc", "model-mpc"])
 def test_cli_writes_the_controllers_outputs(tmp_path, scenarios, method):
     out = tmp_path / method
     args = ["--method", method, "--scenario", str(scenarios / "single.toml"), "--seed", "0",
             "--out", str(out), "--intervals", "2", "--steps-per-interval", "64",
-            "--quiet", "--model-episodes", "8"]
+            "--quiet", *(["--model-episodes", "8"] if method == "model-mpc" else [])]
     assert main(args) == 0
     with open(out / "metrics.csv") as f:
         reader = csv.DictReader(f)
         rows = list(reader)
     assert reader.fieldnames[:len(METRIC_COLUMNS)] == METRIC_COLUMNS
+    assert set(MPCAgent.extra_columns) <= set(reader.fieldnames)
     assert [int(r["interval"]) for r in rows] == [0, 1]
     for r in rows:
         # well above every fixed rule (all open 1.39, random 1.85 per step) and near all
         # closed, the optimum of the nearly healthy plant (2.65 / 2.43 over these steps);
         # measured: oracle 2.65 / 2.59, model 2.53 / 2.42 (seed 0)
         assert float(r["reward_per_step"]) > 2.3 and float(r["eval_reward_per_step"]) > 2.3
-        assert (r["model_r2"] != "") == (method == "model")
-        assert r["refused_rollouts"] == ("0" if method == "oracle" else "")  # no integrator: blank
+        assert (r["model_r2"] != "") == (method == "model-mpc")
+        assert r["refused_rollouts"] == ("0" if method == "oracle-mpc" else "")  # no integrator: blank
     assert json.loads((out / "done.json").read_text())["intervals"] == 2
     config = json.loads((out / "config.json").read_text())
     assert config["mpc"]["method"] == method and "git_revision" in config

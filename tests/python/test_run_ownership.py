@@ -121,7 +121,7 @@ def finished(tmp_path_factory) -> dict[str, Path]:
     commands = [
         ("ftc.controller", "--method", "closed", "--scenario", SINGLE, *SHORT_RUN,
          "--out", str(made["controller"])),
-        ("ftc.mpc", "--method", "oracle", "--scenario", SINGLE, "--intervals", "1",
+        ("ftc.mpc", "--method", "oracle-mpc", "--scenario", SINGLE, "--intervals", "1",
          "--steps-per-interval", "16", *CORE, "--out", str(made["mpc"])),
         ("ftc.simulate", "--steps", "20", "--out", str(made["simulate"])),
         ("ftc.controller", "--method", "ppo", "--no-offline", "--update-every", "32",
@@ -143,7 +143,7 @@ def finished(tmp_path_factory) -> dict[str, Path]:
 AGAIN = {
     "controller": (["ftc.controller", "--method", "closed", "--scenario", SINGLE, *SHORT_RUN],
                    "run.lock", False),
-    "mpc": (["ftc.mpc", "--method", "oracle", "--scenario", SINGLE, "--intervals", "1",
+    "mpc": (["ftc.mpc", "--method", "oracle-mpc", "--scenario", SINGLE, "--intervals", "1",
              "--steps-per-interval", "16", *CORE], "run.lock", False),
     "simulate": (["ftc.simulate", "--steps", "20"], "", True),
     "export": (["ftc.export", "PPO", "--verify-states", "64"], "", True),

@@ -102,7 +102,7 @@ def test_controller_over_lcm_writes_every_update_and_interval(tmp_path, scenario
 
 def test_mpc_over_lcm_writes_interval_scalars_and_no_updates(tmp_path, scenarios):
     out, tb = tmp_path / "mpc", tmp_path / "tb"
-    assert mpc_cli.main(["--method", "oracle", "--scenario", str(scenarios / "single.toml"),
+    assert mpc_cli.main(["--method", "oracle-mpc", "--scenario", str(scenarios / "single.toml"),
                          "--out", str(out), "--tensorboard", str(tb), "--intervals", "2",
                          "--steps-per-interval", "64", "--quiet"]) == 0
     tags, rows = scalars(tb), csv_rows(out / "metrics.csv")
@@ -209,7 +209,7 @@ def test_bad_tensorboard_dir_is_refused_before_anything_is_written(tmp_path, sce
     out = tmp_path / "out"
     for tool, main, extra in (
             ("ftc.controller", controller_cli.parse_args, []),
-            ("ftc.mpc", mpc_cli.parse_args, ["--method", "oracle"]),
+            ("ftc.mpc", mpc_cli.parse_args, ["--method", "oracle-mpc"]),
             ("ftc.experiments", experiments_cli.parse_args, ["single"])):
         argv = [*extra, "--out", str(out), "--tensorboard", tb]
         if tool != "ftc.experiments":

@@ -69,8 +69,8 @@ class Agent:
     """Base class with the no-op defaults; subclasses override what they need.
 
     name: shown in progress lines; evaluates: run the deterministic evaluation
-    episode after each interval; extra_columns: metrics.csv columns beyond the
-    runner's; progress_keys: (metric, label) pairs shown per interval;
+    episode after each interval; extra_columns: the metrics.csv columns it adds
+    to every run's (:data:`ftc.control.metrics.METRIC_COLUMNS`); progress_keys: (metric, label) pairs shown per interval;
     telemetry: set by the runner (--tensorboard), for the agent's own scalars
     (PPO: ``telemetry.update(stats)`` after every update); a no-op by default."""
 
@@ -79,6 +79,12 @@ class Agent:
     extra_columns: tuple[str, ...] = ()
     progress_keys: tuple[tuple[str, str], ...] = ()
     telemetry: Telemetry = NULL_TELEMETRY
+
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "Agent":
+        """The agent of a run whose config parts are ``configs`` (by name, as in
+        config.json: {"controller": ..., "ppo": ...} or {"mpc": ...})."""
+        raise NotImplementedError(f"{cls.__name__} does not say how it is built")
 
     def prepare(self) -> dict[str, Any]:
         """Before interval 0 of a new run (not on resume): pretraining. Returns info."""

@@ -11,6 +11,8 @@ of a balanced plant, as the activity term costs 1/6 per open valve).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from ftc.common.constants import NUM_TANKS
@@ -26,6 +28,10 @@ class BalanceAgent(Agent):
 
     def __init__(self, band: float = 0.1) -> None:
         self.band = band
+
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "BalanceAgent":
+        return cls()
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         mass = AREAS * np.maximum(obs.level, 0.0)

@@ -39,11 +39,12 @@ class BaselineAgent(Agent):
         self.name = policy
         self.rng = np.random.default_rng(seed)
 
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "BaselineAgent":
+        return cls(configs["controller"].method, configs["controller"].seed)
+
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         return baseline_valves(self.name, self.rng)
-
-    def end_interval(self, interval: int, data: Any) -> dict[str, Any]:
-        return {"policy_swaps": 0}  # ftc.controller's column: no policy, never swapped
 
     def state_dict(self) -> dict[str, Any]:
         return {"np_rng": self.rng.bit_generator.state}

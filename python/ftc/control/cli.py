@@ -18,6 +18,7 @@ from ftc.common.errors import CheckpointError, RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.common.replacing import STASH
 from ftc.common.run_lock import InUse, check_free
+from ftc.control import registry
 from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RUN_LOCAL_FIELDS, RunConfig
 from ftc.control.runner import replacement
 
@@ -34,6 +35,25 @@ def option_order(cls: type) -> list[str]:
 
 def add_run_options(parser: argparse.ArgumentParser, cls: type) -> None:
     add_dataclass_options(parser, cls, order=option_order(cls))
+
+
+def method_argv(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
+                tool: str) -> list[str]:
+    """The command line with ``--method NAME`` spelled as ``tool`` reads it
+    (:func:`ftc.control.registry.expand_method`); exit 2 on a method of another
+    tool or a flag the method fixes."""
+    try:
+        return registry.expand_method(sys.argv[1:] if argv is None else argv, tool)
+    except ValueError as e:
+        parser.error(str(e))
+
+
+def refuse_ignored(parser: argparse.ArgumentParser, cfg: Any, named: set[str],
+                   prefix: str = "") -> None:
+    """Exit 2 on the first option given that ``cfg.ignored()`` says has no effect."""
+    for name, why in cfg.ignored().items():
+        if prefix.replace("-", "_") + name in named:
+            parser.error(f"{flag(name, prefix)} has no effect {why}")
 
 
 def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
@@ -170,7 +190,8 @@ def _same_file(name: str, a: Any, b: Any) -> bool:
 
 def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:
     """The configs a stopped run was started with, from its config.json (one
-    dataclass per entry of ``parts``); raises CheckpointError when missing or
+    dataclass per entry of ``parts``, or a function of the entry's values that
+    builds it); raises CheckpointError when missing or
     malformed."""
     path = Path(out) / "config.json"
     try:
@@ -178,7 +199,10 @@ def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:
         configs = {}
         for name, cls in parts.items():
             values = {k: tuple(v) if isinstance(v, list) else v for k, v in doc[name].items()}
-            configs[name] = cls(**_without_retired(cls, values, path))
+            if "method" in values:  # a run written under a former name of its method
+                values["method"] = registry.canonical(values["method"])
+            values = _without_retired(cls, values, path)
+            configs[name] = cls(**values) if isinstance(cls, type) else cls(values)
     except FileNotFoundError:
         raise CheckpointError(f"{path}: missing (is {out} a run directory?)") from None
     except (OSError, ValueError, KeyError, TypeError) as e:
@@ -188,7 +212,8 @@ def read_run_configs(out: str, parts: dict[str, type]) -> dict[str, Any]:
 
 
 def _without_retired(cls: type, values: dict[str, Any], path: Path) -> dict[str, Any]:
-    """``values`` without the fields ``cls.RETIRED_FIELDS`` names when they hold
+    """``values`` without the fields ``cls.RETIRED_FIELDS`` (a class's, or a
+    config factory's attribute) names when they hold
     the value that does what the code does now; any other value of such a
     field: CheckpointError (the run cannot be continued as it was started)."""
     retired = getattr(cls, "RETIRED_FIELDS", {})

@@ -1,7 +1,9 @@
-"""The adaptive controller (the paper's Algorithm 1): PPO online on the real plant,
-offline on a world model refitted from real experience, interval by interval.
+"""The paper's controller (Algorithm 1, method ppo-offline): PPO online on the
+real plant, offline on a world model refitted from real experience, interval
+by interval; and the other methods of ftc.control.registry it runs.
 
     python -m ftc.controller --scenario scenarios/single.toml --seed 0 --out runs/s0
+    python -m ftc.controller --method ppo-online --out runs/online  # = --method ppo --no-offline
     python -m ftc.controller --method closed --out runs/closed      # a baseline
     python -m ftc.controller --resume runs/s0                       # continue a stopped run
     python -m ftc.controller --resume runs/s0 --intervals 20        # extend a run to 20
@@ -45,20 +47,19 @@ import argparse
 import sys
 import textwrap
 from dataclasses import fields
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 
 from ftc.common.cli import (OneLineParser, add_dataclass_options, config_from_namespace, flag,
                             given_options)
+from ftc.control import registry
 from ftc.control.agent import Agent
-from ftc.control.balance import BalanceAgent
-from ftc.control.baselines import BaselineAgent
-from ftc.control.cli import (add_run_options, check_or_exit, read_run_configs, resume_configs,
-                             run_or_report)
+from ftc.control.cli import (add_run_options, check_or_exit, method_argv, read_run_configs,
+                             refuse_ignored, resume_configs, run_or_report)
 from ftc.control.config import RunConfig
-from ftc.control.ppo_agent import PPO_METHODS, ControllerConfig, PPOAgent
-from ftc.control.ppo_robust_agent import RobustPPOAgent
+from ftc.control.ppo_agent import PPO_METHODS, ControllerConfig
+from ftc.control.ppo_robust_agent import ROBUST_FIELDS, RobustConfig
 from ftc.control.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
 from ftc.learning.ppo_policy import ENGINE_ALIASES, ENGINES
@@ -67,14 +68,8 @@ TOOL = "ftc.controller"
 
 
 def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
-    """The agent of --method: PPO (Algorithm 1) or a baseline."""
-    if cfg.method == "ppo":
-        return PPOAgent(cfg, ppo_config)
-    if cfg.method == "balance":
-        return BalanceAgent()
-    if cfg.method == "ppo-robust":
-        return RobustPPOAgent(cfg, ppo_config)
-    return BaselineAgent(cfg.method, cfg.seed)
+    """The agent of --method, as :mod:`ftc.control.registry` lists it."""
+    return registry.agent_for({"controller": cfg, "ppo": ppo_config}, cfg.method)
 
 
 class Controller(IntervalRunner):
@@ -93,7 +88,7 @@ class Controller(IntervalRunner):
 
     @property
     def ppo(self):
-        """The PPO algorithm of a ``--method ppo`` run (None for a baseline)."""
+        """The PPO algorithm of a PPO run (None for a baseline)."""
         return getattr(self.agent, "ppo", None)
 
 
@@ -104,50 +99,74 @@ def build_parser() -> argparse.ArgumentParser:
         description=textwrap.fill(" ".join(__doc__.split("\n\n")[0].split())
                                   + " Prints one progress line per interval.", 79),
         epilog=__doc__.split("\n\n", 1)[1])
-    add_run_options(parser, ControllerConfig)
+    add_run_options(parser, RobustConfig)  # every method's options; each refuses the others'
     add_dataclass_options(parser.add_argument_group("PPO hyperparameters"), PPOConfig, "ppo-",
                           choices={"engine": (*ENGINES, *ENGINE_ALIASES)})
     return parser
 
 
+def controller_config(values: dict[str, Any]) -> ControllerConfig:
+    """The config of a run of ``values["method"]`` (its registry config class)
+    from option values, the options of other methods dropped (they have no
+    effect on it and are refused when given)."""
+    cls = registry.method(values.get("method", "ppo")).config_class()
+    own = {f.name for f in fields(cls)}
+    return cls(**{k: v for k, v in values.items() if k in own})
+
+
+# a stored run's fields the controller no longer offers (cli.read_run_configs)
+controller_config.RETIRED_FIELDS = ControllerConfig.RETIRED_FIELDS  # type: ignore[attr-defined]
+
+
 def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPOConfig]:
     """The run's configs from the command line (with --resume, the run's own,
     every option given honoured or refused); bad input exits 2 before anything
-    is written."""
+    is written. ``--method NAME`` takes every name of the registry this tool
+    runs (ppo-offline: ppo --offline) and, with a warning, its former names."""
     parser = build_parser()
+    argv = method_argv(parser, argv, TOOL)
     ns = vars(parser.parse_args(argv))
-    cfg = config_from_namespace(ControllerConfig, ns)
+    every = config_from_namespace(RobustConfig, ns)  # this command line, every option
     ppo = config_from_namespace(PPOConfig, ns, "ppo-")
-    check_or_exit(parser, cfg, {"ppo-": ppo})
-    if cfg.resume:
-        def no_ppo_options_for_a_baseline(stored: dict, named: set[str]) -> None:
-            if stored["controller"].method not in PPO_METHODS:
-                _refuse_ppo_options(parser, named, stored["controller"].method)
+    check_or_exit(parser, every, {"ppo-": ppo})
+    named = given_options(parser, argv)
+    if every.resume:
+        def no_effect(stored: dict, named: set[str]) -> None:
+            _refuse_no_effect(parser, named, stored["controller"])
 
-        configs = resume_configs(parser, argv, {"controller": (cfg, ""), "ppo": (ppo, "ppo-")},
-                                 {"controller": ControllerConfig, "ppo": PPOConfig},
-                                 no_ppo_options_for_a_baseline)
+        configs = resume_configs(parser, argv, {"controller": (every, ""), "ppo": (ppo, "ppo-")},
+                                 {"controller": controller_config, "ppo": PPOConfig}, no_effect)
         return configs["controller"], configs["ppo"]
-    if cfg.method not in PPO_METHODS:
-        _refuse_ppo_options(parser, given_options(parser, argv), cfg.method)
+    cfg = controller_config(vars(every))
+    _refuse_no_effect(parser, named, cfg)
     return cfg, ppo
 
 
-def _refuse_ppo_options(parser: argparse.ArgumentParser, named: set[str], method: str) -> None:
-    """A baseline has no policy: an option that configures PPO would have no effect."""
-    run = {f.name for f in fields(RunConfig)}
-    ppo_only = [flag(f.name) for f in fields(ControllerConfig)
-                if f.name not in run and f.name != "method" and f.name in named]
-    ppo_only += [flag(f.name, "ppo-") for f in fields(PPOConfig) if "ppo_" + f.name in named]
-    if ppo_only:
-        parser.error(f"{ppo_only[0]} has no effect with --method {method} (it configures the "
-                     f"PPO methods: {', '.join(PPO_METHODS)})")
+def _refuse_no_effect(parser: argparse.ArgumentParser, named: set[str],
+                      cfg: ControllerConfig) -> None:
+    """Exit 2 on an option given that cannot act on a run of ``cfg``: a
+    baseline has no policy (every PPO option), plain PPO no guided fit (the
+    robust options), a run without --pretrain no pretraining."""
+    method = cfg.method
+    if method not in PPO_METHODS:
+        run = {f.name for f in fields(RunConfig)}
+        ppo_only = [flag(f.name) for f in fields(RobustConfig)
+                    if f.name not in run and f.name != "method" and f.name in named]
+        ppo_only += [flag(f.name, "ppo-") for f in fields(PPOConfig) if "ppo_" + f.name in named]
+        if ppo_only:
+            parser.error(f"{ppo_only[0]} has no effect with --method {method} (it configures "
+                         f"the PPO methods: {', '.join(PPO_METHODS)})")
+    robust = [flag(name) for name in ROBUST_FIELDS if name in named]
+    if method != "ppo-robust" and robust:
+        parser.error(f"{robust[0]} has no effect with --method {method} (it configures "
+                     "ppo-robust)")
+    refuse_ignored(parser, cfg, named)
 
 
 def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
     """The configuration a stopped run was started with (from its config.json);
     raises CheckpointError when it is missing or malformed."""
-    configs = read_run_configs(out, {"controller": ControllerConfig, "ppo": PPOConfig})
+    configs = read_run_configs(out, {"controller": controller_config, "ppo": PPOConfig})
     cfg, ppo = configs["controller"], configs["ppo"]
     cfg.resume, cfg.out = out, out
     return cfg, ppo

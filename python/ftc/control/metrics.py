@@ -8,12 +8,23 @@ from typing import Any, Sequence
 
 import numpy as np
 
-METRIC_COLUMNS = [
-    "interval", "reward_per_step", "eval_reward_per_step", "episodes", "model_r2",
-    "model_prior_r2", "model_one_step_rmse", "model_ten_step_rmse", "demand_estimate",
-    "offline_reward_per_step", "entropy", "open_fraction", "approx_kl", "clipfrac",
-    "explained_variance", "value_loss", "policy_swaps", "online_seconds", "offline_seconds",
-    "wall_time", "eval_steps"]
+# every run's columns; an agent's own (Agent.extra_columns) go between the head and the tail
+METRIC_COLUMNS = ["interval", "reward_per_step", "eval_reward_per_step", "episodes"]
+TAIL_COLUMNS = ["online_seconds", "wall_time", "eval_steps"]
+# what a refitted world model reports (the PPO agent's offline phase, the model MPC)
+MODEL_COLUMNS = ("model_r2", "model_prior_r2", "model_one_step_rmse", "model_ten_step_rmse",
+                 "demand_estimate")
+# what a PPO agent reports per interval
+PPO_COLUMNS = (*MODEL_COLUMNS, "offline_reward_per_step", "entropy", "open_fraction",
+               "approx_kl", "clipfrac", "explained_variance", "value_loss", "policy_swaps",
+               "offline_seconds")
+
+
+def metric_columns(extra: Sequence[str]) -> list[str]:
+    """metrics.csv's header for an agent whose own columns are ``extra``."""
+    own = [c for c in dict.fromkeys(extra) if c not in METRIC_COLUMNS + TAIL_COLUMNS]
+    return [*METRIC_COLUMNS, *own, *TAIL_COLUMNS]
+
 
 # columns that measure time, not results (they differ run to run)
 TIMING_COLUMNS = ("online_seconds", "offline_seconds", "wall_time", "refit_seconds",

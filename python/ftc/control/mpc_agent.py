@@ -1,13 +1,13 @@
-"""Model-predictive control of the fuel plant: two reference controllers.
+"""Model-predictive control of the fuel plant: the reference controllers.
 
-    python -m ftc.mpc --method oracle --scenario scenarios/single.toml --seed 0 --out runs/oracle
-    python -m ftc.mpc --method model  --scenario scenarios/single.toml --seed 0 --out runs/mpc
+    python -m ftc.mpc --method oracle-mpc --scenario scenarios/single.toml --seed 0 --out runs/oracle
+    python -m ftc.mpc --method model-mpc  --scenario scenarios/single.toml --seed 0 --out runs/mpc
 
-* ``oracle``: knows the faults. It reads the same scenario file as the plant
+* ``oracle-mpc``: knows the faults. It reads the same scenario file as the plant
   and plans on the true physics degraded to the age in force (the C++ core's
   batch rollouts, ``_core.BatchRollout``): an upper reference for every
   controller that is not told the faults.
-* ``model``: plans on the controller's learned world model (batched torch
+* ``model-mpc``: plans on the controller's learned world model (batched torch
   rollouts), pretrained on the nominal data set and refitted after every
   interval from that interval's real transitions exactly as PPO's offline
   phase does; never told the faults (the termination rule uses the demand
@@ -47,16 +47,17 @@ from ftc.common.errors import CheckpointError
 from ftc.control import checkpoint
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
+from ftc.control.metrics import MODEL_COLUMNS
 from ftc.control.planners import CEMPlanner, Evaluator, HoldPlanner, ModelEvaluator, OracleEvaluator
 from ftc.learning.offline import ModelWindow, pretrained_world_model, refit
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant.link import PlantObservation
 
-METHODS = ("oracle", "model", "adaptive")
+METHODS = ("oracle-mpc", "model-mpc", "identified-mpc")  # as ftc.control.registry lists them
 PLANNERS = ("hold", "cem")
 # refused_rollouts: candidates whose rollout the integrator refused (scored -inf),
-# for the MPCs that plan on the C++ physics (oracle, adaptive); blank for the model
+# for the MPCs that plan on the C++ physics (oracle-mpc, identified-mpc); blank for model-mpc
 MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
                "refused_rollouts")
 
@@ -65,10 +66,10 @@ MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
 class MPCConfig(RunConfig):
     """Everything an MPC run depends on."""
 
-    method: str = field(default="oracle", metadata={"choices": METHODS, "help": (
-        "oracle: plans on the true degraded physics (knows the faults); model: plans on "
-        "the learned world model, refitted every interval (never told the faults); "
-        "adaptive: plans on the plant's physics with its parameters identified from the "
+    method: str = field(default="oracle-mpc", metadata={"choices": METHODS, "help": (
+        "oracle-mpc: plans on the true degraded physics (knows the faults); model-mpc: plans "
+        "on the learned world model, refitted every interval (never told the faults); "
+        "identified-mpc: plans on the plant's physics with its parameters identified from the "
         "observed data (assumes the plant's structure, never told the faults)")})
     scenario: str | None = field(default="scenarios/single.toml", metadata={"help": (
         "fault scenario TOML given to the plant and read by the oracle ('' = nominal)")})
@@ -94,33 +95,49 @@ class MPCConfig(RunConfig):
     cem_smoothing: float = field(default=0.2, metadata={"check": between(0.0, 1.0), "help": (
         "cem: weight of the old probabilities in each update (0: elites only)")})
     rollout_rtol: float = field(default=1e-6, metadata={"check": positive(1.0), "help": (
-        "oracle: CVODE relative tolerance of the rollouts (measured: 1e-6 moves summed "
+        "oracle-mpc, identified-mpc: CVODE relative tolerance of the rollouts (measured: 1e-6 moves summed "
         "10-step rewards by < 2e-5 against 1e-12, never the chosen action in the bench, "
         "and is 1.6x faster than the plant's 1e-8)")})
-    rollout_atol: float = field(default=1e-8, metadata={"check": positive(1.0), "help": "oracle: CVODE absolute tolerance, m"})
+    rollout_atol: float = field(default=1e-8, metadata={"check": positive(1.0), "help": "oracle-mpc, identified-mpc: CVODE absolute tolerance, m"})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
-        "model: intervals of real data each refit trains on (1 = the interval just run, "
+        "model-mpc: intervals of real data each refit trains on (1 = the interval just run, "
         "as the controller's default)")})
     model_engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
-        "model: how the world model is trained: numpy (several times faster at this size) or "
+        "model-mpc: how the world model is trained: numpy (several times faster at this size) or "
         "torch (autograd); the same algorithm, minibatches and stopping rule, float32 "
         "rounding differs (docs/benchmarks.md)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
-        "model: nominal random-valve episodes for world-model pretraining (paper: 50)")})
+        "model-mpc: nominal random-valve episodes for world-model pretraining (paper: 50)")})
     pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
-        "model: directory of pretrained world models keyed by a hash of everything "
+        "model-mpc: directory of pretrained world models keyed by a hash of everything "
         "pretraining depends on (episodes, seed, model config, code); a hit skips the "
         "pretraining with the same weights ('' disables)")})
     identify_every: int = field(default=64, metadata={"check": at_least(0, 1_000_000), "help": (
-        "adaptive: re-identify the parameters every N steps of an interval from its data "
+        "identified-mpc: re-identify the parameters every N steps of an interval from its data "
         "so far (0: only at interval ends)")})
     identify_trigger: float = field(default=1e-4, metadata={"check": between(0.0, 1.0), "help": (
-        "adaptive: a one-step prediction error above this (m) means the plant changed: the "
+        "identified-mpc: a one-step prediction error above this (m) means the plant changed: the "
         "parameters are re-identified from the data since then at once, not at the next "
         "scheduled refit (0: off, relearn on the schedule only)")})
     evaluate: bool = field(default=True, metadata={"help": (
         "after each interval run one evaluation episode (age frozen) with the planner "
         "(eval_reward_per_step; MPC is deterministic, so it measures the same policy)")})
+
+    def ignored(self) -> dict[str, str]:
+        """The options that have no effect on this run, each with why (the
+        command line refuses them when given)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            if f.name.startswith("cem_") and self.planner != "cem":
+                out[f.name] = f"with --planner {self.planner}"
+            elif (f.name.startswith("model_") or f.name == "pretrain_cache") and \
+                    self.method != "model-mpc":
+                out[f.name] = f"with --method {self.method} (it configures model-mpc)"
+            elif f.name.startswith("identify_") and self.method != "identified-mpc":
+                out[f.name] = f"with --method {self.method} (it configures identified-mpc)"
+            elif f.name.startswith("rollout_") and self.method == "model-mpc":
+                out[f.name] = "with --method model-mpc (it plans on the learned model)"
+        return out
 
     def validate(self) -> None:
         super().validate()
@@ -135,12 +152,12 @@ class MPCAgent(Agent):
     """Receding-horizon control: every step, plan on the evaluator and apply the
     first valves of the best sequence."""
 
-    extra_columns = MPC_COLUMNS
+    extra_columns = (*MODEL_COLUMNS, "open_fraction", "offline_seconds", *MPC_COLUMNS)
     progress_keys = (("decisions_per_second", "decisions/s"),)
 
     def __init__(self, cfg: MPCConfig) -> None:
         self.cfg = cfg
-        self.name = f"{cfg.method}-mpc"
+        self.name = cfg.method
         self.evaluates = cfg.evaluate
         self.rng = np.random.default_rng(cfg.seed)
         self.planner = (HoldPlanner(cfg.hold, cfg.horizon) if cfg.planner == "hold"
@@ -151,12 +168,16 @@ class MPCAgent(Agent):
         self.window = ModelWindow(cfg.model_window)
         self.decisions, self.plan_seconds, self.opened = 0, 0.0, 0
         self._interval_start = (0, 0.0, 0)
-        if cfg.method == "oracle":
+        if cfg.method == "oracle-mpc":
             from ftc import _core  # native: the plant's scenario parser and physics
 
             scenario = _core.load_scenario(cfg.scenario) if cfg.scenario else _core.Scenario()
             scenario.steps_per_interval = cfg.steps_per_interval  # as the plant is told
             self.oracle = OracleEvaluator(scenario, cfg.rollout_rtol, cfg.rollout_atol)
+
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "MPCAgent":
+        return cls(configs["mpc"])
 
     def prepare(self) -> dict[str, Any]:
         if self.oracle is not None:
@@ -169,10 +190,10 @@ class MPCAgent(Agent):
                 "model_pretrain_cached": info["model_pretrain_cached"]}
 
     def wants_data(self) -> bool:
-        return self.cfg.method == "model"
+        return self.cfg.method == "model-mpc"
 
     def config_doc(self) -> dict[str, Any]:
-        if self.cfg.method != "model":
+        if self.cfg.method != "model-mpc":
             return {}
         return {"world_model": dataclasses.asdict(
             WorldModelConfig(seed=self.cfg.seed, engine=self.cfg.model_engine))}
@@ -238,7 +259,7 @@ class MPCAgent(Agent):
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.rng.bit_generator.state = state["np_rng"]
         self.demand = float(state["demand"])
-        if (state["model"] is None) != (self.cfg.method != "model"):
+        if (state["model"] is None) != (self.cfg.method != "model-mpc"):
             raise CheckpointError("checkpoint of another MPC method")
         if state["model"] is not None:
             self.model = WorldModel(WorldModelConfig(seed=self.cfg.seed,

@@ -1,5 +1,5 @@
-"""``python -m ftc.mpc``: the two MPC reference controllers on the interval
-runner (see :mod:`ftc.control.mpc_agent` for what they do)."""
+"""``python -m ftc.mpc``: the MPC controllers of :mod:`ftc.control.registry`
+on the interval runner (see :mod:`ftc.control.mpc_agent` for what they do)."""
 
 from __future__ import annotations
 
@@ -9,18 +9,18 @@ from typing import Sequence
 
 import torch
 
-from ftc.common.cli import OneLineParser, config_from_namespace
-from ftc.control import mpc_agent
-from ftc.control.cli import add_run_options, check_or_exit, resume_configs, run_or_report
-from ftc.control.adaptive_agent import AdaptiveAgent
-from ftc.control.mpc_agent import MPCAgent, MPCConfig
+from ftc.common.cli import OneLineParser, config_from_namespace, given_options
+from ftc.control import mpc_agent, registry
+from ftc.control.cli import (add_run_options, check_or_exit, method_argv, refuse_ignored,
+                             resume_configs, run_or_report)
+from ftc.control.mpc_agent import MPCConfig
 from ftc.control.runner import IntervalRunner
 
 TOOL = "ftc.mpc"
 
 
 class MPCController(IntervalRunner):
-    """An MPC run: the interval runner driving :class:`MPCAgent`."""
+    """An MPC run: the interval runner driving the agent of ``cfg.method``."""
 
     tool = TOOL
 
@@ -30,8 +30,7 @@ class MPCController(IntervalRunner):
         # differs in the last bits under a multi-threaded BLAS (measured: a run built
         # first in a fresh process differed from later ones in approx_kl's 6th digit)
         torch.set_num_threads(1)
-        agent = AdaptiveAgent(cfg) if cfg.method == "adaptive" else MPCAgent(cfg)
-        super().__init__(cfg, agent, {"mpc": cfg})
+        super().__init__(cfg, registry.agent_for({"mpc": cfg}, cfg.method), {"mpc": cfg})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,11 +49,15 @@ def parse_args(argv: Sequence[str] | None = None) -> MPCConfig:
     every option given honoured or refused); bad input exits 2 before anything
     is written."""
     parser = build_parser()
+    argv = method_argv(parser, argv, TOOL)  # former names of the methods: warned, mapped
     ns = vars(parser.parse_args(argv))  # unknown options: exit 2 naming them
     cfg = config_from_namespace(MPCConfig, ns)
     check_or_exit(parser, cfg)
     if cfg.resume:
-        return resume_configs(parser, argv, {"mpc": (cfg, "")}, {"mpc": MPCConfig})["mpc"]
+        return resume_configs(parser, argv, {"mpc": (cfg, "")}, {"mpc": MPCConfig},
+                              lambda stored, named: refuse_ignored(parser, stored["mpc"], named)
+                              )["mpc"]
+    refuse_ignored(parser, cfg, given_options(parser, argv))
     return cfg
 
 

@@ -37,11 +37,11 @@ import torch
 
 from ftc.common.cli import at_least, between, positive
 from ftc.common.errors import CheckpointError
-from ftc.control import checkpoint
+from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import check_finite_state, check_update
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
-from ftc.control.metrics import mean
+from ftc.control.metrics import PPO_COLUMNS, mean
 from ftc.learning.offline import (ModelWindow, OfflineResult, OfflineSettings, offline_phase,
                                   pretrained_world_model)
 from ftc.learning.ppo import PPO, PPOConfig, UpdateStats
@@ -51,7 +51,7 @@ from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
 from ftc.plant.link import PlantObservation
 
-METHODS = ("ppo", "closed", "open", "random", "balance", "ppo-robust")
+METHODS = registry.config_values("ftc.controller")  # the values of ControllerConfig.method
 PPO_METHODS = ("ppo", "ppo-robust")  # the methods with a policy (the rest ignore PPO's options)
 OFFLINE_MODES = ("sequential", "background")
 
@@ -67,11 +67,12 @@ class ControllerConfig(RunConfig):
                                                 "pretrain_sim": "core"}
 
     method: str = field(default="ppo", metadata={"choices": METHODS, "help": (
-        "ppo: the adaptive controller; closed / open / random: baselines (all valves "
-        "closed, all open, each valve open with p=0.5) through the same loop and plant; "
-        "balance: a rule that moves fuel to the light wing when |cg| > 0.1; ppo-robust: "
-        "PPO online with an offline phase guided by a planner on the identified physics "
-        "(docs/controller.md)")})
+        "ppo: Algorithm 1 as its flags configure it; ppo-online (= ppo --no-offline), "
+        "ppo-offline (= ppo --offline), ppo-pretrained (= ppo --offline --pretrain): its "
+        "compared variants; closed / open / random: baselines (all valves closed, all open, "
+        "each valve open with p=0.5) through the same loop and plant; balance: a rule that "
+        "moves fuel to the light wing when |cg| > 0.1; ppo-robust: PPO online with an "
+        "offline phase guided by a planner on the identified physics (docs/controller.md)")})
     update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
         "t_update: real steps between PPO updates (paper: 128)")})
     offline: bool = field(default=True, metadata={"help": (
@@ -90,46 +91,6 @@ class ControllerConfig(RunConfig):
         "model steps per env between offline PPO updates (update batch = envs x rollout)")})
     offline_minibatch: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
         "PPO minibatch size for offline updates (online uses --ppo-minibatch-size)")})
-    branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
-        "ppo-robust: share of offline episodes that start from a level observed on the "
-        "plant (short branched rollouts) instead of full tanks")})
-    teacher_states: int = field(default=2048, metadata={"check": at_least(2, 1_000_000), "help": (
-        "ppo-robust: labelled levels the policy is fitted to (the most recent: first a "
-        "sample of those observed on the plant, then those the policy visits on the model)")})
-    teacher_rounds: int = field(default=3, metadata={"check": at_least(0, 100), "help": (
-        "ppo-robust: DAgger rounds per interval (policy rollout on the model, labels, fit)")})
-    teacher_refits: int = field(default=2, metadata={"check": at_least(0, 1000), "help": (
-        "ppo-robust: refits of the policy within an interval when the plant is seen to change")})
-    teacher_epochs: int = field(default=100, metadata={"check": at_least(1, 10_000), "help": (
-        "ppo-robust: epochs of each fit to the labels (at most; see --teacher-stop-loss)")})
-    teacher_stop_loss: float = field(default=0.002, metadata={"check": between(0.0, 10.0), "help": (
-        "ppo-robust: end a fit early after an epoch whose mean cross-entropy per valve "
-        "is below this (0: always --teacher-epochs; docs/controller.md)")})
-    teacher_check_every: int = field(default=32, metadata={"check": at_least(0, 1_000_000), "help": (
-        "ppo-robust: every this many steps on the plant, ask the planner (on the "
-        "identified physics) what the policy's choice at the current level costs; above "
-        "--teacher-check-regret, refit the policy at once (at most --teacher-refits "
-        "times per interval; 0: never check)")})
-    teacher_check_regret: float = field(default=2.0, metadata={"check": between(0.0, 1e6), "help": (
-        "ppo-robust: summed reward over the planner's horizon (L = 10 steps, about 25 "
-        "at full tanks) that the policy's choice may lose against the planner's "
-        "before a refit. Measured: a policy closing every valve with fuel stranded "
-        "behind a dead pump loses 19; ordinary disagreements lose 0.06-0.5")})
-    teacher_memory: int = field(default=1024, metadata={"check": at_least(0, 1_000_000), "help": (
-        "ppo-robust: distinct levels labelled in earlier fits that each fit keeps, "
-        "relabelled by the planner on the current parameters (DAgger's aggregated data: "
-        "without it a fit forgets what earlier ones taught where it has no labels, e.g. "
-        "fuel stranded behind a dead pump; 0: every fit starts afresh)")})
-    teacher_sample: bool = field(default=True, metadata={"help": (
-        "ppo-robust: the policy's DAgger rollouts on the identified physics sample "
-        "its actions, as it acts on the plant, so the labels cover the levels a "
-        "sampled slip leads to (off: the deterministic policy)")})
-    teacher_distinct: bool = field(default=False, metadata={"help": (
-        "ppo-robust: fit to the distinct (level, label) pairs, each weighted by how often "
-        "it was labelled (the same objective in fewer rows: an interval's episodes "
-        "repeat their levels), instead of to every labelled level")})
-    branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
-        "ppo-robust: steps of a branched offline rollout")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
         "intervals of real data each refit trains on: 1 = only the interval just run "
         "(Algorithm 1: the cache is cleared after each refit); k > 1 keeps the last k")})
@@ -165,6 +126,15 @@ class ControllerConfig(RunConfig):
         "reset Adam's state when adaptation starts, after pretraining (narrows the spread "
         "across seeds)")})
 
+    def ignored(self) -> dict[str, str]:
+        """The pretraining options that have no effect on this run, each with why
+        (the command line refuses them when given; a baseline refuses every PPO
+        option, ppo its robust options)."""
+        if self.pretrain or self.method not in PPO_METHODS:
+            return {}
+        return {f.name: "without --pretrain" for f in dataclasses.fields(self)
+                if f.name.startswith("pretrain_") and f.name != "pretrain_cache"}
+
     def validate(self) -> None:
         super().validate()
         if self.method == "ppo" and self.offline and self.offline_steps < 1:
@@ -195,6 +165,7 @@ class PPOAgent(Agent):
     each interval, the offline phase on the refitted world model."""
 
     name = "ppo"
+    extra_columns = PPO_COLUMNS
     progress_keys = (("entropy", "entropy"), ("approx_kl", "kl"), ("explained_variance", "ev"))
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
@@ -214,6 +185,10 @@ class PPOAgent(Agent):
         self.swaps = 0
         self._swaps_before = 0
         self._late: list[tuple[int, dict[str, Any]]] = []
+
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "PPOAgent":
+        return cls(configs["controller"], configs["ppo"])
 
     # -- setup ------------------------------------------------------------------
     def prepare(self) -> dict[str, Any]:

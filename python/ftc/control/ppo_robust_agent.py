@@ -24,15 +24,18 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
+from ftc.common.cli import at_least, between
 from ftc.common.constants import NUM_TANKS, offline_seed
 from ftc.control.agent import Transition
 from ftc.control.checkpoint import check_finite_state
 from ftc.control.planners import HoldPlanner, ParamsEvaluator
+from ftc.control.metrics import PPO_COLUMNS
 from ftc.control.ppo_agent import ControllerConfig, PPOAgent
 from ftc.learning.distill import distill, distinct
 from ftc.learning.identify import Identifier, OnlineIdentification
@@ -43,14 +46,64 @@ from ftc.learning.rollout import train_on_env
 from ftc.learning.transitions import Transitions
 
 
+@dataclass
+class RobustConfig(ControllerConfig):
+    """A ppo-robust run: the controller's options and those of its guided fit."""
+
+    branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
+        "ppo-robust: share of offline episodes that start from a level observed on the "
+        "plant (short branched rollouts) instead of full tanks")})
+    teacher_states: int = field(default=2048, metadata={"check": at_least(2, 1_000_000), "help": (
+        "ppo-robust: labelled levels the policy is fitted to (the most recent: first a "
+        "sample of those observed on the plant, then those the policy visits on the model)")})
+    teacher_rounds: int = field(default=3, metadata={"check": at_least(0, 100), "help": (
+        "ppo-robust: DAgger rounds per interval (policy rollout on the model, labels, fit)")})
+    teacher_refits: int = field(default=2, metadata={"check": at_least(0, 1000), "help": (
+        "ppo-robust: refits of the policy within an interval when the plant is seen to change")})
+    teacher_epochs: int = field(default=100, metadata={"check": at_least(1, 10_000), "help": (
+        "ppo-robust: epochs of each fit to the labels (at most; see --teacher-stop-loss)")})
+    teacher_stop_loss: float = field(default=0.002, metadata={"check": between(0.0, 10.0), "help": (
+        "ppo-robust: end a fit early after an epoch whose mean cross-entropy per valve "
+        "is below this (0: always --teacher-epochs; docs/controller.md)")})
+    teacher_check_every: int = field(default=32, metadata={"check": at_least(0, 1_000_000), "help": (
+        "ppo-robust: every this many steps on the plant, ask the planner (on the "
+        "identified physics) what the policy's choice at the current level costs; above "
+        "--teacher-check-regret, refit the policy at once (at most --teacher-refits "
+        "times per interval; 0: never check)")})
+    teacher_check_regret: float = field(default=2.0, metadata={"check": between(0.0, 1e6), "help": (
+        "ppo-robust: summed reward over the planner's horizon (L = 10 steps, about 25 "
+        "at full tanks) that the policy's choice may lose against the planner's "
+        "before a refit. Measured: a policy closing every valve with fuel stranded "
+        "behind a dead pump loses 19; ordinary disagreements lose 0.06-0.5")})
+    teacher_memory: int = field(default=1024, metadata={"check": at_least(0, 1_000_000), "help": (
+        "ppo-robust: distinct levels labelled in earlier fits that each fit keeps, "
+        "relabelled by the planner on the current parameters (DAgger's aggregated data: "
+        "without it a fit forgets what earlier ones taught where it has no labels, e.g. "
+        "fuel stranded behind a dead pump; 0: every fit starts afresh)")})
+    teacher_sample: bool = field(default=True, metadata={"help": (
+        "ppo-robust: the policy's DAgger rollouts on the identified physics sample "
+        "its actions, as it acts on the plant, so the labels cover the levels a "
+        "sampled slip leads to (off: the deterministic policy)")})
+    teacher_distinct: bool = field(default=False, metadata={"help": (
+        "ppo-robust: fit to the distinct (level, label) pairs, each weighted by how often "
+        "it was labelled (the same objective in fewer rows: an interval's episodes "
+        "repeat their levels), instead of to every labelled level")})
+    branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
+        "ppo-robust: steps of a branched offline rollout")})
+
+# the options only ppo-robust reads
+ROBUST_FIELDS = tuple(f.name for f in dataclasses.fields(RobustConfig)
+                      if f.name not in {g.name for g in dataclasses.fields(ControllerConfig)})
+
+
 class RobustPPOAgent(PPOAgent):
     name = "ppo-robust"
-    extra_columns = ("distill_loss", "distill_agreement", "distill_epochs", "teacher_labels",
-                     "teacher_plans", "teacher_memory", "teach_seconds",
+    extra_columns = (*PPO_COLUMNS, "distill_loss", "distill_agreement", "distill_epochs",
+                     "teacher_labels", "teacher_plans", "teacher_memory", "teach_seconds",
                      "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
                      "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
 
-    def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
+    def __init__(self, cfg: RobustConfig, ppo_config: PPOConfig) -> None:
         from ftc import _core  # native: the plant's integrator for the teacher's rollouts
 
         super().__init__(cfg, ppo_config)

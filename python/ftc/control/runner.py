@@ -48,7 +48,7 @@ from ftc.control import checkpoint
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import finite_observation
 from ftc.control.config import RUN_FILES, RunConfig, open_plant
-from ftc.control.metrics import METRIC_COLUMNS, format_cell, progress_line
+from ftc.control.metrics import format_cell, metric_columns, progress_line
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantGoneError, PlantLink, PlantObservation
@@ -163,8 +163,7 @@ class IntervalRunner:
         self.interval = 0
         self.where = "before the first step"  # position in the run, for error messages
         self.telemetry: Telemetry = NULL_TELEMETRY  # --tensorboard: opened by run()
-        self.columns = METRIC_COLUMNS + [c for c in agent.extra_columns
-                                         if c not in METRIC_COLUMNS]
+        self.columns = metric_columns(agent.extra_columns)
 
     # -- the run ----------------------------------------------------------------
     def run(self, stop_after: int | None = None, plant: PlantLink | None = None

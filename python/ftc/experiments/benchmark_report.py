@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_text
+from ftc.control.registry import canonical
 from ftc.experiments import figures
 from ftc.experiments.report import Block, to_html, to_markdown
 
@@ -93,7 +94,7 @@ def read_scores(path: Path) -> list[dict]:
     """results.csv back, its cells and scores only: scenario, method, seed and
     interval (ints), reward_per_step and SCORE_COLUMNS (floats or None)."""
     with open(path, newline="") as f:
-        return [{"scenario": r["scenario"], "method": r["method"], "seed": int(r["seed"]),
+        return [{"scenario": r["scenario"], "method": canonical(r["method"]), "seed": int(r["seed"]),
                  "interval": int(r["interval"]), "reward_per_step": _num(r["reward_per_step"]),
                  **{c: _num(r.get(c)) for c in SCORE_COLUMNS}} for r in csv.DictReader(f)]
 
@@ -116,7 +117,7 @@ def oracle_fractions(rows: Sequence[dict], oracle: str = ORACLE) -> list[dict]:
 def read_fractions(path: Path) -> list[dict]:
     """fractions.csv back: seed and interval as ints, numbers as floats or None."""
     with open(path, newline="") as f:
-        return [{"scenario": r["scenario"], "method": r["method"], "seed": int(r["seed"]),
+        return [{"scenario": r["scenario"], "method": canonical(r["method"]), "seed": int(r["seed"]),
                  "interval": int(r["interval"]), "reward_per_step": _num(r["reward_per_step"]),
                  "oracle_reward_per_step": _num(r["oracle_reward_per_step"]),
                  "fraction": _num(r["fraction"])} for r in csv.DictReader(f)]

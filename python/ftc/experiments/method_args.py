@@ -3,8 +3,8 @@
 
 Each option (a ``--flag`` and the values after it) goes to the methods whose
 command line has it and on which it acts: an ``ftc.mpc`` method gets the
-MPC options it declares (``--model-episodes`` reaches model-mpc and
-adaptive), a PPO method of ``ftc.controller`` all of the controller's, and a
+MPC options that act on it (``--model-episodes`` reaches model-mpc only,
+``--identify-every`` identified-mpc), a PPO method of ``ftc.controller`` all of the controller's, and a
 baseline of ``ftc.controller`` only the options every run shares (the link,
 the console), since it refuses PPO options as having no effect. An option no
 chosen method takes is refused before anything runs.
@@ -16,7 +16,10 @@ import functools
 from dataclasses import fields
 from typing import Sequence
 
-from ftc.control import controller_cli, mpc_cli
+from ftc.common.cli import config_from_namespace
+from ftc.control import controller_cli, mpc_cli, registry
+from ftc.control.mpc_agent import MPCConfig
+from ftc.control.ppo_robust_agent import ROBUST_FIELDS
 from ftc.control.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec
 
@@ -57,7 +60,25 @@ def takes(spec: MethodSpec, option: str) -> bool:
     flag = option.split("=", 1)[0]
     if flag not in every:
         return False
-    return flag in run or spec.module != "ftc.controller" or spec.learns
+    if flag in run:
+        return True
+    parsed = _parsed(spec)
+    dest = flag[2:].replace("-", "_").removeprefix("no_")
+    if dest in parsed.ignored():
+        return False
+    if spec.module == "ftc.mpc":
+        return True
+    return spec.learns and (parsed.method == "ppo-robust" or dest not in ROBUST_FIELDS)
+
+
+@functools.cache
+def _parsed(spec: MethodSpec):
+    """The config a run of ``spec`` gets from its own arguments (what ignores what)."""
+    module = PARSERS[spec.module]
+    ns = vars(module.build_parser().parse_args(registry.expand_method(spec.args, spec.module)))
+    if spec.module == "ftc.mpc":
+        return config_from_namespace(MPCConfig, ns)
+    return module.controller_config(ns)
 
 
 def method_args(spec: MethodSpec, extra: Sequence[str]) -> list[str]:

@@ -1,13 +1,13 @@
-"""The compared methods: how each controller of the experiments is started.
-
-A leaf module (it imports nothing of ftc), so the orchestrator, the figures
-and the report all read the one registry. Add a method with
-:func:`register_method`.
+"""The compared methods: how each controller of the experiments is started,
+a view of :mod:`ftc.control.registry` (one name per method in every tool).
+A method of another module (a plug-in) joins with :func:`register_method`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from ftc.control import registry
 
 
 @dataclass(frozen=True)
@@ -49,25 +49,10 @@ def register_method(spec: MethodSpec) -> MethodSpec:
     return spec
 
 
-register_method(MethodSpec("closed", "all valves closed", ("--method", "closed"), cost=1.0))
-register_method(MethodSpec("open", "all valves open", ("--method", "open"), cost=1.0))
-register_method(MethodSpec("ppo-online", "PPO online", ("--method", "ppo", "--no-offline"),
-                           cost=3.0, learns=True))
-register_method(MethodSpec("ppo-offline", "PPO online + offline",
-                           ("--method", "ppo", "--offline"), cost=8.0, learns=True))
-register_method(MethodSpec("ppo-pretrained", "PPO online + offline, pretrained",
-                           ("--method", "ppo", "--offline", "--pretrain"), cost=8.0, learns=True))
-register_method(MethodSpec("oracle-mpc", "MPC, faults known (oracle)", ("--method", "oracle"),
-                           module="ftc.mpc", cost=1.5))
-register_method(MethodSpec("model-mpc", "MPC on the learned model", ("--method", "model"),
-                           module="ftc.mpc", cost=3.0, learns=True))
-register_method(MethodSpec("balance", "rule: balance the wings", ("--method", "balance"),
-                           cost=1.0))
-register_method(MethodSpec("ppo-robust", "PPO online + guided offline (robust)",
-                           ("--method", "ppo-robust", "--pretrain", "--offline-steps", "0",
-                            "--ppo-engine", "native"),
-                           cost=30.0, learns=True))
-register_method(MethodSpec("adaptive", "MPC on identified physics (adaptive)",
-                           ("--method", "adaptive"), module="ftc.mpc", cost=2.0, learns=True))
+for _m in registry.METHODS.values():
+    if _m.compared:  # the experiments run each under its own name: --method NAME
+        register_method(MethodSpec(_m.name, _m.label, ("--method", _m.name, *_m.experiment_args),
+                                   module=_m.tool, cost=_m.cost, learns=_m.learns,
+                                   benchmark=_m.benchmark))
 PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
 DEFAULT_METHODS = (*PAPER_METHODS, "oracle-mpc", "model-mpc")

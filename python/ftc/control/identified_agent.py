@@ -1,8 +1,8 @@
-"""The project's recommended controller (method ``adaptive``): model-predictive
+"""The project's recommended controller (method ``identified-mpc``): model-predictive
 control on the plant's own physics with its parameters identified online
 from what the plant publishes.
 
-    python -m ftc.mpc --method adaptive --scenario scenarios/single.toml --out runs/adaptive
+    python -m ftc.mpc --method identified-mpc --scenario scenarios/single.toml --out runs/identified
 
 It plans exactly as the oracle MPC does (the same planner, the same C++ batch
 rollouts), but with pump capacities, valve resistances and engine demands
@@ -46,7 +46,7 @@ from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
 
-class AdaptiveAgent(MPCAgent):
+class IdentifiedAgent(MPCAgent):
     """MPC on identified physics; see the module docstring."""
 
     # (refused_rollouts: one of MPCAgent's columns)
@@ -55,7 +55,6 @@ class AdaptiveAgent(MPCAgent):
 
     def __init__(self, cfg: MPCConfig) -> None:
         super().__init__(cfg)
-        self.name = "adaptive"
         from ftc import _core  # native: the plant's integrator for the rollouts
 
         self.online_id = OnlineIdentification(
