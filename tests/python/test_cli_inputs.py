@@ -42,6 +42,26 @@ ACCEPTED = {
 # --out is given a fresh directory by every case (its checks: test_fault_injection.py)
 SKIPPED = {"--out"}
 
+
+
+def _acting(tool: str, flag: str) -> list[str]:
+    """The method (or mode) under which ``flag`` acts: an option given where it
+    has no effect is refused (test_registry.py), before its value is checked."""
+    if tool == "ftc.controller":
+        if flag.startswith(("--teacher-", "--branch-")):
+            return ["--method", "ppo-robust"]
+        if flag.startswith("--pretrain-") and flag != "--pretrain-cache":
+            return ["--pretrain"]
+        return []
+    if flag.startswith("--cem-"):
+        return ["--planner", "cem"]
+    if flag.startswith("--model-") or flag == "--pretrain-cache":
+        return ["--method", "model-mpc"]
+    if flag.startswith("--identify-"):
+        return ["--method", "identified-mpc"]
+    return []
+
+
 SINGLE = Path(__file__).resolve().parents[2] / "scenarios" / "single.toml"
 TOOLS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli}
 
@@ -73,7 +93,7 @@ def test_bad_value_exits_2_with_one_line_naming_the_flag(tool, flag, value, tmp_
     err = io.StringIO()
     with redirect_stderr(err):
         try:
-            TOOLS[tool].parse_args([*base, flag, value, "--out", str(out)])
+            TOOLS[tool].parse_args([*base, *_acting(tool, flag), flag, value, "--out", str(out)])
             code = 0
         except SystemExit as e:
             code = e.code

@@ -177,8 +177,10 @@ def expand_method(argv: Sequence[str], tool: str) -> list[str]:
         rest = argv[:start] + argv[end:]
         for fixed in m.args[2:]:
             stem = fixed.removeprefix("--no-").removeprefix("--")
-            if any(w.split("=", 1)[0] in (f"--{stem}", f"--no-{stem}") for w in rest):
-                raise ValueError(f"{fixed.split('=', 1)[0]} is fixed by --method {m.name} "
+            given = [w.split("=", 1)[0] for w in rest
+                     if w.split("=", 1)[0] in (f"--{stem}", f"--no-{stem}")]
+            if given:
+                raise ValueError(f"{given[0]} is fixed by --method {m.name} "
                                  f"(it means {' '.join(m.args)}); give --method "
                                  f"{m.tool_method} to choose it")
         return argv[:start] + list(m.args) + argv[end:]
