@@ -35,6 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "python"))
 
 from ftc.common.atomic import atomic_write_text  # noqa: E402
+from ftc.control import registry  # noqa: E402
 from ftc.experiments import benchmark_report as br  # noqa: E402
 
 
@@ -60,7 +61,8 @@ def read_cells(dirs: list[Path]) -> tuple[list[dict], list[dict]]:
         meta.append(json.loads(info.read_text()))
         with open(results, newline="") as f:
             for r in csv.DictReader(f):
-                key = (r["scenario"], r["method"], int(r["seed"]), int(r["interval"]))
+                method = registry.canonical(r["method"])  # a former name: today's
+                key = (r["scenario"], method, int(r["seed"]), int(r["interval"]))
                 if key in rows and rows[key]["reward_per_step"] != r["reward_per_step"]:
                     raise SystemExit(f"suite_results: {key} is given twice with different "
                                      f"rewards ({rows[key]['reward_per_step']} and "
@@ -99,8 +101,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     rows, meta = read_cells(args.dirs)
     reference = args.reference or meta[0]["config"].get("reference", br.ORACLE)
-    labels = {m: spec["label"] for info in meta for m, spec in info.get("methods", {}).items()}
-    methods = list(dict.fromkeys(m for info in meta for m in info["config"]["methods"]))
+    labels = {registry.canonical(m): spec["label"] for info in meta
+              for m, spec in info.get("methods", {}).items()}
+    labels |= {m: registry.METHODS[m].label for m in labels if m in registry.METHODS}
+    methods = list(dict.fromkeys(registry.canonical(m) for info in meta
+                                 for m in info["config"]["methods"]))
     if reference not in methods:
         raise SystemExit(f"suite_results: the reference '{reference}' has no runs in "
                          f"{', '.join(map(str, args.dirs))}")
