@@ -108,7 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
 def controller_config(values: dict[str, Any]) -> ControllerConfig:
     """The config of a run of ``values["method"]`` (its registry config class)
     from option values, the options of other methods dropped (they have no
-    effect on it and are refused when given)."""
+    effect on it and are refused when given); TypeError for an option no
+    method has."""
+    unknown = sorted(values.keys() - {f.name for f in fields(RobustConfig)})
+    if unknown:  # no method has it: not a config this controller wrote
+        raise TypeError(f"unknown options {', '.join(unknown)}")
     cls = registry.method(values.get("method", "ppo")).config_class()
     own = {f.name for f in fields(cls)}
     return cls(**{k: v for k, v in values.items() if k in own})
