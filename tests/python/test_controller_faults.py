@@ -155,8 +155,9 @@ def test_plant_killed_mid_interval_exits_3_keeps_results_and_resumes(tmp_path, s
 
 
 def _start_then_wait_for_an_interval(out: Path, scenario: str) -> tuple[subprocess.Popen, int]:
-    # 512 steps per interval: interval 1 is running when the signal lands
-    args = [*SHORT, "--steps-per-interval", "512", "--update-every", "128", "--intervals", "3",
+    # 512 steps per interval: interval 1 is running when the signal lands; 6 intervals,
+    # so that a test process descheduled on a loaded machine still signals a live run
+    args = [*SHORT, "--steps-per-interval", "512", "--update-every", "128", "--intervals", "6",
             "--scenario", scenario]
     proc = subprocess.Popen([PY, "-m", "ftc.controller", *args, "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
@@ -195,7 +196,7 @@ def test_a_stop_signal_shuts_the_plant_down_keeps_results_and_resumes(tmp_path, 
         resumed = subprocess.run([PY, "-m", "ftc.controller", "--resume", str(out), "--quiet"],
                                  capture_output=True, text=True, env=ENV, cwd=REPO, timeout=300)
         assert resumed.returncode == 0, resumed.stderr
-        assert _rows(out) == 3 and (out / "done.json").exists()
+        assert _rows(out) == 6 and (out / "done.json").exists()
 
 
 def test_the_plant_dies_with_a_killed_controller(tmp_path, scenarios):

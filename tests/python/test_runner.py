@@ -22,6 +22,7 @@ class Recorder(Agent):
     """All valves closed; records every call the runner makes."""
 
     name = "recorder"
+    extra_columns = ("open_fraction", "model_r2")  # what end_online and end_interval report
 
     def __init__(self) -> None:
         self.calls: list[tuple] = []
