@@ -44,7 +44,7 @@ import numpy as np
 from ftc.common.cli import at_least, between, positive
 from ftc.common.constants import NUM_TANKS
 from ftc.common.errors import CheckpointError
-from ftc.control import checkpoint
+from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
 from ftc.control.metrics import MODEL_COLUMNS
@@ -54,7 +54,7 @@ from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant.link import PlantObservation
 
-METHODS = ("oracle-mpc", "model-mpc", "identified-mpc")  # as ftc.control.registry lists them
+METHODS = registry.config_values("ftc.mpc")  # the values of MPCConfig.method
 PLANNERS = ("hold", "cem")
 # refused_rollouts: candidates whose rollout the integrator refused (scored -inf),
 # for the MPCs that plan on the C++ physics (oracle-mpc, identified-mpc); blank for model-mpc
