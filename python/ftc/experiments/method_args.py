@@ -19,7 +19,7 @@ from typing import Sequence
 from ftc.common.cli import config_from_namespace
 from ftc.control import controller_cli, mpc_cli, registry
 from ftc.control.mpc_agent import MPCConfig
-from ftc.control.ppo_robust_agent import ROBUST_FIELDS
+from ftc.control.ppo_robust_agent import ROBUST_FIELDS, RobustConfig
 from ftc.control.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec
 
@@ -78,7 +78,8 @@ def _parsed(spec: MethodSpec):
     ns = vars(module.build_parser().parse_args(registry.expand_method(spec.args, spec.module)))
     if spec.module == "ftc.mpc":
         return config_from_namespace(MPCConfig, ns)
-    return module.controller_config(ns)
+    # the controller's own options (its --ppo-* options configure PPOConfig)
+    return module.controller_config(vars(config_from_namespace(RobustConfig, ns)))
 
 
 def method_args(spec: MethodSpec, extra: Sequence[str]) -> list[str]:
