@@ -79,13 +79,13 @@ def summary_rows(rows: list[dict], reference: str, labels: dict[str, str],
     out = []
     for s in scores:
         f = fractions.get(s.method)
-        worst = br._worst_columns(s)
+        worst = br.worst_columns(s)
         out.append({
             "method": s.method, "label": f"`{s.method}` ({labels.get(s.method, s.method)})",
-            "normalized score": br._f(s.mean), "fraction of the oracle": br._f(f and f.mean),
+            "normalized score": br.fmt(s.mean), "fraction of the oracle": br.fmt(f and f.mean),
             **dict(zip(br.WORST_HEADER, worst)), "cells": str(s.cells),
-            **{f"score_{k}": br._f(s.per_interval.get(k)) for k in range(intervals)},
-            **{f"fraction_{k}": br._f(f.per_interval.get(k) if f else None)
+            **{f"score_{k}": br.fmt(s.per_interval.get(k)) for k in range(intervals)},
+            **{f"fraction_{k}": br.fmt(f.per_interval.get(k) if f else None)
                for k in range(intervals)}})
     return out
 

@@ -240,15 +240,18 @@ def draw_figure(run_dir: Path, methods: Sequence[str], labels: dict[str, str],
 # The report
 # ---------------------------------------------------------------------------
 
-def _f(v: float | None) -> str:
+def fmt(v: float | None) -> str:
+    """A score as the tables show it: three decimals, empty where undefined."""
     return "" if v is None else f"{v:.3f}"
 
 
-def _worst_columns(s: MethodSummary) -> list[str]:
-    return [f"{_f(s.worst_interval[1])} (interval {s.worst_interval[0]})",
-            f"{_f(s.worst_seed[1])} (seed {s.worst_seed[0]})",
-            f"{_f(s.worst_scenario[1])} ({s.worst_scenario[0]})",
-            f"{_f(s.worst_cell[1])} ({s.worst_cell[0][0]}, interval {s.worst_cell[0][1]})"]
+def worst_columns(s: MethodSummary) -> list[str]:
+    """The worst interval, seed, scenario and scenario-interval of a summary,
+    each as "score (where)": the report's and the suite result file's columns."""
+    return [f"{fmt(s.worst_interval[1])} (interval {s.worst_interval[0]})",
+            f"{fmt(s.worst_seed[1])} (seed {s.worst_seed[0]})",
+            f"{fmt(s.worst_scenario[1])} ({s.worst_scenario[0]})",
+            f"{fmt(s.worst_cell[1])} ({s.worst_cell[0][0]}, interval {s.worst_cell[0][1]})"]
 
 
 WORST_HEADER = ["worst interval", "worst seed", "worst scenario", "worst scenario-interval"]
@@ -257,8 +260,8 @@ WORST_HEADER = ["worst interval", "worst seed", "worst scenario", "worst scenari
 def _per_interval_table(summaries: Sequence[MethodSummary], name: Callable[[str], str],
                         intervals: int) -> Block:
     return Block("table", header=["method", *[str(k) for k in range(intervals)], "mean"],
-                 rows=[[name(s.method), *[_f(s.per_interval.get(k)) for k in range(intervals)],
-                        _f(s.mean)] for s in summaries])
+                 rows=[[name(s.method), *[fmt(s.per_interval.get(k)) for k in range(intervals)],
+                        fmt(s.mean)] for s in summaries])
 
 
 def score_blocks(scores: Sequence[MethodSummary], fractions: Sequence[MethodSummary],
@@ -270,8 +273,8 @@ def score_blocks(scores: Sequence[MethodSummary], fractions: Sequence[MethodSumm
     return [
         Block("table", header=["method", "normalized score", "fraction of the oracle",
                                *WORST_HEADER, "cells"],
-              rows=[[name(s.method), _f(s.mean), _f(fraction.get(s.method)),
-                     *_worst_columns(s), str(s.cells)] for s in scores]),
+              rows=[[name(s.method), fmt(s.mean), fmt(fraction.get(s.method)),
+                     *worst_columns(s), str(s.cells)] for s in scores]),
         Block("p", "Normalized score per interval (mean over scenarios and seeds)."),
         _per_interval_table(scores, name, intervals),
     ]
@@ -284,7 +287,7 @@ def summary_blocks(summaries: Sequence[MethodSummary], labels: dict[str, str],
     name = lambda m: f"{m} ({labels.get(m, m)})"  # noqa: E731
     return [
         Block("table", header=["method", "mean fraction", *WORST_HEADER, "cells"],
-              rows=[[name(s.method), _f(s.mean), *_worst_columns(s), str(s.cells)]
+              rows=[[name(s.method), fmt(s.mean), *worst_columns(s), str(s.cells)]
                     for s in summaries]),
         Block("p", "Fraction of the oracle per interval (mean over scenarios and seeds)."),
         _per_interval_table(summaries, name, intervals),
@@ -420,9 +423,9 @@ def _scenario_blocks(meta: dict, scores: Sequence[dict], fractions: Sequence[dic
             if r["scenario"] == stem and r["reward_per_step"] is not None:
                 rps[r["method"]].append(r["reward_per_step"])
         blocks.append(Block("h3", f"{stem}: {info.get('description', '?')}"))
-        rows = [[m, *[_f(score.get(m, {}).get(k)) for k in range(intervals)],
-                 _f(_mean(list(score.get(m, {}).values()))),
-                 _f(_mean(list(fraction.get(m, {}).values()))), _f(_mean(rps[m]))]
+        rows = [[m, *[fmt(score.get(m, {}).get(k)) for k in range(intervals)],
+                 fmt(_mean(list(score.get(m, {}).values()))),
+                 fmt(_mean(list(fraction.get(m, {}).values()))), fmt(_mean(rps[m]))]
                 for m in methods if m in rps]
         if rows:
             blocks.append(Block("table", header=["method", *[str(k) for k in range(intervals)],
