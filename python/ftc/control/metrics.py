@@ -18,6 +18,8 @@ MODEL_COLUMNS = ("model_r2", "model_prior_r2", "model_one_step_rmse", "model_ten
 PPO_COLUMNS = (*MODEL_COLUMNS, "offline_reward_per_step", "entropy", "open_fraction",
                "approx_kl", "clipfrac", "explained_variance", "value_loss", "policy_swaps",
                "offline_seconds")
+# the PPO agents' entries of the progress line (Agent.progress_keys)
+PPO_PROGRESS_KEYS = (("entropy", "entropy"), ("approx_kl", "kl"), ("explained_variance", "ev"))
 
 
 def metric_columns(extra: Sequence[str]) -> list[str]:

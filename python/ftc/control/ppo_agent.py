@@ -33,20 +33,19 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-import torch
 
 from ftc.common.cli import at_least, between, positive
 from ftc.common.errors import CheckpointError
 from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext, Transition
-from ftc.control.checkpoint import check_finite_state, check_update
+from ftc.control.checkpoint import check_finite_state
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
-from ftc.control.metrics import PPO_COLUMNS, mean
+from ftc.control.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
+from ftc.control.ppo_online import OnlinePPO
 from ftc.learning.offline import (ModelWindow, OfflineResult, OfflineSettings, offline_phase,
                                   pretrained_world_model)
-from ftc.learning.ppo import PPO, PPOConfig, UpdateStats
-from ftc.learning.pretrain import PretrainSettings, code_fingerprint, pretrain_cached
-from ftc.learning.rollout import RolloutCollector
+from ftc.learning.ppo import PPO, PPOConfig
+from ftc.learning.pretrain import PretrainSettings, code_fingerprint
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
 from ftc.plant.link import PlantObservation
@@ -156,28 +155,22 @@ class ControllerConfig(RunConfig):
                                model_engine=self.model_engine)
 
 
-def _obs(o: PlantObservation) -> torch.Tensor:
-    return torch.as_tensor(o.level, dtype=torch.float32).unsqueeze(0)
-
-
 class PPOAgent(Agent):
-    """Algorithm 1: PPO online (an update every t_update real steps) and, after
-    each interval, the offline phase on the refitted world model."""
+    """Algorithm 1: PPO online (an update every t_update real steps: its
+    :class:`OnlinePPO`) and, after each interval, the offline phase on the
+    refitted world model."""
 
     name = "ppo"
     extra_columns = PPO_COLUMNS
-    progress_keys = (("entropy", "entropy"), ("approx_kl", "kl"), ("explained_variance", "ev"))
+    progress_keys = PPO_PROGRESS_KEYS
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         self.cfg, self.ppo_config = cfg, ppo_config
         self.ppo = PPO(ppo_config, seed=cfg.seed)
-        self.collector = RolloutCollector(self.ppo, cfg.update_every, 1)
+        self.online = OnlinePPO(self.ppo, cfg.update_every)
         self.model_state: dict | None = None
         self.model_fits = 0
         self.window = ModelWindow(cfg.model_window)
-        self.stats: list[UpdateStats] = []
-        self._sample: tuple | None = None
-        self._where = ""
         # background offline phase
         self.executor: concurrent.futures.ProcessPoolExecutor | None = None
         self.pending: tuple[concurrent.futures.Future, int] | None = None
@@ -199,9 +192,8 @@ class PPOAgent(Agent):
                                                           cfg.pretrain_cache, cfg.model_engine)
             self.model_state, self.model_fits = model.state_dict(), model.fits
         if cfg.pretrain:
-            info.update(pretrain_cached(self.ppo, cfg.pretrain_settings(), cfg.pretrain_cache))
-            if cfg.fresh_optimizer:
-                self.ppo.reset_optimizer()
+            info.update(self.online.pretrain(cfg.pretrain_settings(), cfg.pretrain_cache,
+                                             cfg.fresh_optimizer))
         return info
 
     def wants_data(self) -> bool:
@@ -218,34 +210,21 @@ class PPOAgent(Agent):
 
     # -- online -----------------------------------------------------------------
     def begin_interval(self, interval: int) -> None:
-        self.stats = []
+        self.online.begin_interval()
         self._swaps_before = self.swaps
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
-        x = _obs(obs)
-        a, lp, v = self.ppo.act(x, deterministic=ctx.evaluation)
-        self._sample = None if ctx.evaluation else (x, a, lp, v)
-        self._where = f"interval {ctx.interval}, step {ctx.step + 1}"
-        return a[0].numpy().astype(np.int8)
+        return self.online.act(obs, ctx)
 
     def observe(self, t: Transition) -> None:
-        x, a, lp, v = self._sample
-        self.collector.add(x, a, lp, v, torch.tensor([t.reward]),
-                           torch.tensor([t.next_obs.terminal]), torch.tensor([t.truncated]),
-                           _obs(t.next_obs))
-        if self.collector.full:
-            self.stats.append(self.collector.update(_obs(t.following)))
-            check_update(self.ppo.policy, self.stats[-1], f"the PPO update at {self._where}")
-            self.telemetry.update(self.stats[-1]._asdict())
+        stats = self.online.observe(t)
+        if stats is not None:  # an update boundary: where a finished offline phase swaps in
+            self.telemetry.update(stats._asdict())
             if self.pending is not None and self.pending[0].done():
                 self._take_pending()
 
     def end_online(self) -> dict[str, Any]:
-        if not self.stats:
-            return {}
-        return {name: mean([getattr(s, name) for s in self.stats])
-                for name in ("entropy", "open_fraction", "approx_kl", "clipfrac",
-                             "explained_variance", "value_loss")}
+        return self.online.end_online()
 
     # -- offline ----------------------------------------------------------------
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
@@ -315,7 +294,7 @@ class PPOAgent(Agent):
 
     # -- persistence ------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        return {"ppo": self.ppo.state_dict(), "model": self.model_state,
+        return {"ppo": self.online.state_dict(), "model": self.model_state,
                 "model_fits": self.model_fits,
                 "window": [checkpoint.transitions_state(w) for w in self.window.parts],
                 # a background offline phase in flight: its data, to start it again on resume
@@ -327,19 +306,12 @@ class PPOAgent(Agent):
         missing = sorted({"ppo", "model", "model_fits", "window", "pending"} - set(state))
         if missing:
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
-        checkpoint.check_network_shapes_of(self.ppo.policy.state_dict(),
-                                           state["ppo"].get("policy", {}), "network")
-        try:
-            check_finite_state(state["ppo"]["policy"], "policy weights in the checkpoint")
-            if state["model"] is not None:
+        if state["model"] is not None:
+            try:
                 check_finite_state(state["model"], "world-model weights in the checkpoint")
-        except Exception as e:  # NonFiniteError: a checkpoint that cannot be resumed
-            raise CheckpointError(str(e)) from None
-        try:
-            self.ppo.load_state_dict(state["ppo"])
-        except (KeyError, RuntimeError, ValueError) as e:
-            raise CheckpointError(f"policy or optimiser state does not load: "
-                                  f"{str(e).splitlines()[0]}") from None
+            except Exception as e:  # NonFiniteError: a checkpoint that cannot be resumed
+                raise CheckpointError(str(e)) from None
+        self.online.load_state_dict(state["ppo"])
         self.model_state, self.model_fits = state["model"], state["model_fits"]
         self.window.parts = [checkpoint.transitions_from_state(w) for w in state["window"]]
         if state["pending"] is not None:  # restart the phase that was in flight

@@ -23,6 +23,7 @@ that made it hold up on faults it was never tuned on (docs/controller.md):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,18 +33,20 @@ import torch
 
 from ftc.common.cli import at_least, between
 from ftc.common.constants import NUM_TANKS, offline_seed
-from ftc.control.agent import Transition
+from ftc.common.errors import CheckpointError
+from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import check_finite_state
 from ftc.control.planners import HoldPlanner, ParamsEvaluator
-from ftc.control.metrics import PPO_COLUMNS
-from ftc.control.ppo_agent import ControllerConfig, PPOAgent
+from ftc.control.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
+from ftc.control.ppo_agent import ControllerConfig
+from ftc.control.ppo_online import OnlinePPO
 from ftc.learning.distill import distill, distinct
 from ftc.learning.identify import Identifier, OnlineIdentification
 from ftc.learning.physics_env import PhysicsEnv
-from ftc.learning.ppo import PPOConfig
-from ftc.learning.pretrain import pretrain_cached
+from ftc.learning.ppo import PPO, PPOConfig
 from ftc.learning.rollout import train_on_env
 from ftc.learning.transitions import Transitions
+from ftc.plant.link import PlantObservation
 
 
 @dataclass
@@ -96,17 +99,24 @@ ROBUST_FIELDS = tuple(f.name for f in dataclasses.fields(RobustConfig)
                       if f.name not in {g.name for g in dataclasses.fields(ControllerConfig)})
 
 
-class RobustPPOAgent(PPOAgent):
+class RobustPPOAgent(Agent):
+    """PPO online on the plant (its :class:`OnlinePPO`, as Algorithm 1's) with
+    the identified physics and the planner-guided fit after every interval and
+    when the plant changes within one (the module's docstring)."""
+
     name = "ppo-robust"
     extra_columns = (*PPO_COLUMNS, "distill_loss", "distill_agreement", "distill_epochs",
                      "teacher_labels", "teacher_plans", "teacher_memory", "teach_seconds",
                      "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
                      "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
+    progress_keys = PPO_PROGRESS_KEYS
 
     def __init__(self, cfg: RobustConfig, ppo_config: PPOConfig) -> None:
         from ftc import _core  # native: the plant's integrator for the teacher's rollouts
 
-        super().__init__(cfg, ppo_config)
+        self.cfg = cfg
+        self.ppo = PPO(ppo_config, seed=cfg.seed)
+        self.online = OnlinePPO(self.ppo, cfg.update_every)
         self.online_id = OnlineIdentification(Identifier(seed=cfg.seed), trigger=1e-4, every=0)
         self.refits = 0
         self.teacher = HoldPlanner(3, 10)  # the oracle MPC's planner (H = 3, L = 10)
@@ -116,30 +126,30 @@ class RobustPPOAgent(PPOAgent):
         self.memory = np.empty((0, NUM_TANKS))
         self.plan_cache = PlanCache()
 
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "RobustPPOAgent":
+        return cls(configs["controller"], configs["ppo"])
+
     def prepare(self) -> dict[str, Any]:
-        info: dict[str, Any] = {}
-        if self.cfg.pretrain:
-            info.update(pretrain_cached(self.ppo, self.cfg.pretrain_settings(),
-                                        self.cfg.pretrain_cache))
-            if self.cfg.fresh_optimizer:
-                self.ppo.reset_optimizer()
-        return info
-
-    def wants_data(self) -> bool:
-        return False
-
-    def config_doc(self) -> dict[str, Any]:
-        return {}
+        """Pretrain the policy (--pretrain); no world model to pretrain."""
+        cfg = self.cfg
+        return (self.online.pretrain(cfg.pretrain_settings(), cfg.pretrain_cache,
+                                     cfg.fresh_optimizer) if cfg.pretrain else {})
 
     def begin_interval(self, interval: int) -> None:
-        super().begin_interval(interval)
+        self.online.begin_interval()
         self.online_id.begin()
         self.refits = 0
         self.interval = interval
         self.checks, self.check_refits = 0, 0
 
+    def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
+        return self.online.act(obs, ctx)
+
     def observe(self, t: Transition) -> None:
-        super().observe(t)
+        stats = self.online.observe(t)
+        if stats is not None:
+            self.telemetry.update(stats._asdict())
         cfg = self.cfg
         changed = self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
                                      t.next_obs.deficit)  # the valves the plant applied
@@ -167,7 +177,10 @@ class RobustPPOAgent(PPOAgent):
         """A guided fit within the interval, from the levels observed in it so far."""
         observed = np.array([r[2] for r in self.online_id.rows])
         self._guided_fit(observed, fit_id, rounds)
-        self.collector.buffer.reset()
+        self.online.drop_rollout()
+
+    def end_online(self) -> dict[str, Any]:
+        return self.online.end_online()
 
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
         cfg, start = self.cfg, time.perf_counter()
@@ -182,22 +195,8 @@ class RobustPPOAgent(PPOAgent):
         refused, self.teacher_eval.refused = self.teacher_eval.refused, 0  # this interval's
         rew, updates, errors = float("nan"), 0, 0
         if cfg.offline_steps:  # then PPO on the identified physics (also fits the critic)
-            env = PhysicsEnv(ahead.as_core(), cfg.offline_envs,
-                             max_episode_steps=cfg.steps_per_interval, starts=next_level,
-                             branch_fraction=cfg.branch_fraction, branch_steps=cfg.branch_steps,
-                             seed=offline_seed(cfg.seed, interval))
-            online_config = self.ppo.config
-            generator_state = self.ppo.generator.get_state()
-            self.ppo.generator.manual_seed(offline_seed(cfg.seed, interval))
-            self.ppo.config = dataclasses.replace(online_config,
-                                                  minibatch_size=cfg.offline_minibatch)
-            try:
-                stats, rew, _ = train_on_env(self.ppo, env, cfg.offline_steps,
-                                             cfg.offline_rollout)
-            finally:
-                self.ppo.config = online_config
-                self.ppo.generator.set_state(generator_state)
-            updates, errors = len(stats), env.errors
+            rew, updates, errors = _ppo_on_physics(self.ppo, cfg, ahead.as_core(), next_level,
+                                                   interval)
         check_finite_state(self.ppo.policy.state_dict(),
                            f"policy weights after the offline phase of interval {interval}")
         return {**metrics, "model_one_step_rmse": rms, "offline_reward_per_step": rew,
@@ -235,9 +234,11 @@ class RobustPPOAgent(PPOAgent):
         # its 1,024-2,048 labelled levels held 55-124 distinct ones, each planned once
         plans: dict[bytes, np.ndarray] = {}  # this fit's labels (teacher_plans: how many)
         self.plan_cache.begin(self.teacher_eval)
+        label = functools.partial(self.plan_cache.label, self.teacher, self.teacher_eval,
+                                  plans=plans)
         carried = self.memory
-        carried_labels = self._labels(carried, plans)
-        states, labels = start, self._labels(start, plans)
+        carried_labels = label(carried)
+        states, labels = start, label(start)
         metrics: dict[str, Any] = {}
         env = PhysicsEnv(self.teacher_eval.params, 1, max_episode_steps=cfg.steps_per_interval,
                          seed=seed)
@@ -252,7 +253,7 @@ class RobustPPOAgent(PPOAgent):
                     obs = env.step(actions).obs
             visited = np.array(visited)
             states = np.concatenate([states, visited])[-cfg.teacher_states:]
-            labels = np.concatenate([labels, self._labels(visited, plans)])[-cfg.teacher_states:]
+            labels = np.concatenate([labels, label(visited)])[-cfg.teacher_states:]
             all_states = np.concatenate([carried, states])
             all_labels = np.concatenate([carried_labels, labels])
             if cfg.teacher_distinct:
@@ -272,30 +273,45 @@ class RobustPPOAgent(PPOAgent):
         self.ppo.reset_optimizer()
         return metrics
 
-    def _labels(self, states: np.ndarray, plans: dict[bytes, np.ndarray]) -> np.ndarray:
-        """The planner's first valves (N, 6) at each of ``states`` (N, 6); ``plans``
-        caches them by level (the planner is deterministic for fixed parameters),
-        taking those an earlier fit planned on the same parameters from
-        :attr:`plan_cache`."""
-        out = np.empty((len(states), NUM_TANKS))
-        for n, x in enumerate(states):
-            key = x.tobytes()
-            if key not in plans:
-                label = self.plan_cache.labels.get(key)
-                plans[key] = (self.teacher.plan(self.teacher_eval, x)[0] if label is None
-                              else label)
-            out[n] = plans[key]
-        return out
-
     def state_dict(self) -> dict[str, Any]:
-        return {**super().state_dict(), "identification": self.online_id.state_dict(),
+        # model .. pending: PPOAgent's entries (world model, refit window, background
+        # phase), empty here, which ppo-robust checkpoints carried when this class
+        # inherited PPOAgent: still written, so checkpoints stay as they were; not read
+        return {"ppo": self.online.state_dict(),
+                "model": None, "model_fits": 0, "window": [], "pending": None,
+                "identification": self.online_id.state_dict(),
                 "teacher_memory": self.memory.tolist()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        super().load_state_dict(state)
+        missing = sorted({"ppo", "identification", "teacher_memory"} - set(state))
+        if missing:
+            raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
+        self.online.load_state_dict(state["ppo"])
         self.online_id.load_state_dict(state["identification"])
         memory = np.asarray(state["teacher_memory"], dtype=np.float64)
         self.memory = memory.reshape(-1, NUM_TANKS)
+
+
+def _ppo_on_physics(ppo: PPO, cfg: RobustConfig, params: dict, starts: np.ndarray,
+                    interval: int) -> tuple[float, int, int]:
+    """PPO for ``cfg.offline_steps`` steps on the identified physics ``params``
+    (``cfg.branch_fraction`` of its episodes branched from ``starts``, levels
+    (N, 6) observed on the plant), on a stream of its own and with the offline
+    minibatch size, both restored after. Returns the mean reward per step, the
+    number of updates and the steps the integrator refused."""
+    env = PhysicsEnv(params, cfg.offline_envs, max_episode_steps=cfg.steps_per_interval,
+                     starts=starts, branch_fraction=cfg.branch_fraction,
+                     branch_steps=cfg.branch_steps, seed=offline_seed(cfg.seed, interval))
+    online_config = ppo.config
+    generator_state = ppo.generator.get_state()
+    ppo.generator.manual_seed(offline_seed(cfg.seed, interval))
+    ppo.config = dataclasses.replace(online_config, minibatch_size=cfg.offline_minibatch)
+    try:
+        stats, rew, _ = train_on_env(ppo, env, cfg.offline_steps, cfg.offline_rollout)
+    finally:
+        ppo.config = online_config
+        ppo.generator.set_state(generator_state)
+    return rew, len(stats), env.errors
 
 
 class PlanCache:
@@ -313,6 +329,21 @@ class PlanCache:
         if not (_same_params(self.planned_for[0], planned_for[0])
                 and self.planned_for[1] == planned_for[1]):
             self.labels, self.planned_for = {}, planned_for
+
+    def label(self, planner: HoldPlanner, evaluate: ParamsEvaluator, states: np.ndarray,
+              plans: dict[bytes, np.ndarray]) -> np.ndarray:
+        """``planner``'s first valves (N, 6) on ``evaluate`` at each of ``states``
+        (N, 6); ``plans`` (a fit's) caches them by level (the planner is
+        deterministic for fixed parameters), taking those an earlier fit planned
+        on the same parameters from :attr:`labels`."""
+        out = np.empty((len(states), NUM_TANKS))
+        for n, x in enumerate(states):
+            key = x.tobytes()
+            if key not in plans:
+                label = self.labels.get(key)
+                plans[key] = planner.plan(evaluate, x)[0] if label is None else label
+            out[n] = plans[key]
+        return out
 
 
 def _same_params(a: dict | None, b: dict | None) -> bool:
