@@ -37,7 +37,6 @@ import io
 import json
 import os
 import shlex
-import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -57,7 +56,7 @@ from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorR
 from ftc.experiments.progress import Progress
 from ftc.experiments.ray_executor import (RaySession, add_executor_options,
                                          check_executor_options, connect, run_on_ray)
-from ftc.experiments.run_cache import RunCache, RunKey, code_digests, default_dir, scenario_is_random
+from ftc.experiments.run_cache import RunCache, cache_groups, default_dir, reuse_after, reuse_before
 from ftc.experiments.runs import RunSpec, is_finished
 from ftc.experiments.scenarios import ExperimentConfig, Scenario
 from ftc.experiments.suite import default_suite
@@ -405,96 +404,19 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
     return len(failed)
 
 
-def _cache_groups(out: Path, config: BenchmarkConfig, runs: list[RunSpec]
-                  ) -> dict[RunKey, list[RunSpec]]:
-    """The runs of the cached methods (registry ``cached``), grouped by what
-    their results depend on (:class:`RunKey`): one group per scenario, or per
-    scenario and seed where the scenario's plant draws random numbers."""
-    code = tuple(sorted(code_digests().items()))
-    random: dict[str, bool] = {}
-    groups: dict[RunKey, list[RunSpec]] = {}
-    for r in runs:
-        spec = METHODS[r.method]
-        if not spec.cached:
-            continue
-        path = out / "scenarios" / f"{r.scenario}.toml"
-        if r.scenario not in random:
-            random[r.scenario] = scenario_is_random(path)
-        key = RunKey(path.read_text(), (*spec.args, *method_args(spec, config.controller_args)),
-                     config.intervals, config.steps_per_interval, config.link,
-                     r.seed if random[r.scenario] else None, code)
-        groups.setdefault(key, []).append(r)
-    return groups
-
-
-def _copy_run(source: Path, spec: RunSpec, out: Path, reused: dict) -> None:
-    """A finished run's directory as ``spec``'s, its result.json naming where it
-    came from (``reused``); result.json is written last, as a run's is."""
-    target = spec.directory(out)
-    if source != target:
-        if target.exists():
-            shutil.rmtree(target)
-        shutil.copytree(source, target, ignore=shutil.ignore_patterns("result.json",
-                                                                       "processes.json"))
-    record = json.loads((source / "result.json").read_text())
-    record.update(run=spec.key, seed=spec.seed, reused=reused)
-    atomic_write_json(target / "result.json", record)
-
-
-def _reuse_before(out: Path, groups: dict[RunKey, list[RunSpec]], finished: set[str],
-                  cache: RunCache, sources: dict[str, dict]) -> set[str]:
-    """Fill each group from a run of it already finished or from the cache; the
-    runs to skip (a group with neither runs its first run, the others wait for it)."""
-    waiting = set()
-    for key, group in groups.items():
-        done = [r for r in group if r.key in finished]
-        if not done and cache.restore(key, group[0].directory(out)):
-            _copy_run(group[0].directory(out), group[0], out, {"cache": key.digest})
-            sources[group[0].key] = {"cache": key.digest, "from": "cache"}
-            done = [group[0]]
-        if not done:
-            waiting |= {r.key for r in group[1:]}
-            continue
-        for r in group:
-            if r.key not in finished and r is not done[0]:
-                _copy_run(done[0].directory(out), r, out, {"cache": key.digest,
-                                                            "from": done[0].key})
-                sources[r.key] = {"cache": key.digest, "from": done[0].key}
-        finished.update(r.key for r in group)
-    return waiting
-
-
-def _reuse_after(out: Path, groups: dict[RunKey, list[RunSpec]], cache: RunCache,
-                 sources: dict[str, dict], stream: TextIO) -> None:
-    """Keep each group's finished run in the cache and copy it to the group's waiting runs."""
-    for key, group in groups.items():
-        first = group[0].directory(out)
-        if not is_finished(first):
-            continue
-        try:
-            if cache.store(key, first):
-                sources.setdefault(group[0].key, {"cache": key.digest, "from": "ran"})
-        except OSError as e:
-            print(f"{TOOL}: warning: cannot keep {group[0].key} in the cache {cache.root}: "
-                  f"{e.strerror or e}", file=stream)
-        for r in group[1:]:
-            if not is_finished(r.directory(out)):
-                _copy_run(first, r, out, {"cache": key.digest, "from": group[0].key})
-                sources[r.key] = {"cache": key.digest, "from": group[0].key}
-
-
 def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextIO,
              guardian: Guardian, ray: RaySession | None, fork_server: bool = True,
              cache: RunCache | None = None) -> list[str]:
     """The unfinished runs on the orchestrator's pool, those of a cached method
-    once per group (:func:`_cache_groups`) or not at all on a hit; returns the
+    once per group (:func:`ftc.experiments.run_cache.cache_groups`) or not at all on a hit; returns the
     failed keys."""
     cache = cache if cache is not None else RunCache(None)
     runs = plan_benchmark(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
-    groups = _cache_groups(out, config, runs)
+    groups = cache_groups(out, runs, config.intervals, config.steps_per_interval, config.link,
+                          config.controller_args)
     sources: dict[str, dict] = {}
-    waiting = _reuse_before(out, groups, finished, cache, sources)
+    waiting = reuse_before(out, groups, finished, cache, sources)
     todo = [r for r in runs if r.key not in finished and r.key not in waiting]
     print(f"{TOOL}: {len(runs)} runs ({len(config.scenarios)} scenarios x "
           f"{len(config.methods)} methods x {len(config.seeds)} seeds) in {out} "
@@ -507,7 +429,7 @@ def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextI
                               stream, TOOL, fork_server)
     else:
         results = run_on_ray(ray, out, config.run_config(), todo, [], progress, stream, TOOL)
-    _reuse_after(out, groups, cache, sources, stream)
+    reuse_after(out, groups, cache, sources, stream, TOOL)
     meta = json.loads((out / "benchmark.json").read_text())
     if groups:
         previous = meta.get("run_cache", {})

@@ -14,6 +14,10 @@ and the built native core). A changed byte of any of them misses.
 Layout: ``DIR/<key>/run/`` (the run directory as the benchmark wrote it) and
 ``DIR/<key>/key.json`` (what the key was made of). An entry is written in a
 temporary directory and renamed into place, so a reader never sees half of one.
+
+The benchmark's side: :func:`cache_groups` groups its runs by key,
+:func:`reuse_before` fills a group from a finished run or the cache before the
+pool starts, :func:`reuse_after` keeps the group's run and copies it to the rest.
 """
 
 from __future__ import annotations
@@ -25,6 +29,12 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TextIO
+
+from ftc.common.atomic import atomic_write_json
+from ftc.experiments.method_args import method_args
+from ftc.experiments.methods import METHODS
+from ftc.experiments.runs import RunSpec, is_finished
 
 # The Python files, relative to the ftc package's parent, whose bytes decide a
 # cached method's results besides the native core: the planners and their
@@ -53,10 +63,9 @@ def _sha256(path: Path) -> str:
 def code_digests() -> dict[str, str]:
     """SHA-256 of each file of :data:`CODE` and of the built native core (``_core``,
     whose bytes carry the C++ physics and batch rollouts)."""
-    import ftc
     from ftc import _core  # native: its shared library is hashed, not run
 
-    root = Path(ftc.__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]  # the ftc package's parent
     digests = {rel: _sha256(root / rel) for rel in CODE}
     digests["_core"] = _sha256(Path(_core.__file__))
     return digests
@@ -133,3 +142,83 @@ class RunCache:
                 return False
             raise
         return True
+
+
+def cache_groups(out: Path, runs: list[RunSpec], intervals: int, steps_per_interval: int,
+                 link: str, controller_args: tuple[str, ...]) -> dict[RunKey, list[RunSpec]]:
+    """The runs of the cached methods (registry ``cached``) of a benchmark in
+    ``out``, grouped by what their results depend on (:class:`RunKey`): one group
+    per scenario, or per scenario and seed where the scenario's plant draws
+    random numbers."""
+    code = tuple(sorted(code_digests().items()))
+    random: dict[str, bool] = {}
+    groups: dict[RunKey, list[RunSpec]] = {}
+    for r in runs:
+        spec = METHODS[r.method]
+        if not spec.cached:
+            continue
+        path = out / "scenarios" / f"{r.scenario}.toml"
+        if r.scenario not in random:
+            random[r.scenario] = scenario_is_random(path)
+        key = RunKey(path.read_text(), (*spec.args, *method_args(spec, controller_args)),
+                     intervals, steps_per_interval, link,
+                     r.seed if random[r.scenario] else None, code)
+        groups.setdefault(key, []).append(r)
+    return groups
+
+
+def copy_run(source: Path, spec: RunSpec, out: Path, reused: dict) -> None:
+    """A finished run's directory as ``spec``'s, its result.json naming where it
+    came from (``reused``); result.json is written last, as a run's is."""
+    target = spec.directory(out)
+    if source != target:
+        if target.exists():
+            shutil.rmtree(target)
+        shutil.copytree(source, target, ignore=shutil.ignore_patterns("result.json",
+                                                                       "processes.json"))
+    record = json.loads((source / "result.json").read_text())
+    record.update(run=spec.key, seed=spec.seed, reused=reused)
+    atomic_write_json(target / "result.json", record)
+
+
+def reuse_before(out: Path, groups: dict[RunKey, list[RunSpec]], finished: set[str],
+                 cache: RunCache, sources: dict[str, dict]) -> set[str]:
+    """Fill each group from a run of it already finished or from the cache (adding
+    them to ``finished``, recording in ``sources`` where each came from); returns
+    the runs to skip: a group with neither runs its first run, the others wait for it."""
+    waiting = set()
+    for key, group in groups.items():
+        done = [r for r in group if r.key in finished]
+        if not done and cache.restore(key, group[0].directory(out)):
+            copy_run(group[0].directory(out), group[0], out, {"cache": key.digest})
+            sources[group[0].key] = {"cache": key.digest, "from": "cache"}
+            done = [group[0]]
+        if not done:
+            waiting |= {r.key for r in group[1:]}
+            continue
+        for r in group:
+            if r.key not in finished and r is not done[0]:
+                copy_run(done[0].directory(out), r, out, {"cache": key.digest,
+                                                            "from": done[0].key})
+                sources[r.key] = {"cache": key.digest, "from": done[0].key}
+        finished.update(r.key for r in group)
+    return waiting
+
+
+def reuse_after(out: Path, groups: dict[RunKey, list[RunSpec]], cache: RunCache,
+                sources: dict[str, dict], stream: TextIO, tool: str) -> None:
+    """Keep each group's finished run in the cache and copy it to the group's waiting runs."""
+    for key, group in groups.items():
+        first = group[0].directory(out)
+        if not is_finished(first):
+            continue
+        try:
+            if cache.store(key, first):
+                sources.setdefault(group[0].key, {"cache": key.digest, "from": "ran"})
+        except OSError as e:
+            print(f"{tool}: warning: cannot keep {group[0].key} in the cache {cache.root}: "
+                  f"{e.strerror or e}", file=stream)
+        for r in group[1:]:
+            if not is_finished(r.directory(out)):
+                copy_run(first, r, out, {"cache": key.digest, "from": group[0].key})
+                sources[r.key] = {"cache": key.digest, "from": group[0].key}
