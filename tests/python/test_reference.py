@@ -60,7 +60,8 @@ def test_it_finds_the_best_of_the_4096_plans_and_the_hold_plans(seed):
     x0 = np.zeros(6)
     planner = TwoStagePlanner(first_hold=2, keep=64, hold=3, horizon=8)
     u, seq, total = planner.plan(evaluate, x0)
-    every = np.concatenate([planner.hold.candidates(8), two_stage_candidates(2, 8).reshape(-1, 8, 6)])
+    every = np.concatenate([planner.hold.candidates(8),
+                            two_stage_candidates(2, 8).reshape(-1, 8, 6)])
     assert total == pytest.approx(_brute_force(evaluate, x0, every), abs=1e-12)
     assert float(evaluate(x0, seq[None])[0]) == pytest.approx(total, abs=1e-12)
     assert (u == seq[0]).all()

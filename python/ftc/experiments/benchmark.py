@@ -408,8 +408,8 @@ def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextI
              guardian: Guardian, ray: RaySession | None, fork_server: bool = True,
              cache: RunCache | None = None) -> list[str]:
     """The unfinished runs on the orchestrator's pool, those of a cached method
-    once per group (:func:`ftc.experiments.run_cache.cache_groups`) or not at all on a hit; returns the
-    failed keys."""
+    once per group (:func:`ftc.experiments.run_cache.cache_groups`) or not at all
+    on a hit; returns the failed keys."""
     cache = cache if cache is not None else RunCache(None)
     runs = plan_benchmark(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
