@@ -41,6 +41,15 @@ def pytest_collection_modifyitems(config, items):
     items[:] = keep
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_run_cache(tmp_path_factory):
+    """Benchmarks started by the tests keep their cached runs (the reference's) in
+    a directory of this session's, never in the user's ~/.cache."""
+    import os
+
+    os.environ["FTC_RUN_CACHE"] = str(tmp_path_factory.mktemp("run-cache"))
+
+
 @pytest.fixture
 def repo() -> Path:
     return REPO

@@ -1,6 +1,6 @@
 """The benchmark suite: the default scenarios' generator, the command line's
 checks, and a reduced suite end to end (2 scenarios, closed / balance /
-oracle-mpc, 2 seeds, 2 intervals of 64 steps, --link core, --jobs 2):
+oracle-mpc as the reference, 2 seeds, 2 intervals of 64 steps, --link core, --jobs 2):
 results.csv, the normalized scores (closed 0, the reference 1, one checked by
 hand) and the fractions of the oracle checked by hand, the report's summary
 lines, the figure, and --resume skipping finished runs; the normalized
@@ -117,17 +117,17 @@ def test_a_malformed_scenario_and_two_files_of_one_stem_are_refused(tmp_path, ca
     assert not (tmp_path / "out").exists()
 
 
-def test_defaults_every_benchmark_method_and_the_oracle_always(tmp_path):
+def test_defaults_every_benchmark_method_and_the_reference_always(tmp_path):
     args = benchmark.parse_args(["--out", str(tmp_path / "o")])
     assert args.config.methods == benchmark.default_methods()
     assert set(args.config.methods) == {m for m, s in METHODS.items() if s.benchmark}
     assert args.config.seeds == (0, 1, 2) and args.config.link == "core"
     assert list(args.texts) == [s.name for s in suite.default_suite()]
-    assert args.config.reference == "oracle-mpc"
+    assert args.config.reference == "reference" and "oracle-mpc" in args.config.methods
     args = benchmark.parse_args(["--out", str(tmp_path / "o"), "--methods", "closed"])
-    assert args.config.methods == ("closed", "oracle-mpc")
+    assert args.config.methods == ("closed", "reference")
     args = benchmark.parse_args(["--out", str(tmp_path / "o"), "--methods", "balance"])
-    assert args.config.methods == ("balance", "oracle-mpc", "closed")
+    assert args.config.methods == ("balance", "reference", "closed")
     args = benchmark.parse_args(["--out", str(tmp_path / "o"), "--methods", "open",
                                  "--reference", "balance"])
     assert args.config.methods == ("open", "balance", "closed")
@@ -178,7 +178,8 @@ def bench(tmp_path_factory) -> Path:
     files = [generated[2], Path(__file__).parents[2] / "scenarios" / "single.toml"]
     out = root / "out"
     proc = _run_cli(["--scenarios", *map(str, files), "--methods", *METHODS_RUN,
-                     "--seeds", *map(str, SEEDS), "--link", "core", "--out", str(out), *SHORT])
+                     "--seeds", *map(str, SEEDS), "--link", "core", "--reference", "oracle-mpc",
+                     "--out", str(out), *SHORT])
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out
 

@@ -55,6 +55,8 @@ def _acting(tool: str, flag: str) -> list[str]:
         return []
     if flag.startswith("--cem-"):
         return ["--planner", "cem"]
+    if flag.startswith("--two-stage-"):
+        return ["--planner", "two-stage"]
     if flag.startswith("--model-") or flag == "--pretrain-cache":
         return ["--method", "model-mpc"]
     if flag.startswith("--identify-"):

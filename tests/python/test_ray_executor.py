@@ -36,7 +36,7 @@ from ftc.experiments.runs import is_finished
 REPO = Path(__file__).resolve().parents[2]
 BENCH = ["benchmark", "--scenarios", str(REPO / "scenarios" / "single.toml"),
          "--methods", "closed", "--seeds", "0", "1", "--intervals", "2",
-         "--steps-per-interval", "64"]
+         "--steps-per-interval", "64", "--reference", "oracle-mpc"]
 EXPERIMENT = ["single", "--methods", "closed", "balance", "ppo-online", "--seeds", "0",
               "--intervals", "2", "--steps-per-interval", "64",
               "--controller-args", "--update-every 32"]

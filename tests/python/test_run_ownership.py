@@ -107,7 +107,8 @@ def _stale(target: Path, name: str = "run.lock", beside: bool = False) -> int:
 
 SHORT_RUN = ["--intervals", "2", "--steps-per-interval", "64", *CORE]
 BENCH = ["--scenarios", SINGLE, "--methods", "closed", "--seeds", "0", "--intervals", "1",
-         "--steps-per-interval", "32", "--link", "core", "--jobs", "2"]
+         "--steps-per-interval", "32", "--link", "core", "--jobs", "2",
+         "--reference", "oracle-mpc"]
 EXPERIMENT = ["single", "--methods", "closed", "--intervals", "1", "--steps-per-interval",
               "32", "--jobs", "1"]
 

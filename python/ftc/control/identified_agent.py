@@ -60,8 +60,9 @@ class IdentifiedAgent(MPCAgent):
         self.online_id = OnlineIdentification(
             Identifier(cfg.rollout_rtol, cfg.rollout_atol, seed=cfg.seed),
             trigger=cfg.identify_trigger, every=cfg.identify_every)
-        self.evaluator_ = ParamsEvaluator(_core.BatchRollout(rtol=cfg.rollout_rtol,
-                                                             atol=cfg.rollout_atol))
+        self.evaluator_ = ParamsEvaluator(_core.BatchRollout(
+            rtol=cfg.rollout_rtol, atol=cfg.rollout_atol,
+            exact_active_conduit=cfg.rollout_closed_form))
 
     def prepare(self) -> dict[str, Any]:
         return {}

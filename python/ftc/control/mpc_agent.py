@@ -18,7 +18,10 @@ for H steps, then all valves closed up to a horizon of L steps; rollouts reset
 to full tanks after a terminal step, as the plant does; the best summed reward
 wins, its first step is applied, and the plan is redone every step. ``cem``:
 a cross-entropy search over per-step valve-open probabilities (L x 6), for
-longer horizons, seeded with the best hold plan.
+longer horizons, seeded with the best hold plan. ``two-stage``: each of the 64
+settings held H1 steps, then each of the 64 held to the horizon (4,096 plans,
+optionally pruned to the best first settings), together with the hold plans,
+the better of the two families winning (``reference`` is ``oracle-mpc`` with it).
 
 Both are agents of the interval runner (:mod:`ftc.control.runner`), so they
 drive the plant through the same :class:`ftc.plant.PlantLink` as every
@@ -48,14 +51,15 @@ from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
 from ftc.control.metrics import MODEL_COLUMNS
-from ftc.control.planners import CEMPlanner, Evaluator, HoldPlanner, ModelEvaluator, OracleEvaluator
+from ftc.control.planners import (CEMPlanner, Evaluator, HoldPlanner, ModelEvaluator,
+                                  OracleEvaluator, TwoStagePlanner)
 from ftc.learning.offline import ModelWindow, pretrained_world_model, refit
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant.link import PlantObservation
 
 METHODS = registry.config_values("ftc.mpc")  # the values of MPCConfig.method
-PLANNERS = ("hold", "cem")
+PLANNERS = ("hold", "cem", "two-stage")
 # refused_rollouts: candidates whose rollout the integrator refused (scored -inf),
 # for the MPCs that plan on the C++ physics (oracle-mpc, identified-mpc); blank for model-mpc
 MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
@@ -81,7 +85,9 @@ class MPCConfig(RunConfig):
         "help": "real steps per interval; forwarded to the plant (paper: 512)"})
     planner: str = field(default="hold", metadata={"choices": PLANNERS, "help": (
         "hold: the 64 settings each held --hold steps then all closed; cem: "
-        "cross-entropy search over per-step valve probabilities")})
+        "cross-entropy search over per-step valve probabilities; two-stage: each setting "
+        "held --two-stage-hold steps then each setting to the horizon (4,096 plans), and "
+        "the hold plans")})
     horizon: int = field(default=10, metadata={"check": at_least(1, 10_000), "help": "L: planning horizon, steps"})
     hold: int = field(default=3, metadata={"check": at_least(1, 10_000), "help": (
         "H: steps each candidate setting is held before all valves close (hold planner; "
@@ -94,6 +100,15 @@ class MPCConfig(RunConfig):
     cem_elites: int = field(default=8, metadata={"check": at_least(1, 1_000_000), "help": "cem: best sequences refitted to"})
     cem_smoothing: float = field(default=0.2, metadata={"check": between(0.0, 1.0), "help": (
         "cem: weight of the old probabilities in each update (0: elites only)")})
+    two_stage_hold: int = field(default=2, metadata={"check": at_least(1, 10_000), "help": (
+        "two-stage: H1, steps the first setting is held before the second")})
+    two_stage_keep: int = field(default=64, metadata={"check": at_least(1, 64), "help": (
+        "two-stage: first settings expanded into their 64 second stages, the best by their "
+        "hold plans' summed reward (64: all, 4,096 plans)")})
+    rollout_closed_form: bool = field(default=False, metadata={"help": (
+        "oracle-mpc, identified-mpc: step the rollouts with two or more valves open in closed "
+        "form (_core.BatchRollout's exact_active_conduit; CVODE only where a tank is pinned): "
+        "within CVODE's tolerances of it and several times faster")})
     rollout_rtol: float = field(default=1e-6, metadata={"check": positive(1.0), "help": (
         "oracle-mpc, identified-mpc: CVODE relative tolerance of the rollouts (measured: 1e-6 moves summed "
         "10-step rewards by < 2e-5 against 1e-12, never the chosen action in the bench, "
@@ -133,6 +148,8 @@ class MPCConfig(RunConfig):
             elif (f.name.startswith("model_") or f.name == "pretrain_cache") and \
                     self.method != "model-mpc":
                 out[f.name] = f"with --method {self.method} (it configures model-mpc)"
+            elif f.name.startswith("two_stage_") and self.planner != "two-stage":
+                out[f.name] = f"with --planner {self.planner}"
             elif f.name.startswith("identify_") and self.method != "identified-mpc":
                 out[f.name] = f"with --method {self.method} (it configures identified-mpc)"
             elif f.name.startswith("rollout_") and self.method == "model-mpc":
@@ -143,9 +160,22 @@ class MPCConfig(RunConfig):
         super().validate()
         if self.hold > self.horizon:
             raise ValueError(f"--hold ({self.hold}) must not exceed --horizon ({self.horizon})")
+        if self.planner == "two-stage" and self.two_stage_hold > self.horizon:
+            raise ValueError(f"--two-stage-hold ({self.two_stage_hold}) must not exceed "
+                             f"--horizon ({self.horizon})")
         if self.cem_elites > self.cem_samples:
             raise ValueError(f"--cem-elites ({self.cem_elites}) must not exceed --cem-samples "
                              f"({self.cem_samples})")
+
+
+def make_planner(cfg: MPCConfig, rng: np.random.Generator
+                 ) -> HoldPlanner | CEMPlanner | TwoStagePlanner:
+    """The planner ``cfg.planner`` names, configured by ``cfg``."""
+    if cfg.planner == "cem":
+        return CEMPlanner(cfg, rng)
+    if cfg.planner == "two-stage":
+        return TwoStagePlanner(cfg.two_stage_hold, cfg.two_stage_keep, cfg.hold, cfg.horizon)
+    return HoldPlanner(cfg.hold, cfg.horizon)
 
 
 class MPCAgent(Agent):
@@ -160,8 +190,7 @@ class MPCAgent(Agent):
         self.name = cfg.method
         self.evaluates = cfg.evaluate
         self.rng = np.random.default_rng(cfg.seed)
-        self.planner = (HoldPlanner(cfg.hold, cfg.horizon) if cfg.planner == "hold"
-                        else CEMPlanner(cfg, self.rng))
+        self.planner = make_planner(cfg, self.rng)
         self.oracle: OracleEvaluator | None = None
         self.model = None
         self.demand = 0.0
@@ -173,7 +202,8 @@ class MPCAgent(Agent):
 
             scenario = _core.load_scenario(cfg.scenario) if cfg.scenario else _core.Scenario()
             scenario.steps_per_interval = cfg.steps_per_interval  # as the plant is told
-            self.oracle = OracleEvaluator(scenario, cfg.rollout_rtol, cfg.rollout_atol)
+            self.oracle = OracleEvaluator(scenario, cfg.rollout_rtol, cfg.rollout_atol,
+                                          cfg.rollout_closed_form)
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "MPCAgent":

@@ -56,6 +56,60 @@ class HoldPlanner:
         return seq[best, 0].copy(), seq[best], float(totals[best])
 
 
+def two_stage_candidates(first_hold: int, horizon: int) -> np.ndarray:
+    """(64, 64, horizon, 6): setting a held ``first_hold`` steps, then setting b
+    held to the horizon, at [a, b]. With ``horizon <= first_hold`` there is no
+    second stage: (64, 1, horizon, 6), setting a held throughout."""
+    settings = valve_settings()
+    if horizon <= first_hold:
+        return np.repeat(settings[:, None, None, :], horizon, axis=2)
+    seq = np.zeros((2 ** NUM_TANKS, 2 ** NUM_TANKS, horizon, NUM_TANKS), np.int64)
+    seq[:, :, :first_hold] = settings[:, None, None, :]
+    seq[:, :, first_hold:] = settings[None, :, None, :]
+    return seq
+
+
+class TwoStagePlanner:
+    """Best of two families on one horizon: the 64 hold plans (each setting held
+    ``hold`` steps, then all closed: :class:`HoldPlanner`'s) and the two-stage
+    plans (a first setting held ``first_hold`` steps, then a second setting held
+    to the horizon: 64 x 64 = 4,096).
+
+    ``keep`` < 64 prunes before expanding: only the ``keep`` first settings whose
+    hold plans score best get their 64 second stages. The hold plans are always
+    in the union, so on the evaluation it plans with the choice is never worse
+    than the hold planner's on the same horizon (first maximum: the hold plans
+    first, so ties go to the hold planner's choice and to fewer valves)."""
+
+    def __init__(self, first_hold: int, keep: int, hold: int, horizon: int) -> None:
+        self.first_hold, self.keep, self.horizon = first_hold, keep, horizon
+        self.hold = HoldPlanner(hold, horizon)
+        self._candidates: dict[int, np.ndarray] = {}
+
+    def candidates(self, horizon: int) -> np.ndarray:
+        """(64, B, horizon, 6): the two-stage plans of each first setting."""
+        if horizon not in self._candidates:
+            self._candidates[horizon] = two_stage_candidates(self.first_hold, horizon)
+        return self._candidates[horizon]
+
+    def plan(self, evaluate: Evaluator, x0: np.ndarray, horizon: int | None = None
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+        """(first valves (6,), best sequence (L, 6), its summed reward)."""
+        L = horizon or self.horizon
+        holds = self.hold.candidates(L)
+        hold_totals = evaluate(x0, holds)
+        h = int(np.argmax(hold_totals))
+        plans = self.candidates(L)
+        if self.keep < len(plans):  # first settings in code order: ties as unpruned
+            plans = plans[np.sort(np.argsort(-hold_totals, kind="stable")[:self.keep])]
+        plans = plans.reshape(-1, L, NUM_TANKS)
+        totals = evaluate(x0, plans)
+        best = int(np.argmax(totals))
+        if totals[best] > hold_totals[h]:
+            return plans[best, 0].copy(), plans[best], float(totals[best])
+        return holds[h, 0].copy(), holds[h], float(hold_totals[h])
+
+
 class CEMPlanner:
     """Cross-entropy search over independent per-step valve-open probabilities.
 
@@ -143,11 +197,14 @@ class OracleEvaluator:
     ``refused`` counts them.
     """
 
-    def __init__(self, scenario: Any, rtol: float = 1e-6, atol: float = 1e-8) -> None:
+    def __init__(self, scenario: Any, rtol: float = 1e-6, atol: float = 1e-8,
+                 closed_form: bool = False) -> None:
+        """closed_form: steps with the conduit active in closed form
+        (``_core.BatchRollout``'s exact_active_conduit)."""
         from ftc import _core  # native: the C++ physics
 
         self._core, self.scenario = _core, scenario
-        self.rollout = _core.BatchRollout(rtol=rtol, atol=atol)
+        self.rollout = _core.BatchRollout(rtol=rtol, atol=atol, exact_active_conduit=closed_form)
         self._params: dict[Any, dict] = {}
         self.params: dict | None = None
         self._event_steps = np.array([e["at_step"] for e in scenario.events], np.int64)  # sorted

@@ -47,7 +47,7 @@ from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError, StorageError
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
-from ftc.experiments import benchmark_report
+from ftc.experiments import benchmark_report, run_cache
 from ftc.experiments.method_args import PARSERS, method_args, untaken
 from ftc.experiments.methods import METHODS
 from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
@@ -56,6 +56,7 @@ from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorR
 from ftc.experiments.progress import Progress
 from ftc.experiments.ray_executor import (RaySession, add_executor_options,
                                          check_executor_options, connect, run_on_ray)
+from ftc.experiments.run_cache import RunCache, cache_groups, default_dir, reuse_after, reuse_before
 from ftc.experiments.runs import RunSpec, is_finished
 from ftc.experiments.scenarios import ExperimentConfig, Scenario
 from ftc.experiments.suite import default_suite
@@ -63,12 +64,13 @@ from ftc.experiments.suite import default_suite
 TOOL = "ftc.experiments benchmark"
 ORACLE = benchmark_report.ORACLE
 CLOSED = benchmark_report.CLOSED
+REFERENCE = benchmark_report.REFERENCE
 MAX_JOBS = 256
 MAX_RUN_TIMEOUT = 1e6  # seconds; 0 means no timeout
 SEED = at_least(0, 2**31 - 1)  # the controller's --seed range
 
 
-def default_methods(reference: str = ORACLE) -> tuple[str, ...]:
+def default_methods(reference: str = REFERENCE) -> tuple[str, ...]:
     """Every registered method not marked ``benchmark=False``, the reference and
     closed included."""
     names = [m for m, spec in METHODS.items() if spec.benchmark]
@@ -100,7 +102,7 @@ class BenchmarkConfig:
     controller_args: tuple[str, ...] = ()
     run_timeout: float = 0.0
     nice: int = 5
-    reference: str = ORACLE
+    reference: str = REFERENCE
 
     def run_config(self) -> ExperimentConfig:
         """What runs.execute_run reads of a run's settings."""
@@ -116,6 +118,7 @@ class BenchmarkConfig:
     @classmethod
     def from_json(cls, d: dict) -> "BenchmarkConfig":
         names = {f.name for f in dataclasses.fields(cls)}
+        d = {"reference": ORACLE, **d}  # recorded before the field existed: the oracle was 1
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()
                       if k in names})
 
@@ -175,6 +178,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-timeout", type=checked(float, Check(low=0.0, high=MAX_RUN_TIMEOUT)),
                         default=None,
                         help="kill a run after this many seconds and count it failed (0: never)")
+    parser.add_argument("--run-cache", default=None, metavar="DIR",
+                        help="where the runs of the methods that depend on the scenario only "
+                             f"({', '.join(m for m, s in METHODS.items() if s.cached)}) are "
+                             "kept and looked up, by the scenario's bytes and the planning "
+                             f"code's (default: ${run_cache.ENV}, else "
+                             f"{run_cache.DEFAULT_DIR}; '' disables)")
     parser.add_argument("--resume", action="store_true",
                         help="complete an interrupted run directory: finished runs are kept, "
                              "unfinished ones redone; scenarios, methods and seeds given are "
@@ -273,7 +282,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     problem = _run_options_problem(config, out)
     if problem:  # e.g. --steps-per-interval not a multiple of PPO's --update-every
         parser.error(problem)
-    return argparse.Namespace(**vars(args), out_dir=out, config=config, texts=texts)
+    cache_dir = (default_dir() if args.run_cache is None
+                 else Path(args.run_cache).expanduser() if args.run_cache else None)
+    return argparse.Namespace(**vars(args), out_dir=out, config=config, texts=texts,
+                              run_cache_dir=cache_dir)
 
 
 def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
@@ -351,14 +363,15 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
 def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
                   texts: dict[str, tuple[str, str]], stream: TextIO = sys.stderr,
                   ray: RaySession | None = None, fork_server: bool = True,
-                  overwrite: bool = False) -> int:
+                  overwrite: bool = False, cache: RunCache | None = None) -> int:
     """Run (or complete) the benchmark in ``out``, then write results.csv (with
     the normalized scores), fractions.csv, the figure and the report. Returns
     the number of failed runs.
     ``ray``: run them as tasks of that Ray session (else on the local pool, each
     run forked from a fork server unless ``fork_server`` is false).
     ``overwrite``: replace the benchmark already in ``out``
-    (:class:`OrchestratorReplacement`).
+    (:class:`OrchestratorReplacement`). ``cache``: where the cached methods'
+    runs are looked up and kept (None: nowhere; :mod:`ftc.experiments.run_cache`).
 
     Raises OutInUse if an orchestrator is running on ``out``, StorageError if a
     file cannot be written."""
@@ -374,7 +387,7 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
     try:
         with replacing:
             prepare_directory(out, config, texts)
-            failed = _run_all(out, config, jobs, stream, guardian, ray, fork_server)
+            failed = _run_all(out, config, jobs, stream, guardian, ray, fork_server, cache)
             collect_benchmark(out)  # with the lock held: no one else writes meanwhile
             benchmark_report.write_report(out)
     finally:
@@ -392,23 +405,40 @@ def run_benchmark(out: Path, config: BenchmarkConfig, jobs: int | None,
 
 
 def _run_all(out: Path, config: BenchmarkConfig, jobs: int | None, stream: TextIO,
-             guardian: Guardian, ray: RaySession | None, fork_server: bool = True
-             ) -> list[str]:
-    """The unfinished runs on the orchestrator's pool; returns the failed keys."""
+             guardian: Guardian, ray: RaySession | None, fork_server: bool = True,
+             cache: RunCache | None = None) -> list[str]:
+    """The unfinished runs on the orchestrator's pool, those of a cached method
+    once per group (:func:`ftc.experiments.run_cache.cache_groups`) or not at all
+    on a hit; returns the failed keys."""
+    cache = cache if cache is not None else RunCache(None)
     runs = plan_benchmark(config)
     finished = {r.key for r in runs if is_finished(r.directory(out))}
-    todo = [r for r in runs if r.key not in finished]
+    groups = cache_groups(out, runs, config.intervals, config.steps_per_interval, config.link,
+                          config.controller_args)
+    sources: dict[str, dict] = {}
+    waiting = reuse_before(out, groups, finished, cache, sources)
+    todo = [r for r in runs if r.key not in finished and r.key not in waiting]
     print(f"{TOOL}: {len(runs)} runs ({len(config.scenarios)} scenarios x "
           f"{len(config.methods)} methods x {len(config.seeds)} seeds) in {out} "
           f"({len(finished)} already finished), link {config.link}, {executor_line(jobs, ray)}",
           file=stream)
-    progress = Progress(runs, finished, config.intervals, stream)
+    progress = Progress([r for r in runs if r.key not in waiting], finished, config.intervals,
+                        stream)
     if ray is None:
         results = run_on_pool(out, config.run_config(), todo, [], progress, jobs, guardian,
                               stream, TOOL, fork_server)
     else:
         results = run_on_ray(ray, out, config.run_config(), todo, [], progress, stream, TOOL)
+    reuse_after(out, groups, cache, sources, stream, TOOL)
     meta = json.loads((out / "benchmark.json").read_text())
+    if groups:
+        previous = meta.get("run_cache", {})
+        meta["run_cache"] = {
+            "dir": None if cache.root is None else str(cache.root),
+            "code": dict(next(iter(groups)).code),
+            "keys": {**previous.get("keys", {}),
+                     **{r.key: key.digest for key, group in groups.items() for r in group}},
+            "sources": {**previous.get("sources", {}), **sources}}
     meta["wall_time_s"] = time.time() - progress.start
     meta["jobs"] = jobs
     meta["executor"] = ray.describe() if ray is not None else {"kind": "local", "jobs": jobs}
@@ -459,7 +489,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ray = connect(args.ray_address, args.jobs) if args.executor == "ray" else None
         return 1 if run_benchmark(args.out_dir, args.config, args.jobs, args.texts,
                                   ray=ray, fork_server=args.fork_server,
-                                  overwrite=args.overwrite) else 0
+                                  overwrite=args.overwrite,
+                                  cache=RunCache(args.run_cache_dir)) else 0
     except RunError as e:
         print(f"{TOOL}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code

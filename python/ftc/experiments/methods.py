@@ -27,6 +27,8 @@ class MethodSpec:
     learns: whether it has a learned policy (deterministic evaluation, model R^2)
     benchmark: whether ``ftc.experiments benchmark`` runs it by default (False for
         diagnostic or very slow variants)
+    cached: its results depend on the scenario only: the benchmark runs it once per
+        scenario and keeps the run (:mod:`ftc.experiments.run_cache`)
     """
 
     name: str
@@ -36,6 +38,7 @@ class MethodSpec:
     cost: float = 1.0
     learns: bool = False
     benchmark: bool = True
+    cached: bool = False
 
 
 METHODS: dict[str, MethodSpec] = {}
@@ -53,6 +56,6 @@ for _m in registry.METHODS.values():
     if _m.compared:  # the experiments run each under its own name: --method NAME
         register_method(MethodSpec(_m.name, _m.label, ("--method", _m.name, *_m.experiment_args),
                                    module=_m.tool, cost=_m.cost, learns=_m.learns,
-                                   benchmark=_m.benchmark))
+                                   benchmark=_m.benchmark, cached=_m.cached))
 PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
 DEFAULT_METHODS = (*PAPER_METHODS, "oracle-mpc", "model-mpc")
