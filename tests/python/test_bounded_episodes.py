@@ -104,7 +104,7 @@ def test_the_experiments_finish_on_a_dead_pump(tmp_path):
         [sys.executable, "-m", "ftc.experiments", "benchmark", "--scenarios",
          str(_scenario(tmp_path)), "--methods", "closed", "balance", "--seeds", "0",
          "--intervals", "3", "--steps-per-interval", "64", "--jobs", "2",
-         "--out", str(out)],
+         "--reference", "oracle-mpc", "--out", str(out)],
         cwd=REPO, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     with open(out / "results.csv") as f:
