@@ -1,6 +1,7 @@
-"""The reference: the two-stage planner (the best of 4,096 plans and the hold
-plans, checked against a brute-force evaluation, never below the H3 hold plan
-on its own evaluation), ``--method reference`` on the MPC tool, and the run
+"""The two-stage planner (the best of 4,096 plans and the hold plans, checked
+against a brute-force evaluation, never below the H3 hold plan on its own
+evaluation), ``--method reference`` on the MPC tool (the episode planner:
+tests/python/test_episode_planner.py), and the run
 cache the benchmark keeps its runs in (a hit on the same bytes, a miss on a
 changed byte, one run for every seed of a scenario)."""
 
@@ -97,12 +98,13 @@ def test_pruning_expands_only_the_best_first_settings():
     assert calls == [64, 8 * 64]
 
 
-def test_method_reference_is_the_oracle_mpc_with_the_two_stage_planner(tmp_path):
+def test_method_reference_is_the_oracle_mpc_with_the_episode_planner(tmp_path):
     ref = mpc_cli.parse_args(["--method", "reference", *NO_PLANT, "--out", str(tmp_path / "r")])
     oracle = mpc_cli.parse_args(["--method", "oracle-mpc", *NO_PLANT, "--out", str(tmp_path / "o")])
-    assert (ref.method, ref.planner, ref.rollout_closed_form) == ("oracle-mpc", "two-stage", True)
+    assert (ref.method, ref.planner, ref.rollout_closed_form) == ("oracle-mpc", "episode", True)
     assert (oracle.planner, oracle.hold, oracle.horizon) == ("hold", 3, 10)
-    assert ref.hold == 3  # the hold plans of its union are the oracle's H3
+    # the closed loop it must beat is the oracle's H = 3, L = 10 hold planner
+    assert (ref.hold, ref.horizon) == (oracle.hold, oracle.horizon)
     m = registry.METHODS["reference"]
     assert m.cached and m.knows == "the true faults" and not m.agent
     assert "reference" in registry.tool_methods("ftc.mpc")
@@ -116,7 +118,7 @@ def test_a_short_reference_run_finishes(tmp_path, scenarios):
                            "--steps-per-interval", "8", "--no-evaluate", "--link", "core",
                            "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert json.loads((out / "config.json").read_text())["mpc"]["planner"] == "two-stage"
+    assert json.loads((out / "config.json").read_text())["mpc"]["planner"] == "episode"
 
 
 # ---------------------------------------------------------------------------
@@ -151,8 +153,8 @@ def test_the_cache_hits_on_the_same_bytes_and_misses_on_a_changed_byte(tmp_path)
 
 def test_the_code_digests_cover_the_planners_and_the_native_core():
     digests = run_cache.code_digests()
-    assert {"ftc/control/planners.py", "ftc/control/mpc_agent.py", "ftc/control/registry.py",
-            "_core"} <= set(digests)
+    assert {"ftc/control/planners.py", "ftc/control/episode_planner.py",
+            "ftc/control/mpc_agent.py", "ftc/control/registry.py", "_core"} <= set(digests)
     assert all(len(v) == 64 for v in digests.values())
 
 

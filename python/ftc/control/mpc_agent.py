@@ -51,6 +51,7 @@ from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
 from ftc.control.metrics import MODEL_COLUMNS
+from ftc.control.episode_planner import EpisodePlanner, TruePhysics
 from ftc.control.planners import (CEMPlanner, Evaluator, HoldPlanner, ModelEvaluator,
                                   OracleEvaluator, TwoStagePlanner)
 from ftc.learning.offline import ModelWindow, pretrained_world_model, refit
@@ -59,7 +60,7 @@ from ftc.learning.world_model import WorldModel, WorldModelConfig
 from ftc.plant.link import PlantObservation
 
 METHODS = registry.config_values("ftc.mpc")  # the values of MPCConfig.method
-PLANNERS = ("hold", "cem", "two-stage")
+PLANNERS = ("hold", "cem", "two-stage", "episode")
 # refused_rollouts: candidates whose rollout the integrator refused (scored -inf),
 # for the MPCs that plan on the C++ physics (oracle-mpc, identified-mpc); blank for model-mpc
 MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
@@ -87,7 +88,9 @@ class MPCConfig(RunConfig):
         "hold: the 64 settings each held --hold steps then all closed; cem: "
         "cross-entropy search over per-step valve probabilities; two-stage: each setting "
         "held --two-stage-hold steps then each setting to the horizon (4,096 plans), and "
-        "the hold plans")})
+        "the hold plans; episode (oracle-mpc only): whole episodes optimised on the true "
+        "physics and played, never below the hold planner's closed loop "
+        "(ftc.control.episode_planner)")})
     horizon: int = field(default=10, metadata={"check": at_least(1, 10_000), "help": "L: planning horizon, steps"})
     hold: int = field(default=3, metadata={"check": at_least(1, 10_000), "help": (
         "H: steps each candidate setting is held before all valves close (hold planner; "
@@ -105,6 +108,12 @@ class MPCConfig(RunConfig):
     two_stage_keep: int = field(default=64, metadata={"check": at_least(1, 64), "help": (
         "two-stage: first settings expanded into their 64 second stages, the best by their "
         "hold plans' summed reward (64: all, 4,096 plans)")})
+    episode_sweeps: int = field(default=6, metadata={"check": at_least(1, 1000), "help": (
+        "episode: coordinate-ascent sweeps over an episode's steps at most (each tries every "
+        "setting held 1, 2, 4 and 8 steps at every step)")})
+    episode_tolerance: float = field(default=1e-6, metadata={"check": positive(1.0), "help": (
+        "episode: the plan is remade where an observed level differs from its prediction "
+        "by more than this, m")})
     rollout_closed_form: bool = field(default=False, metadata={"help": (
         "oracle-mpc, identified-mpc: step the rollouts with two or more valves open in closed "
         "form (_core.BatchRollout's exact_active_conduit; CVODE only where a tank is pinned): "
@@ -150,6 +159,8 @@ class MPCConfig(RunConfig):
                 out[f.name] = f"with --method {self.method} (it configures model-mpc)"
             elif f.name.startswith("two_stage_") and self.planner != "two-stage":
                 out[f.name] = f"with --planner {self.planner}"
+            elif f.name.startswith("episode_") and self.planner != "episode":
+                out[f.name] = f"with --planner {self.planner}"
             elif f.name.startswith("identify_") and self.method != "identified-mpc":
                 out[f.name] = f"with --method {self.method} (it configures identified-mpc)"
             elif f.name.startswith("rollout_") and self.method == "model-mpc":
@@ -163,6 +174,9 @@ class MPCConfig(RunConfig):
         if self.planner == "two-stage" and self.two_stage_hold > self.horizon:
             raise ValueError(f"--two-stage-hold ({self.two_stage_hold}) must not exceed "
                              f"--horizon ({self.horizon})")
+        if self.planner == "episode" and self.method != "oracle-mpc":
+            raise ValueError(f"--planner episode plans on the true physics: it needs --method "
+                             f"oracle-mpc, not {self.method}")
         if self.cem_elites > self.cem_samples:
             raise ValueError(f"--cem-elites ({self.cem_elites}) must not exceed --cem-samples "
                              f"({self.cem_samples})")
@@ -192,6 +206,7 @@ class MPCAgent(Agent):
         self.rng = np.random.default_rng(cfg.seed)
         self.planner = make_planner(cfg, self.rng)
         self.oracle: OracleEvaluator | None = None
+        self.episode: EpisodePlanner | None = None
         self.model = None
         self.demand = 0.0
         self.window = ModelWindow(cfg.model_window)
@@ -204,6 +219,12 @@ class MPCAgent(Agent):
             scenario.steps_per_interval = cfg.steps_per_interval  # as the plant is told
             self.oracle = OracleEvaluator(scenario, cfg.rollout_rtol, cfg.rollout_atol,
                                           cfg.rollout_closed_form)
+            if cfg.planner == "episode":
+                self.episode = EpisodePlanner(
+                    TruePhysics(scenario, cfg.rollout_rtol, cfg.rollout_atol,
+                                cfg.rollout_closed_form),
+                    sweeps=cfg.episode_sweeps, tolerance=cfg.episode_tolerance,
+                    hold=cfg.hold, horizon=cfg.horizon)
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "MPCAgent":
@@ -249,7 +270,11 @@ class MPCAgent(Agent):
         if ctx.steps_left is not None and self.cfg.truncate_at_interval:
             horizon = max(1, min(horizon, ctx.steps_left))
         t0 = time.perf_counter()
-        u, _, _ = self.planner.plan(self.evaluator(obs), obs.level, horizon)
+        if self.episode is not None:
+            u = self.episode.decide(obs.level, obs.operating_steps, ctx.steps_left,
+                                    ctx.evaluation, self.cfg.steps_per_interval)
+        else:
+            u, _, _ = self.planner.plan(self.evaluator(obs), obs.level, horizon)
         self.plan_seconds += time.perf_counter() - t0
         self.decisions += 1
         if not ctx.evaluation:
@@ -268,6 +293,9 @@ class MPCAgent(Agent):
         oracle reports the candidates whose rollout was refused in the interval."""
         if self.oracle is not None:
             refused, self.oracle.refused = self.oracle.refused, 0
+            if self.episode is not None:
+                refused, self.episode.physics.refused = \
+                    refused + self.episode.physics.refused, 0
             return {"refused_rollouts": refused}
         if self.model is None:
             return {}

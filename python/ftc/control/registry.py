@@ -110,13 +110,10 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            cost=30.0, learns=True),
     Method("oracle-mpc", "MPC, faults known (oracle)", "ftc.mpc", ("--method", "oracle-mpc"),
            "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the true faults", cost=1.5),
-    # measured (10 x 512 steps, per interval over oracle-mpc, intervals 1-9): multiple +1.28%
-    # mean (+0.06% worst), tank_factor [8, inf, inf, inf, inf, 11] with engine_factor [9, inf]
-    # +1.42% (+0.38%); 64-step intervals: single +1.08%, random-10 +1.17%. Keeping 8 first
-    # settings or L = 9, 10, 12 earned less; about 10 s per interval against oracle-mpc's 0.9.
-    Method("reference", "two-stage search on the true physics (reference)", "ftc.mpc",
-           ("--method", "oracle-mpc", "--planner", "two-stage", "--horizon", "8",
-            "--two-stage-keep", "16", "--rollout-closed-form"), "", _MPC,
+    # whole episodes optimised on the true physics (episode_planner.py), never below
+    # oracle-mpc's closed loop on the physics it plans with; its margin and cost: docs/benchmarks.md
+    Method("reference", "episode optimisation on the true physics (reference)", "ftc.mpc",
+           ("--method", "oracle-mpc", "--planner", "episode", "--rollout-closed-form"), "", _MPC,
            knows="the true faults", cost=20.0, cached=True),
     Method("model-mpc", "MPC on the learned model", "ftc.mpc", ("--method", "model-mpc"),
            "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the learned model", cost=3.0,

@@ -1,0 +1,384 @@
+"""Whole-episode trajectory optimisation on the true physics: the planner
+behind the benchmark's ``reference`` method (``ftc.mpc --planner episode``).
+
+Why whole episodes. The plant is deterministic given its scenario and every
+episode starts from full tanks; with stepwise degradation the parameters are
+constant within an interval, so an interval is one episode's valve sequence
+played again after every reset, then a last episode cut off at the interval's
+end. A receding horizon of 3-10 steps cannot see that a valve opened now keeps
+the wings balanced forty steps later; optimising the episode's whole sequence
+can, and costs little when the plan is made once and then followed.
+
+How. When a plan is needed (an interval or evaluation episode starts, the
+plan runs out, or the plant is not where the plan said it would be: sensor
+noise, an event the plan did not hold, another integrator's rounding), from
+the observed levels x0 and the steps R left in the interval:
+
+1. the hold planner that ``oracle-mpc`` is (each setting held 3 steps, then
+   closed, horizon 10) is simulated closed-loop over the R steps on the same
+   physics: the plan to beat, and the search's starting point;
+2. the sequence S of an episode from full tanks is optimised for the total
+   reward of S played after every reset until the interval's end
+   (n G_S + the first r steps' rewards, for n whole episodes of return G_S):
+   coordinate ascent, where at each step of the episode every one of the 64
+   settings is tried held for each of ``blocks`` steps, the best kept, in
+   sweeps until one improves nothing (at most ``sweeps``);
+3. where the plant is mid-episode, the rest of the current episode is
+   optimised the same way, valued with S's repetitions after its end;
+4. the steps of the last, cut-off episode are refined against the exact
+   total reward of the R steps;
+5. of this plan and the oracle's, the one with the higher exact total wins
+   (ties: the oracle's), so on the physics it plans with the reference never
+   earns less than ``oracle-mpc`` from the same state.
+
+The plan is then played step by step; each observation is checked against
+the levels the rollout predicted (``tolerance``, m). All rollouts are the C++
+batch rollouts (``_core.BatchRollout``; candidates sharing a prefix simulate
+it once), with each step's parameters and stuck valves as the scenario sets
+them (its events and continuous degradation included), frozen at the last
+operating step's in an evaluation episode, as the plant freezes them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ftc.common.constants import NUM_TANKS, TANK_HEIGHT
+from ftc.control.planners import hold_candidates, valve_settings
+
+SETTINGS = valve_settings()  # (64, 6)
+IMPROVEMENT = 1e-9  # a candidate must beat the incumbent's total by this much (reward units)
+
+
+class TruePhysics:
+    """Rollouts of valve sequences on a scenario's true physics, step by step.
+
+    ``run(x0, sequences, step0, frozen)`` simulates candidate sequences (K, L, 6)
+    from levels x0 (6,) m, step t under the parameters and stuck valves of
+    operating step ``step0 + t`` (all of them ``step0``'s when ``frozen``: an
+    evaluation episode). A candidate the integrator refuses (chattering, a
+    SUNDIALS failure) earns -inf at every step and is counted in ``refused``."""
+
+    def __init__(self, scenario: Any, rtol: float, atol: float, closed_form: bool) -> None:
+        from ftc import _core  # native: the C++ physics
+
+        self._core, self.scenario = _core, scenario
+        self.rollout = _core.BatchRollout(rtol=rtol, atol=atol, exact_active_conduit=closed_form)
+        self._events = np.array([e["at_step"] for e in scenario.events], np.int64)  # sorted
+        self._params: dict[tuple[float, int], dict] = {}
+        self._stuck: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
+        self._schedules: dict[tuple[int, int], tuple[Any, Any]] = {}
+        self.refused = 0
+
+    def _key(self, step: int) -> tuple[float, int]:
+        applied = int(np.searchsorted(self._events, step, side="right"))
+        key = (float(self._core.age_at(self.scenario, step)), applied)
+        if key not in self._params:
+            self._params[key] = self._core.params_at_step(self.scenario, step)
+        if applied not in self._stuck:
+            mask, state = self._core.stuck_valves_at_step(self.scenario, step)
+            self._stuck[applied] = (mask, state.astype(np.int64)) if mask.any() else None
+        return key
+
+    def schedule(self, step0: int, length: int) -> tuple[Any, Any, tuple]:
+        """(params: one dict or a list of ``length``, stuck: None or (mask, state) of
+        shape (length, 6), signature: a hashable summary of both) for the steps
+        step0 .. step0 + length - 1."""
+        cached = self._schedules.get((step0, length))
+        if cached is not None:
+            return cached
+        if len(self._schedules) > 4096:  # a bounded memo: planning moves through the steps
+            self._schedules.clear()
+        keys = [self._key(step0 + t) for t in range(length)]
+        params: Any = (self._params[keys[0]] if all(k == keys[0] for k in keys)
+                       else [self._params[k] for k in keys])
+        stuck = [self._stuck[k[1]] for k in keys]
+        if all(s is None for s in stuck):
+            stuck_arrays = None
+        else:
+            mask = np.stack([np.zeros(NUM_TANKS, bool) if s is None else s[0] for s in stuck])
+            state = np.stack([np.zeros(NUM_TANKS, np.int64) if s is None else s[1]
+                              for s in stuck])
+            stuck_arrays = (mask, state)
+        runs: list[list] = []  # the keys in force, run-length encoded
+        for k in keys:
+            if runs and runs[-1][0] == k:
+                runs[-1][1] += 1
+            else:
+                runs.append([k, 1])
+        # a constant schedule's signature is its one key, whatever its length
+        out = (params, stuck_arrays, (runs[0][0],) if len(runs) == 1 else
+               tuple((k, n) for k, n in runs))
+        self._schedules[(step0, length)] = out
+        return out
+
+    def run(self, x0: np.ndarray, sequences: np.ndarray, step0: int, frozen: bool
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rewards (K, L), terminal (K, L) bool, levels after each step (K, L, 6))."""
+        k, length, _ = sequences.shape
+        params, stuck, _ = self.schedule(step0, 1 if frozen else length)
+        if frozen and stuck is not None:
+            stuck = (np.repeat(stuck[0], length, 0), np.repeat(stuck[1], length, 0))
+        applied = sequences if stuck is None else np.where(stuck[0], stuck[1], sequences)
+        x0 = np.asarray(x0, np.float64)
+        try:
+            d = self.rollout.run(x0, applied, params, details=True)
+            rewards, terminal, levels = d["rewards"], d["terminal"].astype(bool), d["levels"]
+        except RuntimeError:  # one candidate at a time: a refused one earns -inf
+            rewards = np.full((k, length), -np.inf)
+            terminal = np.zeros((k, length), bool)
+            levels = np.full((k, length, NUM_TANKS), np.nan)
+            for i in range(k):
+                try:
+                    d = self.rollout.run(x0, applied[i:i + 1], params, details=True)
+                except RuntimeError:
+                    self.refused += 1
+                    continue
+                rewards[i], terminal[i], levels[i] = d["rewards"][0], d["terminal"][0], \
+                    d["levels"][0]
+        if stuck is not None:  # r = shape(x') - mean(u): charge the commanded valves
+            rewards = rewards + applied.mean(-1) - sequences.mean(-1)
+        return rewards, terminal, levels
+
+
+@dataclass(frozen=True)
+class Repeated:
+    """An episode's sequence played again after every reset: the total reward
+    of its first m steps, for any m (a step beyond ``length`` starts it over).
+
+    cum: (n + 1,) cumulative rewards of the episode's steps from full tanks;
+    length: its steps to the end of the episode, or None if it did not end
+    within the n steps simulated (then m <= n)."""
+
+    cum: np.ndarray
+    length: int | None
+
+    def value(self, steps: np.ndarray | int) -> np.ndarray:
+        steps = np.asarray(steps)
+        if self.length is None:
+            return self.cum[np.minimum(steps, len(self.cum) - 1)]
+        whole, rest = np.divmod(steps, self.length)
+        return whole * self.cum[self.length] + self.cum[rest]
+
+
+def _episode_ends(terminal: np.ndarray) -> np.ndarray:
+    """(K,) steps to the end of each candidate's episode, 0 where it does not end."""
+    return np.where(terminal.any(1), terminal.argmax(1) + 1, 0)
+
+
+class EpisodePlanner:
+    """Plans whole episodes on the true physics and plays them (module docstring).
+
+    decide(x, operating_steps, steps_left, evaluation, limit) -> valves (6,)."""
+
+    def __init__(self, physics: TruePhysics, sweeps: int = 6, blocks: tuple[int, ...] = (1, 2, 4, 8),
+                 tolerance: float = 1e-6, hold: int = 3, horizon: int = 10) -> None:
+        self.physics, self.sweeps, self.blocks = physics, sweeps, blocks
+        self.tolerance, self.hold, self.horizon = tolerance, hold, horizon
+        self.plan: np.ndarray | None = None      # (P, 6) valves, from the planning step
+        self.expected: np.ndarray | None = None  # (P, 6) levels before each plan step
+        self.pos = 0
+        self.evaluation = False
+        self._episodes: dict[Any, np.ndarray] = {}  # memo of optimised episodes
+        self.replans = 0
+        self.gain = 0.0  # the chosen plans' summed predicted gain over the oracle's, reward
+
+    # -- playing ---------------------------------------------------------------
+    def decide(self, x: np.ndarray, operating_steps: int, steps_left: int | None,
+               evaluation: bool, limit: int) -> np.ndarray:
+        """The valves for the next step. steps_left: operating steps left in the
+        interval (None in evaluation, whose episode is cut off after ``limit``)."""
+        x = np.asarray(x, np.float64)
+        fresh = steps_left is not None and steps_left == limit  # an interval's first step
+        if (fresh or self.plan is None or self.pos >= len(self.plan)
+                or evaluation != self.evaluation
+                or (steps_left is not None and steps_left != len(self.plan) - self.pos)
+                or np.abs(x - self.expected[self.pos]).max() > self.tolerance):
+            step0 = max(0, operating_steps - 1) if evaluation else operating_steps
+            self._replan(x, step0, steps_left if steps_left is not None else limit, evaluation)
+        u = self.plan[self.pos]
+        self.pos += 1
+        return u.copy()
+
+    # -- planning --------------------------------------------------------------
+    def _replan(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> None:
+        self.replans += 1
+        run = self.physics.run
+        oracle = self._closed_loop(x0, step0, steps, frozen)
+        full = np.full(NUM_TANKS, TANK_HEIGHT)
+        # the oracle's episodes: where the current one ends, and the one after it
+        ends = np.nonzero(run(x0, oracle[None], step0, frozen)[1][0])[0] + 1
+        if len(ends) == 0 or ends[0] >= steps:  # no reset within the interval
+            plan = self._ascend(self._score_tail(x0, step0, frozen, steps, None), oracle)[0]
+        else:
+            first = int(ends[0])
+            at_start = bool(np.abs(x0 - full).max() <= self.tolerance)
+            if at_start:
+                start, begins, left = oracle[:first], step0, steps
+            else:
+                start = oracle[first:int(ends[1])] if len(ends) > 1 else oracle[first:]
+                begins, left = (step0 if frozen else step0 + first), steps - first
+            episode = self._episode(full, begins, frozen, left, start)
+            if at_start:
+                head = episode
+            else:
+                tail = self._repeated(full, begins, frozen, episode)
+                head = self._ascend(self._score_tail(x0, step0, frozen, steps, tail),
+                                    self._pad(oracle[:first], steps))[0]
+            plan = self._assemble(x0, step0, frozen, steps, head, episode)
+        totals = np.nan_to_num(run(x0, np.stack([oracle, plan]), step0, frozen)[0].sum(1),
+                               nan=-np.inf)
+        best = plan if totals[1] > totals[0] + IMPROVEMENT else oracle
+        self.gain += float(max(totals[1] - totals[0], 0.0))
+        _, term, levels = run(x0, best[None], step0, frozen)
+        after = np.where(term[0][:, None], full, levels[0])
+        self.plan, self.pos, self.evaluation = best, 0, frozen
+        self.expected = np.concatenate([x0[None], after[:-1]])
+
+    def _closed_loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> np.ndarray:
+        """The hold planner's valves (steps, 6), simulated closed-loop from x0."""
+        seq = np.zeros((steps, NUM_TANKS), np.int64)
+        x, full = np.asarray(x0, np.float64), np.full(NUM_TANKS, TANK_HEIGHT)
+        for t in range(steps):
+            horizon = max(1, min(self.horizon, steps - t))
+            cands = hold_candidates(self.hold, horizon)
+            rew, term, lev = self.physics.run(x, cands, step0 if frozen else step0 + t, frozen)
+            best = int(np.argmax(rew.sum(1)))
+            seq[t] = cands[best, 0]
+            x = full if term[best, 0] else lev[best, 0]
+        return seq
+
+    def _episode(self, full: np.ndarray, step0: int, frozen: bool, steps: int,
+                 start: np.ndarray) -> np.ndarray:
+        """The optimised sequence of an episode from full tanks, played after every
+        reset for ``steps`` steps (memoised: the result depends on its inputs only)."""
+        signature = self.physics.schedule(step0, 1 if frozen else steps)[2]
+        key = (signature, steps, start.tobytes())
+        if key not in self._episodes:
+            if len(self._episodes) > 64:
+                self._episodes.clear()
+            self._episodes[key] = self._ascend(self._score_repeat(full, step0, frozen, steps),
+                                               self._pad(start, steps))[0]
+        return self._episodes[key]
+
+    def _pad(self, seq: np.ndarray, steps: int) -> np.ndarray:
+        """seq cut or padded with closed valves to the rollout length: its episode
+        plus a margin (an alternative may end later), at most ``steps``."""
+        length = min(steps, max(2 * len(seq), len(seq) + 64))
+        out = np.zeros((length, NUM_TANKS), np.int64)
+        out[:min(len(seq), length)] = seq[:length]
+        return out
+
+    def _repeated(self, full: np.ndarray, step0: int, frozen: bool, episode: np.ndarray
+                  ) -> Repeated:
+        rew, term, _ = self.physics.run(full, episode[None], step0, frozen)
+        end = int(_episode_ends(term)[0])
+        cum = np.concatenate([[0.0], np.cumsum(rew[0])])
+        return Repeated(cum, end or None)
+
+    def _score_repeat(self, full, step0, frozen, steps):
+        """Scores of episode candidates (K, L, 6) from full tanks, each played after
+        every reset for ``steps`` steps; (scores (K,), episode lengths (K,))."""
+        def score(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            rew, term, _ = self.physics.run(full, cands, step0, frozen)
+            ends = _episode_ends(term)
+            cum = np.concatenate([np.zeros((len(cands), 1)), np.cumsum(rew, 1)], 1)
+            length = cands.shape[1]
+            out = np.full(len(cands), -np.inf)
+            for k in range(len(cands)):
+                if ends[k]:
+                    out[k] = Repeated(cum[k], int(ends[k])).value(steps)
+                elif length >= steps:
+                    out[k] = cum[k, steps]
+            return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
+        return score
+
+    def _score_tail(self, x0, step0, frozen, steps, tail: Repeated | None):
+        """Scores of candidates (K, L, 6) for the rest of the current episode from x0:
+        their rewards to its end, then ``tail``'s for the rest of the ``steps``."""
+        def score(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            rew, term, _ = self.physics.run(x0, cands, step0, frozen)
+            ends = _episode_ends(term)
+            cum = np.concatenate([np.zeros((len(cands), 1)), np.cumsum(rew, 1)], 1)
+            length = cands.shape[1]
+            out = np.full(len(cands), -np.inf)
+            for k in range(len(cands)):
+                if ends[k] and tail is not None and ends[k] < steps:
+                    out[k] = cum[k, ends[k]] + tail.value(steps - int(ends[k]))
+                elif ends[k] and ends[k] >= steps or length >= steps:
+                    out[k] = cum[k, min(steps, length)]
+            return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
+        return score
+
+    def _ascend(self, score, seq: np.ndarray) -> tuple[np.ndarray, float]:
+        """Coordinate ascent from seq: at each step of its episode, every setting held
+        for each block length; sweeps until none improves (at most ``sweeps``)."""
+        value, ends = score(seq[None])
+        best, end = float(value[0]), int(ends[0])
+        for _ in range(self.sweeps):
+            improved = False
+            t = 0
+            while t < min(end, len(seq)):
+                for block in sorted(self.blocks, reverse=True):  # the longest first, so
+                    # the step's own best setting is tried last and kept
+                    if t + block > len(seq):
+                        continue
+                    cands = np.repeat(seq[None], len(SETTINGS), 0)
+                    cands[:, t:t + block] = SETTINGS[:, None, :]
+                    values, lengths = score(cands)
+                    j = int(np.argmax(values))
+                    if values[j] > best + IMPROVEMENT:
+                        best, end, seq, improved = float(values[j]), int(lengths[j]), \
+                            cands[j].copy(), True
+                t += 1
+            if not improved:
+                break
+        return seq, best
+
+    def _assemble(self, x0, step0, frozen, steps, head: np.ndarray, episode: np.ndarray
+                  ) -> np.ndarray:
+        """The interval's plan: ``head`` to the end of the current episode, then
+        ``episode`` after every reset, with the last, cut-off episode refined."""
+        run = self.physics.run
+        rew, term, _ = run(x0, self._pad(head, steps)[None], step0, frozen)
+        end = int(_episode_ends(term)[0]) or steps
+        parts, filled = [head[:end]], min(end, steps)
+        rew, term, _ = run(np.full(NUM_TANKS, TANK_HEIGHT), episode[None],
+                           step0 if frozen else step0 + filled, frozen)
+        length = int(_episode_ends(term)[0]) or len(episode)
+        last_start = filled
+        while filled < steps:
+            last_start = filled
+            parts.append(episode[:min(length, steps - filled)])
+            filled += len(parts[-1])
+        plan = np.concatenate(parts)[:steps]
+        if len(plan) < steps:
+            plan = np.concatenate([plan, np.zeros((steps - len(plan), NUM_TANKS), np.int64)])
+
+        def exact(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            r = run(x0, cands, step0, frozen)[0]
+            return np.nan_to_num(r.sum(1), nan=-np.inf), np.full(len(cands), steps)
+
+        return self._refine(exact, plan, last_start)
+
+    def _refine(self, exact, plan: np.ndarray, start: int) -> np.ndarray:
+        """Coordinate ascent on the plan's steps from ``start`` on, on the exact total."""
+        value = float(exact(plan[None])[0][0])
+        for _ in range(self.sweeps):
+            improved = False
+            for t in range(start, len(plan)):
+                for block in sorted(self.blocks, reverse=True):
+                    if t + block > len(plan):
+                        continue
+                    cands = np.repeat(plan[None], len(SETTINGS), 0)
+                    cands[:, t:t + block] = SETTINGS[:, None, :]
+                    values = exact(cands)[0]
+                    j = int(np.argmax(values))
+                    if values[j] > value + IMPROVEMENT:
+                        value, plan, improved = float(values[j]), cands[j].copy(), True
+            if not improved:
+                break
+        return plan
