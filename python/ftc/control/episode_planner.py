@@ -20,9 +20,12 @@ the observed levels x0 and the steps R left in the interval:
 2. the sequence S of an episode from full tanks is optimised for the total
    reward of S played after every reset until the interval's end
    (n G_S + the first r steps' rewards, for n whole episodes of return G_S):
-   coordinate ascent, where at each step of the episode every one of the 64
-   settings is tried held for each of ``blocks`` steps, the best kept, in
-   sweeps until one improves nothing (at most ``sweeps``);
+   coordinate ascent from the oracle's own episode, where at each step of the
+   episode it tries every one of the 64 settings held for 2, 4 or 8 steps,
+   each valve alone opened or closed for 2-16 steps, the rest of the sequence
+   one step later or earlier, then every setting for that step alone, keeping
+   whatever improves; in sweeps until one improves nothing (at most
+   ``sweeps``); twice, with and without the shifts, the better kept;
 3. where the plant is mid-episode, the rest of the current episode is
    optimised the same way, valued with S's repetitions after its end;
 4. the steps of the last, cut-off episode are refined against the exact
@@ -174,9 +177,11 @@ class EpisodePlanner:
 
     decide(x, operating_steps, steps_left, evaluation, limit) -> valves (6,)."""
 
-    def __init__(self, physics: TruePhysics, sweeps: int = 6, blocks: tuple[int, ...] = (1, 2, 4, 8),
+    def __init__(self, physics: TruePhysics, sweeps: int = 6,
+                 blocks: tuple[int, ...] = (2, 4, 8), valve_blocks: tuple[int, ...] = (2, 4, 8, 16),
                  tolerance: float = 1e-6, hold: int = 3, horizon: int = 10) -> None:
-        self.physics, self.sweeps, self.blocks = physics, sweeps, blocks
+        self.physics, self.sweeps = physics, sweeps
+        self.blocks, self.valve_blocks = blocks, valve_blocks
         self.tolerance, self.hold, self.horizon = tolerance, hold, horizon
         self.plan: np.ndarray | None = None      # (P, 6) valves, from the planning step
         self.expected: np.ndarray | None = None  # (P, 6) levels before each plan step
@@ -260,8 +265,13 @@ class EpisodePlanner:
         if key not in self._episodes:
             if len(self._episodes) > 64:
                 self._episodes.clear()
-            self._episodes[key] = self._ascend(self._score_repeat(full, step0, frozen, steps),
-                                               self._pad(start, steps))[0]
+            score = self._score_repeat(full, step0, frozen, steps)
+            # two ascents from the oracle's episode, with and without the shift moves:
+            # they end on different local maxima (measured: +2.90% and +2.82% over the
+            # oracle on 12 scenario-intervals, +3.00% for the better of the two)
+            found = [self._ascend(score, self._pad(start, steps), shifts=shifts)
+                     for shifts in (True, False)]
+            self._episodes[key] = max(found, key=lambda f: f[1])[0]  # first maximum
         return self._episodes[key]
 
     def _pad(self, seq: np.ndarray, steps: int) -> np.ndarray:
@@ -313,21 +323,23 @@ class EpisodePlanner:
             return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
         return score
 
-    def _ascend(self, score, seq: np.ndarray) -> tuple[np.ndarray, float]:
-        """Coordinate ascent from seq: at each step of its episode, every setting held
-        for each block length; sweeps until none improves (at most ``sweeps``)."""
+    def _ascend(self, score, seq: np.ndarray, start: int = 0, whole: bool = False,
+                shifts: bool = True) -> tuple[np.ndarray, float]:
+        """Coordinate ascent from seq, step by step from ``start``: at each step the
+        coarse moves (:meth:`_coarse`), then every setting for that step alone,
+        the best kept where it improves the score; sweeps until one improves
+        nothing (at most ``sweeps``). Steps past the episode's end are skipped
+        (they change nothing) unless ``whole``."""
         value, ends = score(seq[None])
         best, end = float(value[0]), int(ends[0])
         for _ in range(self.sweeps):
             improved = False
-            t = 0
-            while t < min(end, len(seq)):
-                for block in sorted(self.blocks, reverse=True):  # the longest first, so
-                    # the step's own best setting is tried last and kept
-                    if t + block > len(seq):
+            t = start
+            while t < (len(seq) if whole else min(end, len(seq))):
+                for moves in (self._coarse, self._single):  # each built from the newest seq
+                    cands = moves(seq, t, shifts)
+                    if not len(cands):
                         continue
-                    cands = np.repeat(seq[None], len(SETTINGS), 0)
-                    cands[:, t:t + block] = SETTINGS[:, None, :]
                     values, lengths = score(cands)
                     j = int(np.argmax(values))
                     if values[j] > best + IMPROVEMENT:
@@ -337,6 +349,40 @@ class EpisodePlanner:
             if not improved:
                 break
         return seq, best
+
+    def _single(self, seq: np.ndarray, t: int, shifts: bool = False) -> np.ndarray:
+        """(64, L, 6): seq with each setting at step t."""
+        cands = np.repeat(seq[None], len(SETTINGS), 0)
+        cands[:, t] = SETTINGS
+        return cands
+
+    def _coarse(self, seq: np.ndarray, t: int, shifts: bool) -> np.ndarray:
+        """seq with, from step t, each setting held for each of ``blocks`` (> 1) steps,
+        each valve alone held open or closed for each of ``valve_blocks`` steps, and
+        (``shifts``) the rest of it one step later or earlier."""
+        out = []
+        for block in self.blocks:
+            if block > 1 and t + block <= len(seq):
+                cands = np.repeat(seq[None], len(SETTINGS), 0)
+                cands[:, t:t + block] = SETTINGS[:, None, :]
+                out.append(cands)
+        for block in self.valve_blocks:
+            if t + block <= len(seq):
+                cands = np.repeat(seq[None], 2 * NUM_TANKS, 0)
+                for i in range(NUM_TANKS):
+                    cands[2 * i, t:t + block, i] = 0
+                    cands[2 * i + 1, t:t + block, i] = 1
+                out.append(cands)
+        if shifts and t + 1 < len(seq):  # the rest one step later (each setting
+            # inserted at t) or one step earlier (step t dropped, closed at the end)
+            later = np.repeat(seq[None], len(SETTINGS), 0)
+            later[:, t + 1:] = seq[t:-1]
+            later[:, t] = SETTINGS
+            earlier = seq.copy()[None]
+            earlier[0, t:-1] = seq[t + 1:]
+            earlier[0, -1] = 0
+            out += [later, earlier]
+        return np.concatenate(out) if out else np.zeros((0, *seq.shape), np.int64)
 
     def _assemble(self, x0, step0, frozen, steps, head: np.ndarray, episode: np.ndarray
                   ) -> np.ndarray:
@@ -366,19 +412,4 @@ class EpisodePlanner:
 
     def _refine(self, exact, plan: np.ndarray, start: int) -> np.ndarray:
         """Coordinate ascent on the plan's steps from ``start`` on, on the exact total."""
-        value = float(exact(plan[None])[0][0])
-        for _ in range(self.sweeps):
-            improved = False
-            for t in range(start, len(plan)):
-                for block in sorted(self.blocks, reverse=True):
-                    if t + block > len(plan):
-                        continue
-                    cands = np.repeat(plan[None], len(SETTINGS), 0)
-                    cands[:, t:t + block] = SETTINGS[:, None, :]
-                    values = exact(cands)[0]
-                    j = int(np.argmax(values))
-                    if values[j] > value + IMPROVEMENT:
-                        value, plan, improved = float(values[j]), cands[j].copy(), True
-            if not improved:
-                break
-        return plan
+        return self._ascend(exact, plan, start, whole=True)[0]
