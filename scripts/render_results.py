@@ -34,12 +34,14 @@ BLOCK = re.compile(r"(<!-- results: ([\w-]+)(?::(\w+))? -->\n)(.*?)(<!-- /result
 # intervals 1-9), NAME:std (the spread over seeds), NAME:eval (deterministic
 # evaluation), NAME:score and NAME:fraction (a benchmark's per-interval means,
 # scripts/suite_results.py), each a column per interval; NAME:summary, every
-# column that is not per interval. Rows without values are left out.
+# column that is not per interval; NAME:table, the file's columns as they are
+# (e.g. docs/results/headroom.csv, scripts/headroom.py). Rows without values are
+# left out.
 KINDS = {"mean": "mean over seeds", "std": "std over seeds",
          "eval": "deterministic evaluation (open iff p > 0.5), mean over seeds",
          "score": "normalized score per interval, mean over scenarios and seeds",
          "fraction": "fraction of the oracle per interval, mean over scenarios and seeds",
-         "summary": "per method"}
+         "summary": "per method", "table": "as measured"}
 PER_INTERVAL = re.compile(r"\w+_\d+")
 
 
@@ -67,13 +69,17 @@ def render(name: str, kind: str = "mean") -> str:
         raise SystemExit(f"render_results: table '{name}:{kind}': no such kind "
                          f"({', '.join(KINDS)})")
     meta, rows = read_results(path)
-    if kind == "summary":
+    if kind == "table":
+        head = list(rows[0])
+        label, columns = head[0], head[1:]
+    elif kind == "summary":
         columns = [c for c in rows[0] if c not in ("method", "label", "mean_1_9")
                    and not PER_INTERVAL.fullmatch(c)]
-        head = ["method", *columns]
+        head, label = ["method", *columns], "label"
     else:
         columns = [c for c in rows[0] if re.fullmatch(rf"{kind}_\d+", c)]
         head = ["method", *(c.removeprefix(f"{kind}_") for c in columns)]
+        label = "label"
     head += ["mean 1-9"] if kind == "mean" else []
     lines = [f"{KINDS[kind].capitalize()}, {meta.get('what', '')}: "
              f"`{meta.get('command', '?')}`, {meta.get('machine', '?')}, {meta.get('date', '?')} "
@@ -82,7 +88,7 @@ def render(name: str, kind: str = "mean") -> str:
     for r in rows:
         cells = [r[c] for c in columns] + ([r["mean_1_9"]] if kind == "mean" else [])
         if any(cells):
-            lines.append("| " + " | ".join([r["label"], *cells]) + " |")
+            lines.append("| " + " | ".join([r[label], *cells]) + " |")
     return "\n".join(lines) + "\n"
 
 

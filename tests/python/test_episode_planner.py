@@ -33,7 +33,7 @@ class _WeightedSteps:
     episode ends after ``length`` steps (None: never)."""
 
     def __init__(self, weights: np.ndarray, length: int | None) -> None:
-        self.w, self.length, self.refused = weights, length, 0
+        self.w, self.length, self.refused, self.simulated = weights, length, 0, 0
 
     def schedule(self, step0, length):
         return None, None, ("fixed",)
@@ -159,3 +159,28 @@ def test_the_episode_planner_is_an_option_of_the_oracle_mpc(tmp_path):
                               "--episode-sweeps", "2", "--scenario", "", "--out",
                               str(tmp_path / "o")])
     assert (cfg.planner, cfg.episode_sweeps, cfg.episode_tolerance) == ("episode", 2, 1e-6)
+
+
+def test_an_exhausted_budget_stops_the_search_and_keeps_the_oracles_plan(single_128):
+    physics = TruePhysics(single_128, 1e-6, 1e-8, True)
+    planner = EpisodePlanner(physics, budget=0)  # no search at all
+    step0 = 6 * 128
+    oracle = planner._closed_loop(FULL, step0, 128, False)
+    spent = physics.simulated
+    planner._replan(FULL, step0, 128, False)
+    # the closed loop again, a few whole-plan rollouts, and no ascent (each ascent's
+    # batches are 64 candidates or more)
+    assert physics.simulated - spent < 2 * spent + 10 * 128
+    totals = physics.run(FULL, np.stack([oracle, planner.plan]), step0, False)[0].sum(1)
+    assert totals[1] >= totals[0]
+
+
+def test_sensor_noise_widens_the_tolerance_by_six_standard_deviations(tmp_path):
+    from ftc.control.mpc_agent import MPCAgent
+
+    noisy = tmp_path / "noisy.toml"
+    noisy.write_text(open("scenarios/single.toml").read() + "\n[noise]\nstd = 0.005\n")
+    cfg = mpc_cli.parse_args(["--method", "reference", "--scenario", str(noisy),
+                              "--out", str(tmp_path / "o")])
+    agent = MPCAgent(cfg)
+    assert agent.episode.tolerance == pytest.approx(1e-6 + 6 * 0.005)

@@ -34,6 +34,10 @@ the observed levels x0 and the steps R left in the interval:
    (ties: the oracle's), so on the physics it plans with the reference never
    earns less than ``oracle-mpc`` from the same state.
 
+One plan rolls out at most ``budget`` candidate steps (about 50 s); an ascent
+that reaches it stops where it is, so an episode that never ends (fuel kept
+behind a dead pump) costs a bounded time and still never less than the oracle.
+
 The plan is then played step by step; each observation is checked against
 the levels the rollout predicted (``tolerance``, m). All rollouts are the C++
 batch rollouts (``_core.BatchRollout``; candidates sharing a prefix simulate
@@ -75,6 +79,7 @@ class TruePhysics:
         self._stuck: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
         self._schedules: dict[tuple[int, int], tuple[Any, Any]] = {}
         self.refused = 0
+        self.simulated = 0  # candidate steps rolled out, for the planner's budget
 
     def _key(self, step: int) -> tuple[float, int]:
         applied = int(np.searchsorted(self._events, step, side="right"))
@@ -127,6 +132,7 @@ class TruePhysics:
             stuck = (np.repeat(stuck[0], length, 0), np.repeat(stuck[1], length, 0))
         applied = sequences if stuck is None else np.where(stuck[0], stuck[1], sequences)
         x0 = np.asarray(x0, np.float64)
+        self.simulated += k * length
         try:
             d = self.rollout.run(x0, applied, params, details=True)
             rewards, terminal, levels = d["rewards"], d["terminal"].astype(bool), d["levels"]
@@ -179,10 +185,15 @@ class EpisodePlanner:
 
     def __init__(self, physics: TruePhysics, sweeps: int = 6,
                  blocks: tuple[int, ...] = (2, 4, 8), valve_blocks: tuple[int, ...] = (2, 4, 8, 16),
-                 tolerance: float = 1e-6, hold: int = 3, horizon: int = 10) -> None:
+                 tolerance: float = 1e-6, hold: int = 3, horizon: int = 10,
+                 budget: int = 100_000_000) -> None:
+        """budget: candidate steps one plan may roll out (about 50 s); an ascent that
+        reaches it stops where it is (measured on the default suite: 11-67 million a
+        plan; an episode that never ends, behind a dead pump, can cost far more)."""
         self.physics, self.sweeps = physics, sweeps
         self.blocks, self.valve_blocks = blocks, valve_blocks
         self.tolerance, self.hold, self.horizon = tolerance, hold, horizon
+        self.budget, self._spent_from = budget, 0
         self.plan: np.ndarray | None = None      # (P, 6) valves, from the planning step
         self.expected: np.ndarray | None = None  # (P, 6) levels before each plan step
         self.pos = 0
@@ -211,6 +222,7 @@ class EpisodePlanner:
     # -- planning --------------------------------------------------------------
     def _replan(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> None:
         self.replans += 1
+        self._spent_from = self.physics.simulated
         run = self.physics.run
         oracle = self._closed_loop(x0, step0, steps, frozen)
         full = np.full(NUM_TANKS, TANK_HEIGHT)
@@ -336,6 +348,8 @@ class EpisodePlanner:
             improved = False
             t = start
             while t < (len(seq) if whole else min(end, len(seq))):
+                if self.physics.simulated - self._spent_from > self.budget:
+                    return seq, best
                 for moves in (self._coarse, self._single):  # each built from the newest seq
                     cands = moves(seq, t, shifts)
                     if not len(cands):

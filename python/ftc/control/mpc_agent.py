@@ -113,7 +113,7 @@ class MPCConfig(RunConfig):
         "setting held 1, 2, 4 and 8 steps at every step)")})
     episode_tolerance: float = field(default=1e-6, metadata={"check": positive(1.0), "help": (
         "episode: the plan is remade where an observed level differs from its prediction "
-        "by more than this, m")})
+        "by more than this (plus 6 times the scenario's sensor-noise std), m")})
     rollout_closed_form: bool = field(default=False, metadata={"help": (
         "oracle-mpc, identified-mpc: step the rollouts with two or more valves open in closed "
         "form (_core.BatchRollout's exact_active_conduit; CVODE only where a tank is pinned): "
@@ -223,7 +223,10 @@ class MPCAgent(Agent):
                 self.episode = EpisodePlanner(
                     TruePhysics(scenario, cfg.rollout_rtol, cfg.rollout_atol,
                                 cfg.rollout_closed_form),
-                    sweeps=cfg.episode_sweeps, tolerance=cfg.episode_tolerance,
+                    # sensor noise is on the published levels, not on the state the plan
+                    # follows: deviations within 6 std of it are not the plant departing
+                    sweeps=cfg.episode_sweeps,
+                    tolerance=cfg.episode_tolerance + 6 * scenario.noise_std,
                     hold=cfg.hold, horizon=cfg.horizon)
 
     @classmethod
