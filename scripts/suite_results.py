@@ -117,8 +117,11 @@ def main(argv: list[str] | None = None) -> int:
         text.write(f"# what: {len(c['scenarios'])} scenarios x {len(c['seeds'])} seeds, "
                    f"{c['intervals']} x {c['steps_per_interval']} steps, normalized score "
                    f"against {reference} and closed, fraction of {br.ORACLE}\n")
+        chosen = "" if c.get("reference", br.ORACLE) == br.REFERENCE else \
+            f" --reference {c.get('reference', br.ORACLE)}"
         text.write(f"# command: ftc.experiments benchmark --methods {' '.join(c['methods'])} "
-                   f"--seeds {' '.join(map(str, c['seeds']))} --jobs {info.get('jobs', '?')}\n")
+                   f"--seeds {' '.join(map(str, c['seeds']))}{chosen} "
+                   f"--jobs {info.get('jobs', '?')}\n")
         text.write(f"# commit: {info.get('git_revision', '?')}\n")
         text.write(f"# date: {info.get('created', '?')[:10]}\n")
         text.write(f"# wall time: {info.get('wall_time_s', 0):.0f} s\n")

@@ -151,6 +151,8 @@ HISTORY_PATTERNS = {
         rf"\b(?:commits?|revisions?|rev|sha|hash|code of)\b[^\n.;]{{0,40}}?{_HEX}"
         r"|\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b", re.I),
     "an issue number": re.compile(r"\bissues?\s+#?\d+|(?<![\w&])#\d+\b", re.I),
+    # the design notes outside the repository, which a reader cannot open
+    "an outside note": re.compile(r"\bcontroller-notes\b", re.I),
 }
 
 

@@ -44,7 +44,7 @@ from ftc.experiments.report import Block, to_html, to_markdown
 # the fraction's denominator (and the score's 1 in benchmarks recorded without a reference)
 ORACLE = "oracle-mpc"
 CLOSED = "closed"  # the score's 0
-REFERENCE = "reference"  # the score's default 1: the two-stage planner on the true physics
+REFERENCE = "reference"  # the score's default 1: whole episodes optimised on the true physics
 FRACTION_COLUMNS = ("scenario", "method", "seed", "interval", "reward_per_step",
                     "oracle_reward_per_step", "fraction")
 SCORE_COLUMNS = ("reference_reward_per_step", "closed_reward_per_step", "normalized_score")

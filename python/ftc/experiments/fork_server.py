@@ -3,7 +3,7 @@
 Every run is a fresh ``python -m ftc.controller`` (or ``ftc.mpc``) process,
 and importing torch and the controllers is 1-2 s of each: the 660 runs of the
 every-method benchmark suite spent about 16 min of CPU on it, more than any
-method but ppo-robust and adaptive (docs/benchmarks.md). The fork server is one
+method but ppo-robust and identified-mpc (docs/benchmarks.md). The fork server is one
 process per orchestrator that imports them once and forks a child per run.
 The child is the process the command would have started: its own session
 (process group = pid, so stopping the group stops what it starts), the
