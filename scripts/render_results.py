@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "python"))
 RESULTS = REPO / "docs" / "results"
 DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 BLOCK = re.compile(r"(<!-- results: ([\w-]+)(?::(\w+))? -->\n)(.*?)(<!-- /results -->)", re.S)
@@ -35,13 +36,15 @@ BLOCK = re.compile(r"(<!-- results: ([\w-]+)(?::(\w+))? -->\n)(.*?)(<!-- /result
 # evaluation), NAME:score and NAME:fraction (a benchmark's per-interval means,
 # scripts/suite_results.py), each a column per interval; NAME:summary, every
 # column that is not per interval; NAME:table, the file's columns as they are
-# (e.g. docs/results/headroom.csv, scripts/headroom.py). Rows without values are
-# left out.
+# (e.g. docs/results/headroom.csv, scripts/headroom.py); NAME:methods, the
+# registry's methods (what each is, what it knows, the command that runs it)
+# with their score in a suite file. Rows without values are left out.
 KINDS = {"mean": "mean over seeds", "std": "std over seeds",
          "eval": "deterministic evaluation (open iff p > 0.5), mean over seeds",
          "score": "normalized score per interval, mean over scenarios and seeds",
          "fraction": "fraction of the oracle per interval, mean over scenarios and seeds",
-         "summary": "per method", "table": "as measured"}
+         "summary": "per method", "table": "as measured",
+         "methods": "the registered methods, normalized score and fraction of the oracle from"}
 PER_INTERVAL = re.compile(r"\w+_\d+")
 
 
@@ -69,6 +72,8 @@ def render(name: str, kind: str = "mean") -> str:
         raise SystemExit(f"render_results: table '{name}:{kind}': no such kind "
                          f"({', '.join(KINDS)})")
     meta, rows = read_results(path)
+    if kind == "methods":
+        return _methods(name, meta, rows)
     if kind == "table":
         head = list(rows[0])
         label, columns = head[0], head[1:]
@@ -89,6 +94,28 @@ def render(name: str, kind: str = "mean") -> str:
         cells = [r[c] for c in columns] + ([r["mean_1_9"]] if kind == "mean" else [])
         if any(cells):
             lines.append("| " + " | ".join([r[label], *cells]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _methods(name: str, meta: dict[str, str], rows: list[dict[str, str]]) -> str:
+    """The methods table: every method ftc.experiments compares, by what it
+    knows, with its scores in suite file NAME and the command that runs it alone."""
+    from ftc.control import registry  # the one list of methods
+
+    scores = {r["method"]: r for r in rows}
+    methods = sorted((m for m in registry.METHODS.values() if m.compared and m.benchmark),
+                     key=lambda m: registry.KNOWS.index(m.knows))  # stable: registry order
+    lines = [f"{KINDS['methods'].capitalize()} `docs/results/{name}.csv` "
+             f"({meta.get('what', '')}, {meta.get('date', '?')}):", "",
+             "| method | what it is | knows | normalized score | fraction of oracle-mpc | "
+             "run it alone |", "|---|---|---|---|---|---|"]
+    for m in methods:
+        r = scores.get(m.name, {})
+        command = " ".join([".venv/bin/python -m", m.tool, "--method", m.name,
+                            *m.experiment_args, "--out", f"runs/{m.name}"])
+        lines.append(f"| `{m.name}` | {m.label} | {m.knows} | "
+                     f"{r.get('normalized score', '')} | {r.get('fraction of the oracle', '')} | "
+                     f"`{command}` |")
     return "\n".join(lines) + "\n"
 
 

@@ -90,6 +90,27 @@ def summary_rows(rows: list[dict], reference: str, labels: dict[str, str],
     return out
 
 
+def _figure(rows: list[dict], reference: str, labels: dict[str, str], methods: list[str],
+            intervals: int, path: Path) -> None:
+    """The benchmark report's figure (benchmark_report.draw_figure) of the merged
+    cells, drawn in a scratch run directory and moved to ``path``."""
+    import shutil
+    import tempfile
+
+    scored = br.normalized_scores(rows, reference)
+    with tempfile.TemporaryDirectory() as tmp:
+        with open(Path(tmp) / "results.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(scored[0]), extrasaction="ignore")
+            w.writeheader()
+            w.writerows(scored)
+        drawn = br.draw_figure(Path(tmp), methods, labels, reference, intervals)
+        if drawn is None:
+            raise SystemExit("suite_results: no method besides the reference and closed to draw")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(drawn, path.with_suffix(".part"))
+        path.with_suffix(".part").replace(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dirs", nargs="+", type=Path, metavar="DIR",
@@ -98,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the result file to write (e.g. docs/results/suite.csv)")
     p.add_argument("--reference", help="the method whose normalized score is 1 (default: "
                                        "the first directory's --reference)")
+    p.add_argument("--figure", type=Path, help="also draw the benchmark's score figure of "
+                   "the merged cells into this PNG (e.g. docs/figures/benchmark_score.png)")
     args = p.parse_args(argv)
     rows, meta = read_cells(args.dirs)
     reference = args.reference or meta[0]["config"].get("reference", br.ORACLE)
@@ -131,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     w.writerows(table)
     atomic_write_text(args.out, text.getvalue())
     print(f"suite_results: {len(table)} methods, {len(rows)} cells -> {args.out}")
+    if args.figure:
+        _figure(rows, reference, labels, methods, intervals, args.figure)
+        print(f"suite_results: figure -> {args.figure}")
     return 0
 
 
