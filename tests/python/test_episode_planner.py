@@ -14,7 +14,8 @@ import pytest
 
 from ftc import _core
 from ftc.control import mpc_cli
-from ftc.control.episode_planner import EpisodePlanner, Repeated, TruePhysics
+from ftc.control.episode_planner import (EpisodePlanner, Repeated, TruePhysics, repeat_scores,
+                                         tail_scores)
 
 FULL = np.ones(6)
 
@@ -51,8 +52,8 @@ class _WeightedSteps:
 def test_coordinate_ascent_finds_the_best_sequence_of_a_separable_reward(seed):
     w = np.random.default_rng(seed).normal(size=(12, 6))
     planner = EpisodePlanner(_WeightedSteps(w, None), sweeps=1)  # one sweep: separable
-    score = planner._score_tail(FULL, 0, False, 12, None)
-    seq, value = planner._ascend(score, np.zeros((12, 6), np.int64))
+    score = tail_scores(planner.physics, FULL, 0, False, 12, None)
+    seq, value = planner.ascend(score, np.zeros((12, 6), np.int64))
     best = (w > 0).astype(np.int64)  # each valve open exactly where its weight pays
     assert (seq == best).all()
     assert value == pytest.approx(w[w > 0].sum(), abs=1e-12)
@@ -62,8 +63,8 @@ def test_a_repeated_episode_is_scored_over_the_interval():
     w = np.random.default_rng(3).normal(size=(16, 6))
     planner = EpisodePlanner(_WeightedSteps(w, 4), sweeps=2)
     # 10 steps of a 4-step episode played again after each reset: 2 whole + 2 steps
-    score = planner._score_repeat(FULL, 0, False, 10)
-    seq, value = planner._ascend(score, np.zeros((8, 6), np.int64))
+    score = repeat_scores(planner.physics, 0, False, 10)
+    seq, value = planner.ascend(score, np.zeros((8, 6), np.int64))
     gains = np.clip(w[:4], 0, None).sum(1)
     assert value == pytest.approx(2 * gains.sum() + gains[:2].sum(), abs=1e-12)
     assert (seq[:4] == (w[:4] > 0)).all()

@@ -5,15 +5,14 @@ below the oracle refused with nothing written."""
 from __future__ import annotations
 
 import csv
-import json
 import math
-import shutil
 import sys
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+from bench_dirs import REPO, write_benchmark
+
 sys.path.insert(0, str(REPO / "scripts"))
 
 import headroom  # noqa: E402
@@ -36,20 +35,8 @@ def test_the_volume_bound_follows_the_episodes_sawtooth():
 
 
 def _benchmark(path: Path, rewards: dict[str, list[float]]) -> Path:
-    """A finished benchmark directory of scenario 'single' (10 intervals), seed 0."""
-    (path / "scenarios").mkdir(parents=True)
-    shutil.copy(REPO / "scenarios" / "single.toml", path / "scenarios" / "single.toml")
-    (path / "benchmark.json").write_text(json.dumps({
-        "config": {"scenarios": ["single"], "methods": list(rewards), "seeds": [0],
-                   "intervals": 10, "steps_per_interval": 512, "reference": "reference"},
-        "git_revision": "0" * 40, "created": "2026-12-04T00:00:00"}))
-    with open(path / "results.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["scenario", "method", "seed", "interval", "reward_per_step"])
-        for method, values in rewards.items():
-            for k, v in enumerate(values):
-                w.writerow(["single", method, 0, k, v])
-    return path
+    """A finished benchmark directory of scenario 'single', seed 0."""
+    return write_benchmark(path, {m: {("single", 0): v} for m, v in rewards.items()})
 
 
 def test_margins_bound_and_methods_above_the_reference(tmp_path):

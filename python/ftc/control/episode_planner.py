@@ -49,7 +49,7 @@ operating step's in an evaluation episode, as the plant freezes them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -178,177 +178,87 @@ def _episode_ends(terminal: np.ndarray) -> np.ndarray:
     return np.where(terminal.any(1), terminal.argmax(1) + 1, 0)
 
 
-class EpisodePlanner:
-    """Plans whole episodes on the true physics and plays them (module docstring).
+# A score: candidates (K, L, 6) -> (their scores (K,), their episodes' lengths (K,):
+# L where it does not end); -inf for a candidate that cannot be scored.
+Score = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
-    decide(x, operating_steps, steps_left, evaluation, limit) -> valves (6,)."""
 
-    def __init__(self, physics: TruePhysics, sweeps: int = 6,
-                 blocks: tuple[int, ...] = (2, 4, 8), valve_blocks: tuple[int, ...] = (2, 4, 8, 16),
-                 tolerance: float = 1e-6, hold: int = 3, horizon: int = 10,
-                 budget: int = 100_000_000) -> None:
-        """budget: candidate steps one plan may roll out (about 50 s); an ascent that
-        reaches it stops where it is (measured on the default suite: 11-67 million a
-        plan; an episode that never ends, behind a dead pump, can cost far more)."""
-        self.physics, self.sweeps = physics, sweeps
+def _rolled(physics: TruePhysics, x0: np.ndarray, cands: np.ndarray, step0: int,
+            frozen: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(cumulative rewards (K, L + 1), episode ends (K,)) of candidates from x0."""
+    rew, term, _ = physics.run(x0, cands, step0, frozen)
+    return np.concatenate([np.zeros((len(cands), 1)), np.cumsum(rew, 1)], 1), _episode_ends(term)
+
+
+def repeat_scores(physics: TruePhysics, step0: int, frozen: bool, steps: int) -> Score:
+    """Episode candidates from full tanks, each played after every reset for
+    ``steps`` steps; one that does not end within its length scores only if its
+    length covers the ``steps``."""
+    full = np.full(NUM_TANKS, TANK_HEIGHT)
+
+    def score(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cum, ends = _rolled(physics, full, cands, step0, frozen)
+        length = cands.shape[1]
+        out = np.full(len(cands), -np.inf)
+        for k in range(len(cands)):
+            if ends[k]:
+                out[k] = Repeated(cum[k], int(ends[k])).value(steps)
+            elif length >= steps:
+                out[k] = cum[k, steps]
+        return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
+    return score
+
+
+def tail_scores(physics: TruePhysics, x0: np.ndarray, step0: int, frozen: bool, steps: int,
+                tail: Repeated | None) -> Score:
+    """Candidates for the rest of the current episode from x0: their rewards to its
+    end, then ``tail``'s for the rest of the ``steps`` (None: their own, to the end)."""
+    def score(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cum, ends = _rolled(physics, x0, cands, step0, frozen)
+        length = cands.shape[1]
+        out = np.full(len(cands), -np.inf)
+        for k in range(len(cands)):
+            if ends[k] and tail is not None and ends[k] < steps:
+                out[k] = cum[k, ends[k]] + tail.value(steps - int(ends[k]))
+            elif ends[k] and ends[k] >= steps or length >= steps:
+                out[k] = cum[k, min(steps, length)]
+        return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
+    return score
+
+
+class Ascent:
+    """Coordinate ascent over a valve sequence, within a budget of rollout steps.
+
+    At each step of the sequence: the coarse moves (every setting held for each
+    of ``blocks`` steps, each valve alone held open or closed for each of
+    ``valve_blocks`` steps, and the rest of the sequence one step later or
+    earlier), then every setting for that step alone; the best candidate is
+    kept where it improves the score. Sweeps until one improves nothing (at
+    most ``sweeps``), or until ``budget`` candidate steps have been rolled out
+    since :meth:`start`."""
+
+    def __init__(self, physics: TruePhysics, sweeps: int, blocks: tuple[int, ...],
+                 valve_blocks: tuple[int, ...], budget: int) -> None:
+        self.physics, self.sweeps, self.budget = physics, sweeps, budget
         self.blocks, self.valve_blocks = blocks, valve_blocks
-        self.tolerance, self.hold, self.horizon = tolerance, hold, horizon
-        self.budget, self._spent_from = budget, 0
-        self.plan: np.ndarray | None = None      # (P, 6) valves, from the planning step
-        self.expected: np.ndarray | None = None  # (P, 6) levels before each plan step
-        self.pos = 0
-        self.evaluation = False
-        self._episodes: dict[Any, np.ndarray] = {}  # memo of optimised episodes
-        self.replans = 0
-        self.gain = 0.0  # the chosen plans' summed predicted gain over the oracle's, reward
+        self._from = 0
 
-    # -- playing ---------------------------------------------------------------
-    def decide(self, x: np.ndarray, operating_steps: int, steps_left: int | None,
-               evaluation: bool, limit: int) -> np.ndarray:
-        """The valves for the next step. steps_left: operating steps left in the
-        interval (None in evaluation, whose episode is cut off after ``limit``)."""
-        x = np.asarray(x, np.float64)
-        fresh = steps_left is not None and steps_left == limit  # an interval's first step
-        if (fresh or self.plan is None or self.pos >= len(self.plan)
-                or evaluation != self.evaluation
-                or (steps_left is not None and steps_left != len(self.plan) - self.pos)
-                or np.abs(x - self.expected[self.pos]).max() > self.tolerance):
-            step0 = max(0, operating_steps - 1) if evaluation else operating_steps
-            self._replan(x, step0, steps_left if steps_left is not None else limit, evaluation)
-        u = self.plan[self.pos]
-        self.pos += 1
-        return u.copy()
+    def start(self) -> None:
+        """A new plan: its budget starts now."""
+        self._from = self.physics.simulated
 
-    # -- planning --------------------------------------------------------------
-    def _replan(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> None:
-        self.replans += 1
-        self._spent_from = self.physics.simulated
-        run = self.physics.run
-        oracle = self._closed_loop(x0, step0, steps, frozen)
-        full = np.full(NUM_TANKS, TANK_HEIGHT)
-        # the oracle's episodes: where the current one ends, and the one after it
-        ends = np.nonzero(run(x0, oracle[None], step0, frozen)[1][0])[0] + 1
-        if len(ends) == 0 or ends[0] >= steps:  # no reset within the interval
-            plan = self._ascend(self._score_tail(x0, step0, frozen, steps, None), oracle)[0]
-        else:
-            first = int(ends[0])
-            at_start = bool(np.abs(x0 - full).max() <= self.tolerance)
-            if at_start:
-                start, begins, left = oracle[:first], step0, steps
-            else:
-                start = oracle[first:int(ends[1])] if len(ends) > 1 else oracle[first:]
-                begins, left = (step0 if frozen else step0 + first), steps - first
-            episode = self._episode(full, begins, frozen, left, start)
-            if at_start:
-                head = episode
-            else:
-                tail = self._repeated(full, begins, frozen, episode)
-                head = self._ascend(self._score_tail(x0, step0, frozen, steps, tail),
-                                    self._pad(oracle[:first], steps))[0]
-            plan = self._assemble(x0, step0, frozen, steps, head, episode)
-        totals = np.nan_to_num(run(x0, np.stack([oracle, plan]), step0, frozen)[0].sum(1),
-                               nan=-np.inf)
-        best = plan if totals[1] > totals[0] + IMPROVEMENT else oracle
-        self.gain += float(max(totals[1] - totals[0], 0.0))
-        _, term, levels = run(x0, best[None], step0, frozen)
-        after = np.where(term[0][:, None], full, levels[0])
-        self.plan, self.pos, self.evaluation = best, 0, frozen
-        self.expected = np.concatenate([x0[None], after[:-1]])
-
-    def _closed_loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> np.ndarray:
-        """The hold planner's valves (steps, 6), simulated closed-loop from x0."""
-        seq = np.zeros((steps, NUM_TANKS), np.int64)
-        x, full = np.asarray(x0, np.float64), np.full(NUM_TANKS, TANK_HEIGHT)
-        for t in range(steps):
-            horizon = max(1, min(self.horizon, steps - t))
-            cands = hold_candidates(self.hold, horizon)
-            rew, term, lev = self.physics.run(x, cands, step0 if frozen else step0 + t, frozen)
-            best = int(np.argmax(rew.sum(1)))
-            seq[t] = cands[best, 0]
-            x = full if term[best, 0] else lev[best, 0]
-        return seq
-
-    def _episode(self, full: np.ndarray, step0: int, frozen: bool, steps: int,
-                 start: np.ndarray) -> np.ndarray:
-        """The optimised sequence of an episode from full tanks, played after every
-        reset for ``steps`` steps (memoised: the result depends on its inputs only)."""
-        signature = self.physics.schedule(step0, 1 if frozen else steps)[2]
-        key = (signature, steps, start.tobytes())
-        if key not in self._episodes:
-            if len(self._episodes) > 64:
-                self._episodes.clear()
-            score = self._score_repeat(full, step0, frozen, steps)
-            # two ascents from the oracle's episode, with and without the shift moves:
-            # they end on different local maxima (measured: +2.90% and +2.82% over the
-            # oracle on 12 scenario-intervals, +3.00% for the better of the two)
-            found = [self._ascend(score, self._pad(start, steps), shifts=shifts)
-                     for shifts in (True, False)]
-            self._episodes[key] = max(found, key=lambda f: f[1])[0]  # first maximum
-        return self._episodes[key]
-
-    def _pad(self, seq: np.ndarray, steps: int) -> np.ndarray:
-        """seq cut or padded with closed valves to the rollout length: its episode
-        plus a margin (an alternative may end later), at most ``steps``."""
-        length = min(steps, max(2 * len(seq), len(seq) + 64))
-        out = np.zeros((length, NUM_TANKS), np.int64)
-        out[:min(len(seq), length)] = seq[:length]
-        return out
-
-    def _repeated(self, full: np.ndarray, step0: int, frozen: bool, episode: np.ndarray
-                  ) -> Repeated:
-        rew, term, _ = self.physics.run(full, episode[None], step0, frozen)
-        end = int(_episode_ends(term)[0])
-        cum = np.concatenate([[0.0], np.cumsum(rew[0])])
-        return Repeated(cum, end or None)
-
-    def _score_repeat(self, full, step0, frozen, steps):
-        """Scores of episode candidates (K, L, 6) from full tanks, each played after
-        every reset for ``steps`` steps; (scores (K,), episode lengths (K,))."""
-        def score(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            rew, term, _ = self.physics.run(full, cands, step0, frozen)
-            ends = _episode_ends(term)
-            cum = np.concatenate([np.zeros((len(cands), 1)), np.cumsum(rew, 1)], 1)
-            length = cands.shape[1]
-            out = np.full(len(cands), -np.inf)
-            for k in range(len(cands)):
-                if ends[k]:
-                    out[k] = Repeated(cum[k], int(ends[k])).value(steps)
-                elif length >= steps:
-                    out[k] = cum[k, steps]
-            return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
-        return score
-
-    def _score_tail(self, x0, step0, frozen, steps, tail: Repeated | None):
-        """Scores of candidates (K, L, 6) for the rest of the current episode from x0:
-        their rewards to its end, then ``tail``'s for the rest of the ``steps``."""
-        def score(cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            rew, term, _ = self.physics.run(x0, cands, step0, frozen)
-            ends = _episode_ends(term)
-            cum = np.concatenate([np.zeros((len(cands), 1)), np.cumsum(rew, 1)], 1)
-            length = cands.shape[1]
-            out = np.full(len(cands), -np.inf)
-            for k in range(len(cands)):
-                if ends[k] and tail is not None and ends[k] < steps:
-                    out[k] = cum[k, ends[k]] + tail.value(steps - int(ends[k]))
-                elif ends[k] and ends[k] >= steps or length >= steps:
-                    out[k] = cum[k, min(steps, length)]
-            return np.nan_to_num(out, nan=-np.inf), np.where(ends > 0, ends, length)
-        return score
-
-    def _ascend(self, score, seq: np.ndarray, start: int = 0, whole: bool = False,
-                shifts: bool = True) -> tuple[np.ndarray, float]:
-        """Coordinate ascent from seq, step by step from ``start``: at each step the
-        coarse moves (:meth:`_coarse`), then every setting for that step alone,
-        the best kept where it improves the score; sweeps until one improves
-        nothing (at most ``sweeps``). Steps past the episode's end are skipped
-        (they change nothing) unless ``whole``."""
+    def __call__(self, score: Score, seq: np.ndarray, start: int = 0, whole: bool = False,
+                 shifts: bool = True) -> tuple[np.ndarray, float]:
+        """(the best sequence found from seq, its score), moving the steps from
+        ``start`` on; steps past the episode's end are skipped (they change
+        nothing) unless ``whole``."""
         value, ends = score(seq[None])
         best, end = float(value[0]), int(ends[0])
         for _ in range(self.sweeps):
             improved = False
             t = start
             while t < (len(seq) if whole else min(end, len(seq))):
-                if self.physics.simulated - self._spent_from > self.budget:
+                if self.physics.simulated - self._from > self.budget:
                     return seq, best
                 for moves in (self._coarse, self._single):  # each built from the newest seq
                     cands = moves(seq, t, shifts)
@@ -364,16 +274,14 @@ class EpisodePlanner:
                 break
         return seq, best
 
-    def _single(self, seq: np.ndarray, t: int, shifts: bool = False) -> np.ndarray:
+    @staticmethod
+    def _single(seq: np.ndarray, t: int, shifts: bool = False) -> np.ndarray:
         """(64, L, 6): seq with each setting at step t."""
         cands = np.repeat(seq[None], len(SETTINGS), 0)
         cands[:, t] = SETTINGS
         return cands
 
     def _coarse(self, seq: np.ndarray, t: int, shifts: bool) -> np.ndarray:
-        """seq with, from step t, each setting held for each of ``blocks`` (> 1) steps,
-        each valve alone held open or closed for each of ``valve_blocks`` steps, and
-        (``shifts``) the rest of it one step later or earlier."""
         out = []
         for block in self.blocks:
             if block > 1 and t + block <= len(seq):
@@ -397,6 +305,127 @@ class EpisodePlanner:
             earlier[0, -1] = 0
             out += [later, earlier]
         return np.concatenate(out) if out else np.zeros((0, *seq.shape), np.int64)
+
+
+class EpisodePlanner:
+    """Plans whole episodes on the true physics and plays them (module docstring).
+
+    decide(x, operating_steps, steps_left, evaluation, limit) -> valves (6,)."""
+
+    def __init__(self, physics: TruePhysics, sweeps: int = 6,
+                 blocks: tuple[int, ...] = (2, 4, 8), valve_blocks: tuple[int, ...] = (2, 4, 8, 16),
+                 tolerance: float = 1e-6, hold: int = 3, horizon: int = 10,
+                 budget: int = 100_000_000) -> None:
+        """budget: candidate steps one plan may roll out (about 50 s); an ascent that
+        reaches it stops where it is (measured on the default suite: 11-67 million a
+        plan; an episode that never ends, behind a dead pump, can cost far more)."""
+        self.physics = physics
+        self.ascend = Ascent(physics, sweeps, blocks, valve_blocks, budget)
+        self.tolerance, self.hold, self.horizon = tolerance, hold, horizon
+        self.plan: np.ndarray | None = None      # (P, 6) valves, from the planning step
+        self.expected: np.ndarray | None = None  # (P, 6) levels before each plan step
+        self.pos = 0
+        self.evaluation = False
+        self._episodes: dict[Any, np.ndarray] = {}  # memo of optimised episodes
+        self.replans = 0
+
+    # -- playing ---------------------------------------------------------------
+    def decide(self, x: np.ndarray, operating_steps: int, steps_left: int | None,
+               evaluation: bool, limit: int) -> np.ndarray:
+        """The valves for the next step. steps_left: operating steps left in the
+        interval (None in evaluation, whose episode is cut off after ``limit``)."""
+        x = np.asarray(x, np.float64)
+        fresh = steps_left is not None and steps_left == limit  # an interval's first step
+        if (fresh or self.plan is None or self.pos >= len(self.plan)
+                or evaluation != self.evaluation
+                or (steps_left is not None and steps_left != len(self.plan) - self.pos)
+                or np.abs(x - self.expected[self.pos]).max() > self.tolerance):
+            step0 = max(0, operating_steps - 1) if evaluation else operating_steps
+            self._replan(x, step0, steps_left if steps_left is not None else limit, evaluation)
+        u = self.plan[self.pos]
+        self.pos += 1
+        return u.copy()
+
+    # -- planning --------------------------------------------------------------
+    def _replan(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> None:
+        self.replans += 1
+        self.ascend.start()
+        run = self.physics.run
+        oracle = self._closed_loop(x0, step0, steps, frozen)
+        full = np.full(NUM_TANKS, TANK_HEIGHT)
+        # the oracle's episodes: where the current one ends, and the one after it
+        ends = np.nonzero(run(x0, oracle[None], step0, frozen)[1][0])[0] + 1
+        if len(ends) == 0 or ends[0] >= steps:  # no reset within the interval
+            plan = self.ascend(tail_scores(self.physics, x0, step0, frozen, steps, None),
+                               oracle)[0]
+        else:
+            first = int(ends[0])
+            at_start = bool(np.abs(x0 - full).max() <= self.tolerance)
+            if at_start:
+                start, begins, left = oracle[:first], step0, steps
+            else:
+                start = oracle[first:int(ends[1])] if len(ends) > 1 else oracle[first:]
+                begins, left = (step0 if frozen else step0 + first), steps - first
+            episode = self._episode(begins, frozen, left, start)
+            if at_start:
+                head = episode
+            else:
+                tail = self._repeated(full, begins, frozen, episode)
+                head = self.ascend(tail_scores(self.physics, x0, step0, frozen, steps, tail),
+                                   self._pad(oracle[:first], steps))[0]
+            plan = self._assemble(x0, step0, frozen, steps, head, episode)
+        totals = np.nan_to_num(run(x0, np.stack([oracle, plan]), step0, frozen)[0].sum(1),
+                               nan=-np.inf)
+        best = plan if totals[1] > totals[0] + IMPROVEMENT else oracle
+        _, term, levels = run(x0, best[None], step0, frozen)
+        after = np.where(term[0][:, None], full, levels[0])
+        self.plan, self.pos, self.evaluation = best, 0, frozen
+        self.expected = np.concatenate([x0[None], after[:-1]])
+
+    def _closed_loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> np.ndarray:
+        """The hold planner's valves (steps, 6), simulated closed-loop from x0."""
+        seq = np.zeros((steps, NUM_TANKS), np.int64)
+        x, full = np.asarray(x0, np.float64), np.full(NUM_TANKS, TANK_HEIGHT)
+        for t in range(steps):
+            horizon = max(1, min(self.horizon, steps - t))
+            cands = hold_candidates(self.hold, horizon)
+            rew, term, lev = self.physics.run(x, cands, step0 if frozen else step0 + t, frozen)
+            best = int(np.argmax(rew.sum(1)))
+            seq[t] = cands[best, 0]
+            x = full if term[best, 0] else lev[best, 0]
+        return seq
+
+    def _episode(self, step0: int, frozen: bool, steps: int, start: np.ndarray) -> np.ndarray:
+        """The optimised sequence of an episode from full tanks, played after every
+        reset for ``steps`` steps (memoised: the result depends on its inputs only)."""
+        signature = self.physics.schedule(step0, 1 if frozen else steps)[2]
+        key = (signature, steps, start.tobytes())
+        if key not in self._episodes:
+            if len(self._episodes) > 64:
+                self._episodes.clear()
+            score = repeat_scores(self.physics, step0, frozen, steps)
+            # two ascents from the oracle's episode, with and without the shift moves:
+            # they end on different local maxima (measured: +2.90% and +2.82% over the
+            # oracle on 12 scenario-intervals, +3.00% for the better of the two)
+            found = [self.ascend(score, self._pad(start, steps), shifts=shifts)
+                     for shifts in (True, False)]
+            self._episodes[key] = max(found, key=lambda f: f[1])[0]  # first maximum
+        return self._episodes[key]
+
+    def _pad(self, seq: np.ndarray, steps: int) -> np.ndarray:
+        """seq cut or padded with closed valves to the rollout length: its episode
+        plus a margin (an alternative may end later), at most ``steps``."""
+        length = min(steps, max(2 * len(seq), len(seq) + 64))
+        out = np.zeros((length, NUM_TANKS), np.int64)
+        out[:min(len(seq), length)] = seq[:length]
+        return out
+
+    def _repeated(self, full: np.ndarray, step0: int, frozen: bool, episode: np.ndarray
+                  ) -> Repeated:
+        rew, term, _ = self.physics.run(full, episode[None], step0, frozen)
+        end = int(_episode_ends(term)[0])
+        cum = np.concatenate([[0.0], np.cumsum(rew[0])])
+        return Repeated(cum, end or None)
 
     def _assemble(self, x0, step0, frozen, steps, head: np.ndarray, episode: np.ndarray
                   ) -> np.ndarray:
@@ -426,4 +455,4 @@ class EpisodePlanner:
 
     def _refine(self, exact, plan: np.ndarray, start: int) -> np.ndarray:
         """Coordinate ascent on the plan's steps from ``start`` on, on the exact total."""
-        return self._ascend(exact, plan, start, whole=True)[0]
+        return self.ascend(exact, plan, start, whole=True)[0]

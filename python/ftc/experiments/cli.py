@@ -7,6 +7,8 @@
     python -m ftc.experiments report --out runs/NAME    # figures and report again
     python -m ftc.experiments benchmark [--scenarios FILE...] [--methods NAME...]
                                         # the benchmark suite (benchmark --help)
+    python -m ftc.experiments compare DIR... --out REPORT
+                                        # benchmark directories in one report (compare --help)
 
 Experiments (docs/plant-model.md, "The paper's experiments"):
 single (engine E1, D_E = 20), multiple (E1 D_E = 20, tanks 5 and 6 D_T = 20)
@@ -50,7 +52,7 @@ from typing import Sequence
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
-from ftc.experiments import benchmark, report
+from ftc.experiments import benchmark, compare, report
 from ftc.experiments.collect import collect
 from ftc.experiments.method_args import PARSERS, method_args, untaken
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS
@@ -77,7 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("command", choices=(*EXPERIMENTS, "all", "model-search", "report"),
                         help="which experiment(s) to run; model-search: the world-model grid; "
                              "report: redo results, figures and report from saved runs (the "
-                             "benchmark suite has its own options: benchmark --help)")
+                             "benchmark suite and the comparison of benchmarks have their own "
+                             "options: benchmark --help, compare --help)")
     parser.add_argument("--out", type=checked(Path, nonempty=True), default=None,
                         help="run directory (default: runs/<command>-<date-time>)")
     parser.add_argument("--resume", action="store_true",
@@ -280,6 +283,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["benchmark"]:  # its own options: ftc.experiments.benchmark
         return benchmark.main(argv[1:])
+    if argv[:1] == ["compare"]:  # its own options: ftc.experiments.compare
+        return compare.main(argv[1:])
     args = parse_args(argv)
     ray = None
     try:

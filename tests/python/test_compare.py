@@ -1,0 +1,107 @@
+"""ftc.experiments compare: entries named by method (and directory where several
+hold one), scores rebased on a reference another directory holds, the paired
+difference and its standard error by hand, and every incompatibility refused
+in one line naming it, with nothing written."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench_dirs import REPO, write_benchmark
+from ftc.experiments import compare
+
+CLOSED = [2.0] * 4
+REFERENCE = [2.0, 3.0, 3.0, 3.0]  # reference - closed = 1 from interval 1 on: score = r - 2
+
+
+def _runs(values_by_seed: dict[int, list[float]], scenario: str = "single") -> dict:
+    return {(scenario, seed): v for seed, v in values_by_seed.items()}
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture
+def two_dirs(tmp_path):
+    """A: closed, oracle-mpc and balance, scored against oracle-mpc; B: reference,
+    closed and balance again (another commit, say), seeds 0 and 1 in both."""
+    a = write_benchmark(tmp_path / "A", {
+        "closed": _runs({0: CLOSED, 1: CLOSED}),
+        "oracle-mpc": _runs({0: [2.0, 2.5, 2.5, 2.5], 1: [2.0, 2.5, 2.5, 2.5]}),
+        "balance": _runs({0: [2.0, 2.4, 2.5, 2.6], 1: [2.0, 2.2, 2.3, 2.4]})},
+        reference="oracle-mpc")
+    b = write_benchmark(tmp_path / "B", {
+        "reference": _runs({0: REFERENCE, 1: REFERENCE}),
+        "closed": _runs({0: CLOSED, 1: CLOSED}),
+        "balance": _runs({0: [2.0, 2.6, 2.7, 2.8], 1: [2.0, 2.3, 2.3, 2.3]})})
+    return a, b
+
+
+def test_entries_scores_and_the_paired_difference(two_dirs, tmp_path):
+    a, b = two_dirs
+    out = tmp_path / "cmp"
+    assert compare.main([str(a), str(b), "--reference", "reference", "--out", str(out)]) == 0
+    entries = {r["entry"]: r for r in _rows(out / "entries.csv")}
+    assert set(entries) == {"closed@A", "closed@B", "oracle-mpc", "balance@A", "balance@B",
+                            "reference"}
+    # balance@A on A's own cells, rebased on B's reference: score = r - 2 (intervals 1-3)
+    mean_a = np.mean([0.4, 0.5, 0.6, 0.2, 0.3, 0.4])
+    assert float(entries["balance@A"]["normalized score"]) == pytest.approx(mean_a, abs=5e-4)
+    assert entries["reference"]["normalized score"] == "1.000"
+    pairs = {(r["entry"], r["against"]): r for r in _rows(out / "paired.csv")}
+    p = pairs[("balance@B", "balance@A")]
+    # per run (scenario, seed), the mean of B - A over intervals 1-3: seed 0 +0.2, seed 1 +0.0
+    runs = np.array([0.2, 0.0])
+    assert float(p["difference"]) == pytest.approx(runs.mean(), abs=1e-4)
+    assert float(p["standard error"]) == pytest.approx(runs.std(ddof=1) / np.sqrt(2), abs=1e-3)
+    assert (p["runs"], p["cells"]) == ("2", "6")
+    report = (out / "compare.md").read_text()
+    assert "Paired differences" in report and "balance@B" in report
+    assert (out / "figures" / "benchmark_score.png").stat().st_size > 0
+
+
+def test_against_pairs_every_entry_with_the_one_named(two_dirs, tmp_path):
+    a, b = two_dirs
+    out = tmp_path / "cmp"
+    assert compare.main([str(a), str(b), "--reference", "reference", "--against",
+                         "oracle-mpc", "--out", str(out)]) == 0
+    against = {r["entry"] for r in _rows(out / "paired.csv") if r["against"] == "oracle-mpc"}
+    assert {"balance@A", "balance@B", "reference"} <= against
+
+
+def _refused(args: list[str], tmp_path: Path) -> str:
+    out = tmp_path / "refused"
+    proc = subprocess.run([sys.executable, "-m", "ftc.experiments", "compare", *args,
+                           "--out", str(out)], cwd=REPO, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert not out.exists()
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    return proc.stderr
+
+
+def test_incompatible_directories_are_refused_naming_the_difference(two_dirs, tmp_path):
+    a, _ = two_dirs
+    short = write_benchmark(tmp_path / "short", {"closed": _runs({0: CLOSED[:2]})})
+    assert "has 2 intervals" in _refused([str(a), str(short)], tmp_path)
+    steps = write_benchmark(tmp_path / "steps", {"closed": _runs({0: CLOSED})},
+                            steps_per_interval=64)
+    assert "64 steps per interval" in _refused([str(a), str(steps)], tmp_path)
+    other = write_benchmark(tmp_path / "other", {"closed": _runs({0: CLOSED}, "multiple")})
+    assert "different suites (scenario" in _refused([str(a), str(other)], tmp_path)
+    edited = write_benchmark(tmp_path / "edited", {"closed": _runs({0: CLOSED})},
+                             scenario_text={"single": "name = 'single'\n"})
+    assert "scenario single differs" in _refused([str(a), str(edited)], tmp_path)
+    assert "holds no finished benchmark" in _refused([str(a), str(tmp_path / "none")],
+                                                     tmp_path)
+    assert "--against nosuch: no such entry" in _refused(
+        [str(a), "--against", "nosuch"], tmp_path)
+    assert "is given twice" in _refused([str(a), str(a)], tmp_path)
