@@ -34,14 +34,20 @@ class BalanceAgent(Agent):
         return cls()
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
-        mass = AREAS * np.maximum(obs.level, 0.0)
-        u = np.zeros(NUM_TANKS, np.int8)
-        if mass.sum() <= 0:
-            return u
-        cg = float(mass @ MOMENT_ARMS / mass.sum())
-        if abs(cg) <= self.band:
-            return u
-        heavy, light = (RIGHT, LEFT) if cg > 0 else (LEFT, RIGHT)
-        u[heavy[np.argmax(obs.level[heavy])]] = 1
-        u[light[np.argmin(obs.level[light])]] = 1
+        return balance_valves(obs.level, self.band)
+
+
+def balance_valves(level: np.ndarray, band: float = 0.1) -> np.ndarray:
+    """The rule's valves (6,) int8 for tank levels (6,) m: the fullest tank of the
+    heavy wing and the emptiest of the light one open where |cg| > band."""
+    mass = AREAS * np.maximum(level, 0.0)
+    u = np.zeros(NUM_TANKS, np.int8)
+    if mass.sum() <= 0:
         return u
+    cg = float(mass @ MOMENT_ARMS / mass.sum())
+    if abs(cg) <= band:
+        return u
+    heavy, light = (RIGHT, LEFT) if cg > 0 else (LEFT, RIGHT)
+    u[heavy[np.argmax(level[heavy])]] = 1
+    u[light[np.argmin(level[light])]] = 1
+    return u
