@@ -63,8 +63,11 @@ METHODS = registry.config_values("ftc.mpc")  # the values of MPCConfig.method
 PLANNERS = ("hold", "cem", "two-stage", "episode")
 # refused_rollouts: candidates whose rollout the integrator refused (scored -inf),
 # for the MPCs that plan on the C++ physics (oracle-mpc, identified-mpc); blank for model-mpc
+# episode_plans: plans the episode planner made in the interval (reference; blank for
+# the others): one at the interval's start and one for its evaluation episode, more
+# where the plant departed from a plan
 MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
-               "refused_rollouts")
+               "refused_rollouts", "episode_plans")
 
 
 @dataclass
@@ -296,10 +299,11 @@ class MPCAgent(Agent):
         oracle reports the candidates whose rollout was refused in the interval."""
         if self.oracle is not None:
             refused, self.oracle.refused = self.oracle.refused, 0
-            if self.episode is not None:
-                refused, self.episode.physics.refused = \
-                    refused + self.episode.physics.refused, 0
-            return {"refused_rollouts": refused}
+            if self.episode is None:
+                return {"refused_rollouts": refused}
+            refused, self.episode.physics.refused = refused + self.episode.physics.refused, 0
+            plans, self.episode.replans = self.episode.replans, 0
+            return {"refused_rollouts": refused, "episode_plans": plans}
         if self.model is None:
             return {}
         start = time.perf_counter()
