@@ -30,7 +30,8 @@ def option_order(cls: type) -> list[str]:
     """method, the run's head options, the tool's own, then the link options."""
     run = [f.name for f in fields(RunConfig)]
     own = [f.name for f in fields(cls) if f.name not in run and f.name != "method"]
-    return ["method", *RUN_HEAD, *own, *[n for n in run if n not in RUN_HEAD]]
+    method = ["method"] if any(f.name == "method" for f in fields(cls)) else []
+    return [*method, *RUN_HEAD, *own, *[n for n in run if n not in RUN_HEAD]]
 
 
 def add_run_options(parser: argparse.ArgumentParser, cls: type) -> None:

@@ -53,7 +53,7 @@ import torch
 
 from ftc.common.cli import (OneLineParser, add_dataclass_options, config_from_namespace, flag,
                             given_options)
-from ftc.control import registry
+from ftc.control import plugin_cli, registry
 from ftc.control.agent import Agent
 from ftc.control.cli import (add_run_options, check_or_exit, method_argv, read_run_configs,
                              refuse_ignored, resume_configs, run_or_report)
@@ -177,6 +177,9 @@ def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    plugin = plugin_cli.plugin_argv(argv)  # --method module:factory, sb3:..., onnx:...
+    if plugin is not None:
+        return plugin_cli.main(plugin)
     torch.set_num_threads(1)
     cfg, ppo = parse_args(argv)
     return run_or_report(TOOL, lambda: Controller(cfg, ppo).run(), out=cfg.resume or cfg.out)

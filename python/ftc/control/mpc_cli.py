@@ -10,7 +10,7 @@ from typing import Sequence
 import torch
 
 from ftc.common.cli import OneLineParser, config_from_namespace, given_options
-from ftc.control import mpc_agent, registry
+from ftc.control import mpc_agent, plugin_cli, registry
 from ftc.control.cli import (add_run_options, check_or_exit, method_argv, refuse_ignored,
                              resume_configs, run_or_report)
 from ftc.control.mpc_agent import MPCConfig
@@ -62,6 +62,9 @@ def parse_args(argv: Sequence[str] | None = None) -> MPCConfig:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    plugin = plugin_cli.plugin_argv(argv)  # --method module:factory, sb3:..., onnx:...
+    if plugin is not None:
+        return plugin_cli.main(plugin)
     cfg = parse_args(argv)
     torch.set_num_threads(1)
     return run_or_report(TOOL, lambda: MPCController(cfg).run(), out=cfg.resume or cfg.out)

@@ -49,7 +49,7 @@ from ftc.common.errors import RunError, StorageError
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report, run_cache
 from ftc.experiments.method_args import PARSERS, method_args, untaken
-from ftc.experiments.methods import METHODS
+from ftc.experiments.methods import METHODS, resolve_methods
 from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
 from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorReplacement,
                                       OutInUse, check_out_free)
@@ -58,7 +58,7 @@ from ftc.experiments.ray_executor import (RaySession, add_executor_options,
                                          check_executor_options, connect, run_on_ray)
 from ftc.experiments.run_cache import RunCache, cache_groups, default_dir, reuse_after, reuse_before
 from ftc.experiments.runs import RunSpec, is_finished
-from ftc.experiments.scenarios import ExperimentConfig, Scenario
+from ftc.experiments.scenarios import ExperimentConfig, Scenario, scenario_texts
 from ftc.experiments.suite import default_suite
 
 TOOL = "ftc.experiments benchmark"
@@ -145,12 +145,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="scenario TOML files, named in the results by their stem "
                              "(default: the suite's 22, see ftc.experiments.suite)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="NAME",
-                        help="methods to run; the --reference method and closed are always "
-                             "added, as the normalized score's 1 and 0 (default: every "
-                             "registered method for benchmarks: "
-                             f"{', '.join(default_methods())})")
+                        help="methods to run, or plug-ins, NAME=SPEC with SPEC "
+                             "module.path:factory, sb3:PATH.zip or onnx:PATH.onnx; the "
+                             "--reference method and closed are always added, as the "
+                             "normalized score's 1 and 0 (default: every registered method "
+                             f"for benchmarks: {', '.join(default_methods())})")
     parser.add_argument("--reference", default=None, metavar="METHOD",
-                        help=f"the method whose normalized score is 1 (default: {ORACLE}); a "
+                        help=f"the method whose normalized score is 1 (default: {REFERENCE}); a "
                              "cheaper one makes a quick run. The fraction of the oracle is "
                              f"taken of {ORACLE} whenever it runs")
     parser.add_argument("--seeds", type=checked(int, SEED), nargs="+", default=None,
@@ -195,26 +196,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _scenario_texts(parser: argparse.ArgumentParser,
-                    files: Sequence[Path]) -> dict[str, tuple[str, str]]:
-    """stem -> (source, TOML text) of the given files, each read by the plant's
-    own parser so that a malformed file is refused here, not by every run."""
-    from ftc import _core  # the bindings: the plant's scenario parser
-
-    texts: dict[str, tuple[str, str]] = {}
-    for path in files:
-        try:
-            _core.load_scenario(str(path))
-            text = path.read_text()
-        except (_core.ScenarioError, OSError, UnicodeDecodeError) as e:
-            parser.error(f"--scenarios: {e}")
-        if path.stem in texts:
-            parser.error(f"--scenarios: two files named {path.stem} ({texts[path.stem][0]}, "
-                         f"{path}): results name a scenario by its file's stem")
-        texts[path.stem] = (str(path), text)
-    return texts
-
-
 def _suite_texts(steps_per_interval: int) -> dict[str, tuple[str, str]]:
     return {sc.name: ("ftc.experiments.suite", sc.toml(steps_per_interval))
             for sc in default_suite()}
@@ -227,6 +208,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = build_parser()
     args = parser.parse_args(argv)
     check_executor_options(parser, args)
+    try:  # plug-ins (NAME=module:factory, sb3:..., onnx:...): registered, checked
+        args.methods = resolve_methods(args.methods, args.out and args.out / "benchmark.json")
+    except ValueError as e:
+        parser.error(f"--methods: {e}")
     unknown = [m for m in args.methods or () if m not in METHODS]
     if unknown:
         parser.error(f"--methods: unknown methods {unknown}; registered: {', '.join(METHODS)}")
@@ -265,8 +250,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         base = BenchmarkConfig(scenarios=(), methods=(), seeds=(), **given)
     if args.run_timeout is not None:
         base = dataclasses.replace(base, run_timeout=args.run_timeout)
-    texts = (_scenario_texts(parser, args.scenarios) if args.scenarios
-             else {} if stored is not None else _suite_texts(base.steps_per_interval))
+    try:
+        texts = (scenario_texts(args.scenarios) if args.scenarios
+                 else {} if stored is not None else _suite_texts(base.steps_per_interval))
+    except ValueError as e:
+        parser.error(f"--scenarios: {e}")
     for stem, (source, text) in texts.items():
         old = out / "scenarios" / f"{stem}.toml"
         if stored is not None and stem in stored.scenarios and old.is_file() \

@@ -55,7 +55,7 @@ from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark, compare, report
 from ftc.experiments.collect import collect
 from ftc.experiments.method_args import PARSERS, method_args, untaken
-from ftc.experiments.methods import DEFAULT_METHODS, METHODS
+from ftc.experiments.methods import DEFAULT_METHODS, METHODS, resolve_methods
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
 from ftc.experiments.processes import OrchestratorLock, OutInUse, check_out_free
@@ -111,7 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
                         type=checked(int, at_least(1, MAX_STEPS_PER_INTERVAL)), default=None,
                         help="real control steps per interval, t_online (paper: 512)")
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
-                        help=f"methods to compare (registered: {', '.join(METHODS)})")
+                        help=f"methods to compare (registered: {', '.join(METHODS)}), or "
+                             "plug-ins, NAME=SPEC with SPEC module.path:factory, sb3:PATH.zip "
+                             "or onnx:PATH.onnx")
     parser.add_argument("--pretrain", action="store_true",
                         help="pass --pretrain to the PPO methods' controllers (nominal "
                              "pretraining in simulation; default: from scratch as in the paper)")
@@ -176,6 +178,10 @@ def parse_args(argv: Sequence[str] | None = None) -> SimpleNamespace:
     if args.executor == "ray" and args.command in ("model-search", "report"):
         parser.error(f"--executor ray: {args.command} runs on this machine (it has no runs to "
                      "distribute)")
+    try:  # plug-ins (NAME=module:factory, sb3:..., onnx:...): registered, checked
+        args.methods = resolve_methods(args.methods, args.out and args.out / "experiment.json")
+    except ValueError as e:
+        parser.error(f"--methods: {e}")
     unknown = [m for m in args.methods if m not in METHODS]
     if unknown:
         parser.error(f"--methods: unknown methods {unknown}; registered: {', '.join(METHODS)}")

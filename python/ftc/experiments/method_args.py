@@ -17,14 +17,14 @@ from dataclasses import fields
 from typing import Sequence
 
 from ftc.common.cli import config_from_namespace
-from ftc.control import controller_cli, mpc_cli, registry
+from ftc.control import controller_cli, mpc_cli, plugin_cli, registry
 from ftc.control.mpc_agent import MPCConfig
 from ftc.control.ppo_robust_agent import ROBUST_FIELDS, RobustConfig
 from ftc.control.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec
 
 # The command line each method's module is started with.
-PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli}
+PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli, "ftc.plugin": plugin_cli}
 
 
 def option_groups(extra: Sequence[str]) -> list[list[str]]:
@@ -62,6 +62,8 @@ def takes(spec: MethodSpec, option: str) -> bool:
         return False
     if flag in run:
         return True
+    if spec.module == "ftc.plugin":  # its one own option, --agent, is its spec
+        return False
     parsed = _parsed(spec)
     dest = flag[2:].replace("-", "_").removeprefix("no_")
     if dest in parsed.ignored():

@@ -5,9 +5,13 @@ A method of another module (a plug-in) joins with :func:`register_method`.
 
 from __future__ import annotations
 
+import json
+import re
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
 
-from ftc.control import registry
+from ftc.control import plugins, registry
 
 
 @dataclass(frozen=True)
@@ -57,5 +61,51 @@ for _m in registry.METHODS.values():
         register_method(MethodSpec(_m.name, _m.label, ("--method", _m.name, *_m.experiment_args),
                                    module=_m.tool, cost=_m.cost, learns=_m.learns,
                                    benchmark=_m.benchmark, cached=_m.cached))
+PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.control.plugin_cli)
+
+
+def plugin_method(entry: str) -> MethodSpec:
+    """A plug-in entry of --methods, ``NAME=SPEC`` or ``SPEC`` (NAME: the factory's
+    name or the file's stem), registered under NAME once its spec has given an
+    agent; ValueError naming what is wrong (the module, attribute or file)."""
+    name, given, spec = entry.partition("=")
+    if not given:
+        name, spec = plugins.default_name(entry), entry
+    if not plugins.is_plugin(spec):
+        raise ValueError(f"{entry}: not a method name nor a plug-in (NAME=SPEC, SPEC one of "
+                         f"{', '.join(plugins.KINDS)})")
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
+        raise ValueError(f"{entry}: the name {name!r} may hold letters, digits and . _ - only")
+    if name in registry.METHODS:
+        raise ValueError(f"{entry}: {name} is a built-in method; name the plug-in NAME={spec}")
+    kind, _, path = spec.partition(":")
+    if kind in ("sb3", "onnx"):  # the runs start elsewhere: an absolute path
+        spec = f"{kind}:{Path(path).expanduser().resolve()}"
+    try:
+        plugins.load_agent(spec, plugins.PluginConfig(agent=spec, scenario=None))
+    except plugins.PluginError as e:
+        raise ValueError(str(e)) from None
+    return register_method(MethodSpec(name, f"plug-in {spec}", ("--agent", spec),
+                                      module=PLUGIN_MODULE, benchmark=False))
+
+
+def resolve_methods(entries: Sequence[str] | None, stored: Path | None) -> list[str] | None:
+    """--methods as names: plug-in entries registered (:func:`plugin_method`), and
+    the plug-ins of a stored run directory's metadata (``stored``: its JSON file,
+    when it exists) registered again for a --resume; ValueError as plugin_method."""
+    if stored is not None and stored.is_file():
+        try:
+            recorded = json.loads(stored.read_text()).get("methods", {})
+        except (OSError, ValueError, AttributeError):
+            recorded = {}  # the tool's own check of the file names what is wrong
+        for spec in recorded.values():
+            if isinstance(spec, dict) and spec.get("module") == PLUGIN_MODULE:
+                register_method(MethodSpec(**{**spec, "args": tuple(spec["args"])}))
+    if entries is None:
+        return None
+    return [e if e in METHODS else plugin_method(e).name if ("=" in e or ":" in e) else e
+            for e in entries]
+
+
 PAPER_METHODS = ("closed", "open", "ppo-online", "ppo-offline")
 DEFAULT_METHODS = (*PAPER_METHODS, "oracle-mpc", "model-mpc")

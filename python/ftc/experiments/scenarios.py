@@ -12,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -134,3 +136,23 @@ def experiment_scenarios(config: ExperimentConfig) -> dict[str, list[Scenario]]:
         "aggregate": aggregate_scenarios(config.trials, config.scenario_seed),
     }
     return {e: table[e] for e in config.experiments}
+
+
+def scenario_texts(files: Sequence[Path]) -> dict[str, tuple[str, str]]:
+    """stem -> (source, TOML text) of scenario files, each read by the plant's own
+    parser so that a malformed file is refused before any run; ValueError naming
+    the file (and key), or two files of one stem (results name a scenario by it)."""
+    from ftc import _core  # the bindings: the plant's scenario parser
+
+    texts: dict[str, tuple[str, str]] = {}
+    for path in files:
+        try:
+            _core.load_scenario(str(path))
+            text = path.read_text()
+        except (_core.ScenarioError, OSError, UnicodeDecodeError) as e:
+            raise ValueError(str(e)) from None
+        if path.stem in texts:
+            raise ValueError(f"two files named {path.stem} ({texts[path.stem][0]}, {path}): "
+                             "results name a scenario by its file's stem")
+        texts[path.stem] = (str(path), text)
+    return texts

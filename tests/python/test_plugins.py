@@ -1,0 +1,143 @@
+"""Plug-in controllers: a user's Agent (examples/custom_agent.py), an SB3 model
+trained by examples/sb3_ppo.py and a policy exported by ftc.export, each scored
+by the benchmark on real plant processes over LCM and in process, under the name
+given; a bad spec is one line and exit 2 naming what is wrong, nothing written;
+a benchmark of plug-ins resumes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ftc.control import plugin_cli, plugins
+from ftc.experiments import methods
+
+REPO = Path(__file__).resolve().parents[2]
+SHORT = ["--scenarios", str(REPO / "scenarios" / "single.toml"), "--seeds", "0",
+         "--intervals", "2", "--steps-per-interval", "64", "--reference", "oracle-mpc",
+         "--jobs", "2"]
+
+
+def _benchmark(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "python"),
+                                                      os.environ.get("PYTHONPATH", "")]))
+    return subprocess.run([sys.executable, "-m", "ftc.experiments", "benchmark", *args],
+                          cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def _rows(out: Path) -> list[dict]:
+    with open(out / "results.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def policies(tmp_path_factory) -> dict[str, Path]:
+    """An SB3 model from examples/sb3_ppo.py (one short rollout) and an ONNX policy
+    that ftc.export wrote from a short PPO run of ftc.controller."""
+    root = tmp_path_factory.mktemp("policies")
+    env = dict(os.environ, OMP_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join([str(REPO / "python"), os.environ.get("PYTHONPATH", "")]))
+    sb3 = subprocess.run([sys.executable, str(REPO / "examples" / "sb3_ppo.py"), "--steps",
+                          "512", "--out", str(root / "sb3.zip")], cwd=root, env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert sb3.returncode == 0, sb3.stderr[-2000:]
+    run = subprocess.run([sys.executable, "-m", "ftc.controller", "--intervals", "1",
+                          "--steps-per-interval", "128", "--update-every", "64", "--no-offline",
+                          "--link", "core", "--quiet", "--out", str(root / "ppo")], cwd=REPO,
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    export = subprocess.run([sys.executable, "-m", "ftc.export", str(root / "ppo"), "--out",
+                             str(root / "policy.onnx")], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=600)
+    assert export.returncode == 0, export.stderr[-2000:]
+    return {"sb3": root / "sb3.zip", "onnx": root / "policy.onnx"}
+
+
+@pytest.mark.parametrize("link", ["lcm", "core"])
+def test_the_three_kinds_score_on_the_benchmark(policies, tmp_path, link):
+    out = tmp_path / "bench"
+    proc = _benchmark(*SHORT, "--link", link, "--out", str(out), "--methods",
+                      "mine=examples.custom_agent:make_agent", f"sb3:{policies['sb3']}",
+                      f"exported=onnx:{policies['onnx']}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = _rows(out)
+    names = {r["method"] for r in rows}
+    assert {"mine", "sb3", "exported", "oracle-mpc", "closed"} == names
+    for name in ("mine", "sb3", "exported"):
+        mine = [r for r in rows if r["method"] == name]
+        assert len(mine) == 2 and all(float(r["reward_per_step"]) > 0 for r in mine)
+        assert all(r["normalized_score"] != "" for r in mine if r["interval"] == "1")
+    # the custom agent is the example's rule: closed until the wings differ, so in the
+    # healthy interval 0 it earns exactly what all-closed earns
+    closed0 = next(r for r in rows if r["method"] == "closed" and r["interval"] == "0")
+    mine0 = next(r for r in rows if r["method"] == "mine" and r["interval"] == "0")
+    assert mine0["reward_per_step"] == closed0["reward_per_step"]
+    meta = json.loads((out / "benchmark.json").read_text())
+    assert meta["methods"]["exported"]["args"] == ["--agent", f"onnx:{policies['onnx']}"]
+
+
+def test_a_benchmark_of_plugins_resumes(tmp_path):
+    out = tmp_path / "bench"
+    assert _benchmark(*SHORT, "--link", "core", "--out", str(out), "--methods",
+                      "mine=examples.custom_agent:make_agent").returncode == 0
+    (out / "results.csv").unlink()
+    run = out / "runs" / "single" / "t00" / "mine" / "s0" / "result.json"
+    run.unlink()  # the plug-in's run unfinished: --resume redoes it
+    proc = _benchmark("--resume", "--out", str(out), "--jobs", "1")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert run.is_file() and {r["method"] for r in _rows(out)} >= {"mine"}
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("x=nosuchmodule:make", "cannot import module 'nosuchmodule'"),
+    ("x=examples.custom_agent:nothing", "module 'examples.custom_agent' has no callable "
+                                        "'nothing'"),
+    ("x=examples.custom_agent:OuterTransfer.act", "has no callable"),
+    ("x=sb3:/nonexistent/model.zip", "sb3:/nonexistent/model.zip: no such file"),
+    (f"x=onnx:{REPO / 'README.md'}", "not a readable ONNX model"),
+    ("closed=examples.custom_agent:make_agent", "closed is a built-in method"),
+    ("a b=examples.custom_agent:make_agent", "may hold letters, digits"),
+])
+def test_a_bad_spec_is_one_line_exit_2_and_nothing_written(spec, message, tmp_path):
+    out = tmp_path / "bench"
+    proc = _benchmark(*SHORT, "--out", str(out), "--methods", spec)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not out.exists()
+
+
+def test_a_policy_that_answers_no_valves_is_refused(tmp_path):
+    with pytest.raises(plugins.PluginError, match="not 6 valves of 0 or 1"):
+        plugins._checked(lambda levels: np.full(6, 0.5), "onnx:x.onnx")
+    with pytest.raises(plugins.PluginError, match="fails on full tanks"):
+        plugins._checked(lambda levels: 1 / 0, "onnx:x.onnx")
+
+
+def test_specs_names_and_the_tools_method_option():
+    assert plugins.default_name("examples.custom_agent:make_agent") == "make_agent"
+    assert plugins.default_name("sb3:runs/x/My Model.zip") == "My-Model"
+    assert plugins.default_name("onnx:/a/policy.onnx") == "policy"
+    assert plugin_cli.plugin_argv(["--method", "m:f", "--seed", "1"]) == [
+        "--agent", "m:f", "--seed", "1"]
+    assert plugin_cli.plugin_argv(["--method=onnx:p.onnx"]) == ["--agent=onnx:p.onnx"]
+    assert plugin_cli.plugin_argv(["--method", "balance"]) is None
+    assert methods.resolve_methods(["balance", "closed"], None) == ["balance", "closed"]
+
+
+def test_ftc_controller_runs_a_plugin_as_its_method(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "ftc.controller", "--method",
+                           "examples.custom_agent:make_agent", "--intervals", "1",
+                           "--steps-per-interval", "32", "--link", "core", "--out", str(out)],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    config = json.loads((out / "config.json").read_text())
+    assert config["plugin"]["agent"] == "examples.custom_agent:make_agent"
+    assert (out / "done.json").is_file()
