@@ -29,7 +29,6 @@ scenario-interval, nothing written.
 from __future__ import annotations
 
 import argparse
-import csv
 import io
 import json
 import sys
@@ -42,8 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "python"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from ftc.common.atomic import atomic_write_text  # noqa: E402
-from suite_results import _machine, read_cells  # noqa: E402
+from suite_results import read_cells, write_result_file  # noqa: E402
 
 ARMS = np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])
 WINGS = ((0, 1, 2), (3, 4, 5))  # tanks 1-3 feed engine 1, tanks 4-6 engine 2
@@ -152,11 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     for info in meta:
         text.write(f"# commit: {info.get('git_revision', '?')}\n")
         text.write(f"# date: {info.get('created', '?')[:10]}\n")
-    text.write(f"# machine: {_machine()}\n")
-    w = csv.DictWriter(text, fieldnames=list(table[0]), lineterminator="\n")
-    w.writeheader()
-    w.writerows(table)
-    atomic_write_text(args.out, text.getvalue())
+    write_result_file(args.out, text.getvalue(), table)
     print(f"headroom: {len(pairs)} scenario-intervals -> {args.out}; reference over oracle-mpc "
           f"{table[0]['reference over oracle-mpc']} over intervals 1-9, {len(over)} cells with a "
           "method above it by over 0.05%")

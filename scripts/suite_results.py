@@ -48,6 +48,18 @@ def _machine() -> str:
     return f"{names[0] if names else platform.processor() or '?'}, {len(names) or '?'} cores"
 
 
+def write_result_file(path: Path, provenance: str, table: list[dict]) -> None:
+    """A result file, atomically: the '#' provenance lines given, the machine's, then
+    the table as CSV (its first row's keys the header)."""
+    text = io.StringIO(provenance)
+    text.seek(0, io.SEEK_END)
+    text.write(f"# machine: {_machine()}\n")
+    w = csv.DictWriter(text, fieldnames=list(table[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(table)
+    atomic_write_text(path, text.getvalue())
+
+
 def read_cells(dirs: list[Path]) -> tuple[list[dict], list[dict]]:
     """(rows, provenance per directory); SystemExit naming the cell given twice
     with different rewards, or a directory that is not a finished benchmark."""
@@ -148,11 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         text.write(f"# commit: {info.get('git_revision', '?')}\n")
         text.write(f"# date: {info.get('created', '?')[:10]}\n")
         text.write(f"# wall time: {info.get('wall_time_s', 0):.0f} s\n")
-    text.write(f"# machine: {_machine()}\n")
-    w = csv.DictWriter(text, fieldnames=list(table[0]), lineterminator="\n")
-    w.writeheader()
-    w.writerows(table)
-    atomic_write_text(args.out, text.getvalue())
+    write_result_file(args.out, text.getvalue(), table)
     print(f"suite_results: {len(table)} methods, {len(rows)} cells -> {args.out}")
     if args.figure:
         _figure(rows, reference, labels, methods, intervals, args.figure)
