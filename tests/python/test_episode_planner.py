@@ -17,8 +17,8 @@ import pytest
 
 from ftc import _core
 from ftc.control import mpc_cli
-from ftc.control.episode_planner import (EpisodePlanner, Repeated, TruePhysics, repeat_scores,
-                                         tail_scores)
+from ftc.control.episode_planner import EpisodePlanner, Repeated, repeat_scores, tail_scores
+from ftc.control.true_physics import TruePhysics
 
 FULL = np.ones(6)
 
@@ -227,3 +227,29 @@ def test_on_the_real_plant_process_the_plan_is_followed_and_beats_the_oracle(tmp
             assert [r["episode_plans"] for r in rows] == ["2", "2", "2"]
     assert all(r >= o for r, o in zip(rewards["reference"], rewards["oracle-mpc"]))
     assert sum(rewards["reference"][1:]) > sum(rewards["oracle-mpc"][1:])
+
+
+def test_an_abrupt_fault_ahead_is_planned_episode_by_episode(tmp_path):
+    """An event in the middle of the interval (engine 1 jumps to D = 5, valve 4
+    sticks closed, as scenarios/abrupt.toml but at step 5 * 128 + 64): the episodes
+    after it are not the first one again, so the plan is remade at each episode's
+    end, each time never below the closed loops nor the rest of the plan played."""
+    text = (Path("scenarios/abrupt.toml").read_text().replace("steps_per_interval = 512",
+                                                              "steps_per_interval = 128")
+            .replace("at_step = 2816", "at_step = 704"))
+    path = tmp_path / "abrupt.toml"
+    path.write_text(text)
+    scenario = _core.load_scenario(str(path))
+    physics = TruePhysics(scenario, 1e-6, 1e-8, True)
+    planner = EpisodePlanner(physics)
+    step0, x, played = 5 * 128, FULL.copy(), []
+    for t in range(128):  # the plant doing what the rollouts predict
+        played.append(planner.decide(x, step0 + t, 128 - t, False, 128))
+        _, term, lev = physics.run(x, np.array(played[-1:])[None], step0 + t, False)
+        x = FULL if term[0, 0] else lev[0, 0]
+    assert planner.replans > 1
+    loops = [planner._closed_loop(FULL, step0, 128, False),
+             planner._rule_loop(FULL, step0, 128, False)]
+    totals = physics.run(FULL, np.stack([np.array(played, np.int64), *loops]), step0,
+                         False)[0].sum(1)
+    assert totals[0] >= totals[1:].max()

@@ -42,11 +42,16 @@ that reaches it stops where it is, so an episode that never ends (fuel kept
 behind a dead pump) costs a bounded time and still never less than the oracle.
 
 The plan is then played step by step; each observation is checked against
-the levels the rollout predicted (``tolerance``, m). All rollouts are the C++
-batch rollouts (``_core.BatchRollout``; candidates sharing a prefix simulate
-it once), with each step's parameters and stuck valves as the scenario sets
-them (its events and continuous degradation included), frozen at the last
-operating step's in an evaluation episode, as the plant freezes them.
+the levels the rollout predicted (``tolerance``, m). Where an abrupt fault of
+the scenario lies ahead in the interval, the episodes after it are not the
+first one played again: the plan is played to its first episode's end and
+made anew there, the rest of the plan one more plan to beat (so what is
+played never falls below it). All rollouts are the C++ batch rollouts
+(:class:`ftc.control.true_physics.TruePhysics`; candidates sharing a prefix
+simulate it once), with each step's parameters and stuck valves as the
+scenario sets them (its events and continuous degradation included), frozen
+at the last operating step's in an evaluation episode, as the plant freezes
+them.
 """
 
 from __future__ import annotations
@@ -59,102 +64,10 @@ import numpy as np
 from ftc.common.constants import NUM_TANKS, TANK_HEIGHT
 from ftc.control.balance import balance_valves
 from ftc.control.planners import hold_candidates, valve_settings
+from ftc.control.true_physics import TruePhysics
 
 SETTINGS = valve_settings()  # (64, 6)
 IMPROVEMENT = 1e-9  # a candidate must beat the incumbent's total by this much (reward units)
-
-
-class TruePhysics:
-    """Rollouts of valve sequences on a scenario's true physics, step by step.
-
-    ``run(x0, sequences, step0, frozen)`` simulates candidate sequences (K, L, 6)
-    from levels x0 (6,) m, step t under the parameters and stuck valves of
-    operating step ``step0 + t`` (all of them ``step0``'s when ``frozen``: an
-    evaluation episode). A candidate the integrator refuses (chattering, a
-    SUNDIALS failure) earns -inf at every step and is counted in ``refused``."""
-
-    def __init__(self, scenario: Any, rtol: float, atol: float, closed_form: bool) -> None:
-        from ftc import _core  # native: the C++ physics
-
-        self._core, self.scenario = _core, scenario
-        self.rollout = _core.BatchRollout(rtol=rtol, atol=atol, exact_active_conduit=closed_form)
-        self._events = np.array([e["at_step"] for e in scenario.events], np.int64)  # sorted
-        self._params: dict[tuple[float, int], dict] = {}
-        self._stuck: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
-        self._schedules: dict[tuple[int, int], tuple[Any, Any]] = {}
-        self.refused = 0
-        self.simulated = 0  # candidate steps rolled out, for the planner's budget
-
-    def _key(self, step: int) -> tuple[float, int]:
-        applied = int(np.searchsorted(self._events, step, side="right"))
-        key = (float(self._core.age_at(self.scenario, step)), applied)
-        if key not in self._params:
-            self._params[key] = self._core.params_at_step(self.scenario, step)
-        if applied not in self._stuck:
-            mask, state = self._core.stuck_valves_at_step(self.scenario, step)
-            self._stuck[applied] = (mask, state.astype(np.int64)) if mask.any() else None
-        return key
-
-    def schedule(self, step0: int, length: int) -> tuple[Any, Any, tuple]:
-        """(params: one dict or a list of ``length``, stuck: None or (mask, state) of
-        shape (length, 6), signature: a hashable summary of both) for the steps
-        step0 .. step0 + length - 1."""
-        cached = self._schedules.get((step0, length))
-        if cached is not None:
-            return cached
-        if len(self._schedules) > 4096:  # a bounded memo: planning moves through the steps
-            self._schedules.clear()
-        keys = [self._key(step0 + t) for t in range(length)]
-        params: Any = (self._params[keys[0]] if all(k == keys[0] for k in keys)
-                       else [self._params[k] for k in keys])
-        stuck = [self._stuck[k[1]] for k in keys]
-        if all(s is None for s in stuck):
-            stuck_arrays = None
-        else:
-            mask = np.stack([np.zeros(NUM_TANKS, bool) if s is None else s[0] for s in stuck])
-            state = np.stack([np.zeros(NUM_TANKS, np.int64) if s is None else s[1]
-                              for s in stuck])
-            stuck_arrays = (mask, state)
-        runs: list[list] = []  # the keys in force, run-length encoded
-        for k in keys:
-            if runs and runs[-1][0] == k:
-                runs[-1][1] += 1
-            else:
-                runs.append([k, 1])
-        # a constant schedule's signature is its one key, whatever its length
-        out = (params, stuck_arrays, (runs[0][0],) if len(runs) == 1 else
-               tuple((k, n) for k, n in runs))
-        self._schedules[(step0, length)] = out
-        return out
-
-    def run(self, x0: np.ndarray, sequences: np.ndarray, step0: int, frozen: bool
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(rewards (K, L), terminal (K, L) bool, levels after each step (K, L, 6))."""
-        k, length, _ = sequences.shape
-        params, stuck, _ = self.schedule(step0, 1 if frozen else length)
-        if frozen and stuck is not None:
-            stuck = (np.repeat(stuck[0], length, 0), np.repeat(stuck[1], length, 0))
-        applied = sequences if stuck is None else np.where(stuck[0], stuck[1], sequences)
-        x0 = np.asarray(x0, np.float64)
-        self.simulated += k * length
-        try:
-            d = self.rollout.run(x0, applied, params, details=True)
-            rewards, terminal, levels = d["rewards"], d["terminal"].astype(bool), d["levels"]
-        except RuntimeError:  # one candidate at a time: a refused one earns -inf
-            rewards = np.full((k, length), -np.inf)
-            terminal = np.zeros((k, length), bool)
-            levels = np.full((k, length, NUM_TANKS), np.nan)
-            for i in range(k):
-                try:
-                    d = self.rollout.run(x0, applied[i:i + 1], params, details=True)
-                except RuntimeError:
-                    self.refused += 1
-                    continue
-                rewards[i], terminal[i], levels[i] = d["rewards"][0], d["terminal"][0], \
-                    d["levels"][0]
-        if stuck is not None:  # r = shape(x') - mean(u): charge the commanded valves
-            rewards = rewards + applied.mean(-1) - sequences.mean(-1)
-        return rewards, terminal, levels
 
 
 @dataclass(frozen=True)
@@ -337,6 +250,7 @@ class EpisodePlanner:
         self.plan: np.ndarray | None = None      # (P, 6) valves, from the planning step
         self.expected: np.ndarray | None = None  # (P, 6) levels before each plan step
         self.pos = 0
+        self.commit = 0  # plan steps played before a plan is made again
         self.evaluation = False
         self._episodes: dict[Any, np.ndarray] = {}  # memo of optimised episodes
         self.replans = 0
@@ -353,25 +267,32 @@ class EpisodePlanner:
         interval (None in evaluation, whose episode is cut off after ``limit``)."""
         x = np.asarray(x, np.float64)
         fresh = steps_left is not None and steps_left == limit  # an interval's first step
-        if (fresh or self.plan is None or self.pos >= len(self.plan)
-                or evaluation != self.evaluation
-                or (steps_left is not None and steps_left != len(self.plan) - self.pos)
-                or np.abs(x - self.expected[self.pos]).max() > self.tolerance):
+        follows = (not fresh and self.plan is not None and self.pos < len(self.plan)
+                   and evaluation == self.evaluation
+                   and (steps_left is None or steps_left == len(self.plan) - self.pos)
+                   and np.abs(x - self.expected[self.pos]).max() <= self.tolerance)
+        if not follows or self.pos >= self.commit:
+            # where the plant is where the plan said, its rest is one more plan to beat
+            rest = self.plan[self.pos:] if follows else None
             step0 = max(0, operating_steps - 1) if evaluation else operating_steps
-            self._replan(x, step0, steps_left if steps_left is not None else limit, evaluation)
+            self._replan(x, step0, steps_left if steps_left is not None else limit, evaluation,
+                         rest)
         u = self.plan[self.pos]
         self.pos += 1
         return u.copy()
 
     # -- planning --------------------------------------------------------------
-    def _replan(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> None:
+    def _replan(self, x0: np.ndarray, step0: int, steps: int, frozen: bool,
+                rest: np.ndarray | None = None) -> None:
         self.replans += 1
         self.ascend.start()
         run = self.physics.run
-        # the plans to beat: oracle-mpc's and the balance rule's closed loops; the
-        # search starts from the better (first maximum: the oracle's on a tie)
+        # the plans to beat: oracle-mpc's and the balance rule's closed loops, and the
+        # rest of the plan being played (``rest``); the search starts from the best
+        # (first maximum: the oracle's on a tie)
         loops = np.stack([self._closed_loop(x0, step0, steps, frozen),
-                          self._rule_loop(x0, step0, steps, frozen)])
+                          self._rule_loop(x0, step0, steps, frozen),
+                          *([] if rest is None or len(rest) != steps else [rest])])
         rew, term, _ = run(x0, loops, step0, frozen)
         totals = np.nan_to_num(rew.sum(1), nan=-np.inf)
         order = np.argsort(-totals, kind="stable")  # the better loop first
@@ -403,6 +324,11 @@ class EpisodePlanner:
         after = np.where(term[0][:, None], full, levels[0])
         self.plan, self.pos, self.evaluation = best, 0, frozen
         self.expected = np.concatenate([x0[None], after[:-1]])
+        # an abrupt fault ahead: the episodes after it are not the first one played
+        # again, so the plan is played to its episode's end and made anew there
+        ends = np.nonzero(term[0])[0] + 1
+        self.commit = (int(ends[0]) if not frozen and len(ends)
+                       and self.physics.events_within(step0, steps) else len(best))
 
     def _rule_loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> np.ndarray:
         """The balance rule's valves (steps, 6), simulated closed-loop from x0."""

@@ -51,7 +51,8 @@ from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
 from ftc.control.metrics import MODEL_COLUMNS
-from ftc.control.episode_planner import EpisodePlanner, TruePhysics
+from ftc.control.episode_planner import EpisodePlanner
+from ftc.control.true_physics import TruePhysics
 from ftc.control.planners import (CEMPlanner, Evaluator, HoldPlanner, ModelEvaluator,
                                   OracleEvaluator, TwoStagePlanner)
 from ftc.learning.offline import ModelWindow, pretrained_world_model, refit

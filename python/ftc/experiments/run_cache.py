@@ -40,6 +40,7 @@ from ftc.experiments.runs import RunSpec, is_finished
 # cached method's results besides the native core: the planners and their
 # configuration, the method's spelling, the MPC tool and the interval runner.
 CODE = ("ftc/control/planners.py", "ftc/control/episode_planner.py",
+        "ftc/control/true_physics.py", "ftc/control/balance.py",
         "ftc/control/mpc_agent.py", "ftc/control/mpc_cli.py", "ftc/control/registry.py",
         "ftc/control/runner.py", "ftc/control/agent.py", "ftc/plant/reward.py")
 ENV = "FTC_RUN_CACHE"  # overrides the default directory ('' disables the cache)
