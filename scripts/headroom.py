@@ -150,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     for info in meta:
         text.write(f"# commit: {info.get('git_revision', '?')}\n")
         text.write(f"# date: {info.get('created', '?')[:10]}\n")
+        text.write(f"# wall time: {info.get('wall_time_s', 0):.0f} s\n")
     write_result_file(args.out, text.getvalue(), table)
     print(f"headroom: {len(pairs)} scenario-intervals -> {args.out}; reference over oracle-mpc "
           f"{table[0]['reference over oracle-mpc']} over intervals 1-9, {len(over)} cells with a "
