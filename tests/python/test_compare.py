@@ -109,3 +109,11 @@ def test_incompatible_directories_are_refused_naming_the_difference(two_dirs, tm
     assert "--against nosuch: no such entry" in _refused(
         [str(a), "--against", "nosuch"], tmp_path)
     assert "is given twice" in _refused([str(a), str(a)], tmp_path)
+
+
+def test_directories_of_one_name_are_told_apart_by_their_paths(tmp_path):
+    runs = {"closed": {("single", 0): CLOSED}, "reference": {("single", 0): REFERENCE}}
+    a = write_benchmark(tmp_path / "x" / "bench", runs)
+    b = write_benchmark(tmp_path / "y" / "bench", runs)
+    names = [n for n, _, _ in compare.entries([a, b], [compare.load(a)[1], compare.load(b)[1]])]
+    assert f"closed@{a}" in names and f"closed@{b}" in names

@@ -141,3 +141,25 @@ def test_ftc_controller_runs_a_plugin_as_its_method(tmp_path):
     config = json.loads((out / "config.json").read_text())
     assert config["plugin"]["agent"] == "examples.custom_agent:make_agent"
     assert (out / "done.json").is_file()
+
+
+def test_a_factory_gets_the_config_only_where_it_has_a_parameter_to_fill(tmp_path):
+    cfg = plugins.PluginConfig(agent="x:y", scenario=None)
+    module = tmp_path / "factories_for_test.py"
+    module.write_text(
+        "from ftc.control.agent import Agent\n"
+        "class A(Agent):\n"
+        "    def __init__(self, margin=0.15):\n"
+        "        self.margin = margin\n"
+        "    def act(self, obs, ctx):\n"
+        "        return [0] * 6\n"
+        "def with_cfg(cfg):\n"
+        "    a = A()\n"
+        "    a.seed = cfg.seed\n"
+        "    return a\n")
+    sys.path.insert(0, str(tmp_path))
+    try:
+        assert plugins.load_agent("factories_for_test:A", cfg).margin == 0.15  # A(), not A(cfg)
+        assert plugins.load_agent("factories_for_test:with_cfg", cfg).seed == cfg.seed
+    finally:
+        sys.path.remove(str(tmp_path))

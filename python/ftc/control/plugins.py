@@ -1,6 +1,7 @@
 """Controllers from outside the package, named by a spec instead of a registry name.
 
-    module.path:factory   a user's Agent: ``factory(cfg)`` (or ``factory()``) returns
+    module.path:factory   a user's Agent: ``factory(cfg)`` (``factory()`` when it has
+                          no parameter without a default) returns
                           an :class:`ftc.control.agent.Agent` (the protocol of
                           docs/architecture.md, API version :data:`API_VERSION`);
                           cfg is the run's :class:`PluginConfig` (seed, scenario, ...)
@@ -97,8 +98,10 @@ def _factory_agent(module_name: str, attribute: str, cfg: PluginConfig) -> Agent
     factory = getattr(module, attribute, None)
     if not callable(factory):
         raise PluginError(f"module {module_name!r} has no callable {attribute!r}")
-    try:
-        takes_config = len(inspect.signature(factory).parameters) > 0
+    try:  # factory(cfg) where it has a parameter to fill, factory() where all are optional
+        takes_config = any(p.default is inspect.Parameter.empty and p.kind in (
+            p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+            for p in inspect.signature(factory).parameters.values())
     except (TypeError, ValueError):
         takes_config = True
     try:

@@ -10,7 +10,8 @@ else is refused with one line naming the difference (exit 2). Seeds may differ:
 paired comparisons use the cells both sides have.
 
 Every (directory, method) is one entry, named by the method alone where only one
-directory holds it and ``METHOD@DIR`` (the directory's name) where several do.
+directory holds it and ``METHOD@DIR`` (the directory's name, or its path where
+two directories share a name) where several do.
 Scores are taken as the benchmark takes them: the normalized score against the
 reference (``--reference``, default: the first directory's) and ``closed`` in
 the same cell, the fraction of ``oracle-mpc``'s reward; the reference's,
@@ -113,10 +114,13 @@ def entries(dirs: Sequence[Path], rows_by_dir: Sequence[list[dict]]) -> list[tup
     for i, rows in enumerate(rows_by_dir):
         for m in dict.fromkeys(r["method"] for r in rows):
             holders[m].append(i)
+    tags = [d.name for d in dirs]
+    if len(set(tags)) < len(tags):  # two directories of one name: their paths tell them apart
+        tags = [str(d) for d in dirs]
     out = []
     for m, where in holders.items():
         for i in where:
-            out.append((m if len(where) == 1 else f"{m}@{dirs[i].name}", i, m))
+            out.append((m if len(where) == 1 else f"{m}@{tags[i]}", i, m))
     return out
 
 
