@@ -51,7 +51,7 @@ from ftc.learning.world_model import WorldModelConfig
 from ftc.plant.link import PlantObservation
 
 METHODS = registry.config_values("ftc.controller")  # the values of ControllerConfig.method
-PPO_METHODS = ("ppo", "ppo-robust")  # the methods with a policy (the rest ignore PPO's options)
+PPO_METHODS = registry.policy_methods()  # ppo, ppo-robust: the rest refuse PPO's options
 OFFLINE_MODES = ("sequential", "background")
 
 

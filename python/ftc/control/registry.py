@@ -151,6 +151,12 @@ def config_values(tool: str) -> tuple[str, ...]:
     return tuple(m.name for m in METHODS.values() if m.tool == tool and m.agent)
 
 
+def policy_methods(tool: str = "ftc.controller") -> tuple[str, ...]:
+    """The config ``method`` values of ``tool`` whose agent learns a policy (PPO's
+    options act on them; the other methods refuse them)."""
+    return tuple(m.name for m in METHODS.values() if m.tool == tool and m.agent and m.learns)
+
+
 def agent_for(configs: dict[str, Any], method_name: str) -> Any:
     """The agent of a run whose config says ``method_name``, built from its configs."""
     return method(method_name).agent_class().from_configs(configs)
