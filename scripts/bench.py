@@ -487,6 +487,9 @@ def main() -> int:
                                      epilog="\n\n".join(__doc__.split("\n\n")[1:]))
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds per figure")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--results", type=Path, metavar="CSV",
+                        help="also write the figures to this result file (e.g. "
+                             "docs/results/bench.csv, rendered in docs/benchmarks.md)")
     parser.add_argument("--long", action="store_true",
                         help="also time the paper's protocol and the benchmark suite (an hour)")
     parser.add_argument("--only", nargs="+", choices=sorted(GROUPS), metavar="GROUP",
@@ -513,7 +516,27 @@ def main() -> int:
     if args.json:
         print(json.dumps([{**dataclasses.asdict(f), "status": f.status} for f in figures],
                          indent=2))
+    if args.results:
+        _write_results(args.results, figures, args)
     return 0
+
+
+def _write_results(path: Path, figures: list[Figure], args: argparse.Namespace) -> None:
+    """The figures as a result file: provenance lines, then figure, value, unit, aim, status."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from suite_results import write_result_file  # the one writer of result files
+
+    from ftc.common.build_info import git_revision
+
+    flags = [f"--rounds {args.rounds}", *(["--long"] if args.long else []),
+             *([f"--only {' '.join(args.only)}"] if args.only else [])]
+    provenance = (f"# what: speed figures, the median of {args.rounds} alternating rounds "
+                  "each (scripts/bench.py)\n"
+                  f"# command: scripts/bench.py {' '.join(flags)}\n"
+                  f"# commit: {git_revision()}\n# date: {time.strftime('%Y-%m-%d')}\n")
+    write_result_file(path, provenance, [
+        {"figure": f"`{f.name}`", "value": f"{f.value:.4g}", "unit": f.unit, "aim": f.aim,
+         "status": f.status} for f in figures])
 
 
 if __name__ == "__main__":
