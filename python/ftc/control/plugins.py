@@ -22,7 +22,7 @@ import inspect
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -114,13 +114,20 @@ def _factory_agent(module_name: str, attribute: str, cfg: PluginConfig) -> Agent
     return agent
 
 
-def _sb3_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
+def _library(kind: str, path: Path, module: str) -> Any:
+    """The library that reads a ``kind`` file, once the file is there; PluginError
+    naming the missing file or library."""
     if not path.is_file():
-        raise PluginError(f"sb3:{path}: no such file")
+        raise PluginError(f"{kind}:{path}: no such file")
     try:
-        from stable_baselines3 import A2C, PPO
+        return importlib.import_module(module)
     except ImportError as e:
-        raise PluginError(f"sb3:{path}: stable-baselines3 is not installed ({e})")
+        raise PluginError(f"{kind}:{path}: {module} is not installed ({e})")
+
+
+def _sb3_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
+    sb3 = _library("sb3", path, "stable_baselines3")
+    PPO, A2C = sb3.PPO, sb3.A2C
     errors = []
     for algorithm in (PPO, A2C):
         try:
@@ -134,12 +141,7 @@ def _sb3_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
 
 
 def _onnx_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
-    if not path.is_file():
-        raise PluginError(f"onnx:{path}: no such file")
-    try:
-        import onnxruntime
-    except ImportError as e:
-        raise PluginError(f"onnx:{path}: onnxruntime is not installed ({e})")
+    onnxruntime = _library("onnx", path, "onnxruntime")
     try:
         session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     except Exception as e:  # noqa: BLE001 - a corrupt or foreign file
