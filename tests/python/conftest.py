@@ -1,5 +1,6 @@
 """Shared fixtures: paths, and skipping nothing: the build must exist
-(scripts/test.sh builds it first). ``--quick`` (``scripts/test.sh --quick``)
+(scripts/test.sh builds it first). Tests of the files that start processes are
+marked ``subprocess``. ``--quick`` (``scripts/test.sh --quick``)
 keeps the fast tier: the unit files below, plus the tests marked
 ``@pytest.mark.quick`` (one real-plant integration per boundary: the LCM
 link, the orchestrator, the Gymnasium env)."""
@@ -21,7 +22,7 @@ QUICK_FILES = {
     "test_cli_inputs.py", "test_log_threads.py", "test_native_distill.py", "test_native_ppo.py",
     "test_physics_vs_reference.py", "test_ppo.py", "test_ppo_numpy.py", "test_properties.py",
     "test_reference_sim.py", "test_small_mlp.py", "test_world_model.py", "test_docs.py",
-    "test_layers.py", "test_suite_results.py",
+    "test_layers.py", "test_suite_results.py", "test_headroom.py", "test_compare.py",
 }
 
 
@@ -31,6 +32,11 @@ def pytest_addoption(parser):
 
 
 def pytest_collection_modifyitems(config, items):
+    # every test of a file that starts plant processes, orchestrators or other
+    # subprocesses is marked ``subprocess`` (select with -m subprocess or -m "not subprocess")
+    for item in items:
+        if Path(str(item.fspath)).name not in QUICK_FILES:
+            item.add_marker(pytest.mark.subprocess)
     if not config.getoption("--quick"):
         return
     keep, drop = [], []
