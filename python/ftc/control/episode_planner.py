@@ -332,22 +332,23 @@ class EpisodePlanner:
 
     def _rule_loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> np.ndarray:
         """The balance rule's valves (steps, 6), simulated closed-loop from x0."""
-        seq = np.zeros((steps, NUM_TANKS), np.int64)
-        x, full = np.asarray(x0, np.float64), np.full(NUM_TANKS, TANK_HEIGHT)
-        for t in range(steps):
-            seq[t] = balance_valves(x)
-            _, term, lev = self.physics.run(x, seq[None, t:t + 1],
-                                            step0 if frozen else step0 + t, frozen)
-            x = full if term[0, 0] else lev[0, 0]
-        return seq
+        return self._loop(x0, step0, steps, frozen,
+                          lambda x, left: balance_valves(x)[None, None].astype(np.int64))
 
     def _closed_loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool) -> np.ndarray:
         """The hold planner's valves (steps, 6), simulated closed-loop from x0."""
+        return self._loop(x0, step0, steps, frozen, lambda x, left: hold_candidates(
+            self.hold, max(1, min(self.horizon, left))))
+
+    def _loop(self, x0: np.ndarray, step0: int, steps: int, frozen: bool,
+              candidates: Callable[[np.ndarray, int], np.ndarray]) -> np.ndarray:
+        """The valves (steps, 6) of a policy simulated closed-loop from x0: at each step
+        the first setting of the best of ``candidates(levels, steps left)`` (K, L, 6)
+        (first maximum of the summed rewards), the next levels from the same rollout."""
         seq = np.zeros((steps, NUM_TANKS), np.int64)
         x, full = np.asarray(x0, np.float64), np.full(NUM_TANKS, TANK_HEIGHT)
         for t in range(steps):
-            horizon = max(1, min(self.horizon, steps - t))
-            cands = hold_candidates(self.hold, horizon)
+            cands = candidates(x, steps - t)
             rew, term, lev = self.physics.run(x, cands, step0 if frozen else step0 + t, frozen)
             best = int(np.argmax(rew.sum(1)))
             seq[t] = cands[best, 0]
