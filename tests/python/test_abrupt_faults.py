@@ -22,7 +22,8 @@ import pytest
 
 from ftc import _core
 from ftc.control.metrics import TIMING_COLUMNS
-from ftc.control.planners import HoldPlanner, OracleEvaluator
+from ftc.control.physics_evaluators import OracleEvaluator
+from ftc.control.planners import HoldPlanner
 from ftc.plant import CorePlant, launch
 from ftc.plant.reward import reward
 

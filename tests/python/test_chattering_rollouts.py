@@ -20,8 +20,8 @@ import pytest
 from ftc import _core
 from ftc.control.identified_agent import IdentifiedAgent
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
-from ftc.control.planners import (HoldPlanner, OracleEvaluator, ParamsEvaluator, hold_candidates,
-                                  valve_settings)
+from ftc.control.physics_evaluators import OracleEvaluator, ParamsEvaluator
+from ftc.control.planners import HoldPlanner, hold_candidates, valve_settings
 from ftc.control.ppo_robust_agent import RobustPPOAgent
 
 SCENARIO = """

@@ -15,8 +15,8 @@ from ftc import _core
 from ftc.control.metrics import METRIC_COLUMNS
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
 from ftc.control.mpc_cli import MPCController, main
-from ftc.control.planners import (CEMPlanner, HoldPlanner, OracleEvaluator, hold_candidates,
-                                  valve_settings)
+from ftc.control.physics_evaluators import OracleEvaluator
+from ftc.control.planners import CEMPlanner, HoldPlanner, hold_candidates, valve_settings
 from ftc.plant import CorePlant, launch
 from ftc.plant.reward import reward
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.planners import ParamsEvaluator
+from ftc.control.physics_evaluators import ParamsEvaluator
 from ftc.control.ppo_robust_agent import PlanCache
 
 REPO = Path(__file__).resolve().parents[2]

@@ -17,8 +17,9 @@ import pytest
 
 from ftc import _core
 from ftc.control import mpc_cli, registry
-from ftc.control.planners import (HoldPlanner, OracleEvaluator, TwoStagePlanner,
-                                  two_stage_candidates, valve_settings)
+from ftc.control.physics_evaluators import OracleEvaluator
+from ftc.control.planners import (HoldPlanner, TwoStagePlanner, two_stage_candidates,
+                                  valve_settings)
 from ftc.experiments import run_cache
 from ftc.experiments.run_cache import RunCache, RunKey
 

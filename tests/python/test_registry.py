@@ -16,7 +16,7 @@ from ftc.control import controller_cli, mpc_cli, registry
 from ftc.control.agent import Agent
 from ftc.control.cli import read_run_configs
 from ftc.control.metrics import metric_columns
-from ftc.control.mpc_agent import MPCConfig
+from ftc.control.mpc_config import MPCConfig
 from ftc.control.ppo_robust_agent import RobustConfig
 from ftc.experiments.methods import METHODS as EXPERIMENT_METHODS
 from ftc.learning.ppo import PPOConfig

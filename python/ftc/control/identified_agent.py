@@ -40,7 +40,8 @@ import numpy as np
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import StepContext, Transition
 from ftc.control.mpc_agent import MPCAgent, MPCConfig
-from ftc.control.planners import Evaluator, ParamsEvaluator
+from ftc.control.physics_evaluators import ParamsEvaluator
+from ftc.control.planners import Evaluator
 from ftc.learning.identify import Identifier, OnlineIdentification
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation

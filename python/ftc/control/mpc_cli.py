@@ -13,7 +13,7 @@ from ftc.common.cli import OneLineParser, config_from_namespace, given_options
 from ftc.control import mpc_agent, plugin_cli, registry
 from ftc.control.cli import (add_run_options, check_or_exit, method_argv, refuse_ignored,
                              resume_configs, run_or_report)
-from ftc.control.mpc_agent import MPCConfig
+from ftc.control.mpc_config import MPCConfig
 from ftc.control.runner import IntervalRunner
 
 TOOL = "ftc.mpc"

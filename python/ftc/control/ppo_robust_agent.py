@@ -36,7 +36,8 @@ from ftc.common.constants import NUM_TANKS, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import check_finite_state
-from ftc.control.planners import HoldPlanner, ParamsEvaluator
+from ftc.control.physics_evaluators import ParamsEvaluator
+from ftc.control.planners import HoldPlanner
 from ftc.control.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
 from ftc.control.ppo_agent import ControllerConfig
 from ftc.control.ppo_online import OnlinePPO

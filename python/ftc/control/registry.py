@@ -80,7 +80,7 @@ class Method:
 
 _CONTROLLER = "ftc.control.ppo_agent:ControllerConfig"
 _ROBUST = "ftc.control.ppo_robust_agent:RobustConfig"
-_MPC = "ftc.control.mpc_agent:MPCConfig"
+_MPC = "ftc.control.mpc_config:MPCConfig"
 _BASELINE = "ftc.control.baselines:BaselineAgent"
 
 METHODS: dict[str, Method] = {m.name: m for m in (
@@ -117,6 +117,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            knows="the true faults", cost=20.0, cached=True),
     Method("model-mpc", "MPC on the learned model", "ftc.mpc", ("--method", "model-mpc"),
            "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the learned model", cost=3.0,
+           learns=True),
+    Method("learned-mpc", "MPC on a model learned online", "ftc.mpc", ("--method", "learned-mpc"),
+           "ftc.control.learned_agent:LearnedMPCAgent", _MPC, knows="the learned model", cost=2.0,
            learns=True),
     Method("identified-mpc", "MPC on identified physics", "ftc.mpc",
            ("--method", "identified-mpc"), "ftc.control.identified_agent:IdentifiedAgent", _MPC,

@@ -18,7 +18,7 @@ from typing import Sequence
 
 from ftc.common.cli import config_from_namespace
 from ftc.control import controller_cli, mpc_cli, plugin_cli, registry
-from ftc.control.mpc_agent import MPCConfig
+from ftc.control.mpc_config import MPCConfig
 from ftc.control.ppo_robust_agent import ROBUST_FIELDS, RobustConfig
 from ftc.control.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec

@@ -39,7 +39,8 @@ from ftc.experiments.runs import RunSpec, is_finished
 # The Python files, relative to the ftc package's parent, whose bytes decide a
 # cached method's results besides the native core: the planners and their
 # configuration, the method's spelling, the MPC tool and the interval runner.
-CODE = ("ftc/control/planners.py", "ftc/control/episode_planner.py",
+CODE = ("ftc/control/planners.py", "ftc/control/physics_evaluators.py",
+        "ftc/control/episode_planner.py", "ftc/control/mpc_config.py",
         "ftc/control/true_physics.py", "ftc/control/balance.py",
         "ftc/control/mpc_agent.py", "ftc/control/mpc_cli.py", "ftc/control/registry.py",
         "ftc/control/runner.py", "ftc/control/agent.py", "ftc/plant/reward.py")

@@ -150,6 +150,31 @@ def collect_random_episodes(plant: PlantLink, episodes: int, seed: int = 0, *,
     return Transitions.from_observations(observations)
 
 
+def collect_sparse_episodes(plant: PlantLink, episodes: int, seed: int = 0, *,
+                            max_hold: int = 10, max_open: float = 0.3,
+                            max_episode_steps: int = 4096) -> Transitions:
+    """Run ``episodes`` episodes of sparse valve openings on ``plant``: each
+    episode draws an open probability from [0, ``max_open``], each setting opens
+    every valve with it and is held 1..``max_hold`` steps. Closed valves, which
+    a good controller mostly chooses, are common here and rare in the paper's
+    set (1 setting in 64)."""
+    rng = np.random.default_rng(seed)
+    observations: list[PlantObservation] = []
+    for _ in range(episodes):
+        obs = plant.reset()
+        observations.append(obs)
+        p_open, hold, steps = rng.uniform(0.0, max_open), 0, 0
+        while not obs.done and steps < max_episode_steps:
+            steps += 1
+            if hold == 0:
+                valves = (rng.random(NUM_TANKS) < p_open).astype(np.int8)
+                hold = int(rng.integers(1, max_hold + 1))
+            obs = plant.step(valves)
+            observations.append(obs)
+            hold -= 1
+    return Transitions.from_observations(observations)
+
+
 def _core_plant(seed: int) -> PlantLink:
     return CorePlant(None, seed)
 

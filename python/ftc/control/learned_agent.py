@@ -1,0 +1,170 @@
+"""``learned-mpc``: model-predictive control on a model of the plant learned
+from its observed steps alone, with no plant equations.
+
+    python -m ftc.mpc --method learned-mpc --scenario scenarios/single.toml --out runs/learned
+
+What it knows: the published levels, the valves the plant applied and the
+engines' published deficit (what an aircraft's fuel system reports), and the
+reward, which it computes itself. Not the tank model, not the parameters,
+not the faults: the import contract in pyproject.toml keeps this module and
+everything it imports away from the identification (:mod:`ftc.learning.identify`),
+the C++ physics and the scenario's factors, and a test shows the contract
+catches such an import.
+
+* The model (:class:`ftc.learning.feature_model.FeatureModel`) is first fitted
+  on nominal data (``learn_episodes`` episodes on the nominal plant, as the
+  paper's world model), then updated after every step the plant takes, with
+  older steps fading (``learn_forget``): it follows the degradation within
+  the interval, not one interval late.
+* The planner is the oracle's (``--planner``, ``--hold``, ``--horizon``),
+  every candidate rolled out on the model; an episode ends in a rollout where
+  the predicted fuel falls ``learn_terminal_band`` below the demand, which is
+  estimated from what was burnt (level drop plus published deficit).
+* Valves seen not to follow their command are planned as they will be.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ftc.common.constants import NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE
+from ftc.common.errors import CheckpointError
+from ftc.control.agent import Agent, StepContext, Transition
+from ftc.control.mpc_config import MPCConfig
+from ftc.control.planners import CEMPlanner, make_planner
+from ftc.learning.feature_model import FeatureModel
+from ftc.learning.transitions import (Transitions, collect_nominal_dataset,
+                                      collect_sparse_episodes)
+from ftc.plant.link import CorePlant, PlantObservation
+from ftc.plant.reward import AREAS, reward
+
+DEMAND_MEMORY = 0.8  # weight of the old estimate of the demand per step in each update
+
+
+class LearnedEvaluator:
+    """Candidate valve sequences rolled out on the learned model, all in one batch
+    per step; after a predicted terminal step the tanks are full again, as the
+    plant resets them."""
+
+    def __init__(self, model: FeatureModel, demand: float, band: float) -> None:
+        self.model, self.end_volume = model, demand + TERMINAL_TOLERANCE - band
+
+    def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
+        k, horizon, _ = sequences.shape
+        x = np.broadcast_to(np.asarray(x0, np.float64), (k, NUM_TANKS))
+        total = np.zeros(k)
+        for t in range(horizon):
+            nxt = self.model.predict(x, sequences[:, t])
+            total += reward(nxt, sequences[:, t])
+            terminal = nxt @ AREAS < self.end_volume
+            x = np.where(terminal[:, None], TANK_HEIGHT, nxt)
+        return total
+
+
+class LearnedMPCAgent(Agent):
+    """MPC on the model learned online; see the module docstring."""
+
+    name = "learned-mpc"
+    extra_columns = ("model_one_step_rmse", "model_max_step_error", "demand_estimate",
+                     "open_fraction", "decisions_per_second", "stuck_valves")
+    progress_keys = (("model_one_step_rmse", "model rmse"),)
+
+    def __init__(self, cfg: MPCConfig) -> None:
+        self.cfg = cfg
+        self.rng = np.random.default_rng(cfg.seed)
+        self.planner = make_planner(cfg, self.rng)
+        self.model = FeatureModel(cfg.learn_features, cfg.learn_forget, cfg.learn_ridge,
+                                  seed=cfg.seed)
+        self.demand = 0.0
+        self.stuck: dict[int, int] = {}  # valve -> the state it stays in
+        self._reset_interval()
+
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "LearnedMPCAgent":
+        return cls(configs["mpc"])
+
+    def _reset_interval(self) -> None:
+        self.errors: list[np.ndarray] = []  # each step's prediction error (6,), m
+        self.decisions, self.plan_seconds, self.opened = 0, 0.0, 0
+
+    def prepare(self) -> dict[str, Any]:
+        """Fit the model on nominal data: half the paper's random-valve episodes,
+        half sparse openings (:func:`collect_sparse_episodes`)."""
+        start = time.perf_counter()
+        cfg, half = self.cfg, self.cfg.learn_episodes // 2
+        parts = [collect_nominal_dataset(half, seed=cfg.seed)] if half else []
+        plant = CorePlant(None, cfg.seed + 1)  # the nominal plant
+        try:
+            parts.append(collect_sparse_episodes(plant, cfg.learn_episodes - half, cfg.seed + 1))
+        finally:
+            plant.close()
+        data = Transitions.concat(parts)
+        self.model.fit(data.level, data.valves, data.next_level)
+        volume_drop = (data.level - data.next_level).sum(axis=1)
+        self.demand = float(np.median(volume_drop))  # mostly every engine served
+        return {"learn_pretrain_rows": len(data),
+                "learn_pretrain_seconds": time.perf_counter() - start}
+
+    def begin_interval(self, interval: int) -> None:
+        self._reset_interval()
+
+    def start_episode(self, obs: PlantObservation) -> None:
+        if isinstance(self.planner, CEMPlanner):
+            self.planner.reset()  # full tanks again: forget the warm start
+
+    def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
+        horizon = self.cfg.horizon
+        if ctx.steps_left is not None and self.cfg.truncate_at_interval:
+            horizon = max(1, min(horizon, ctx.steps_left))
+        evaluate = LearnedEvaluator(self.model, self.demand, self.cfg.learn_terminal_band)
+        t0 = time.perf_counter()
+        u, _, _ = self.planner.plan(evaluate, obs.level, horizon)
+        self.plan_seconds += time.perf_counter() - t0
+        self.decisions += 1
+        u = u.astype(np.int8)
+        for i, state in self.stuck.items():
+            u[i] = state  # command what it will do anyway: no activity paid for nothing
+        if not ctx.evaluation:
+            self.opened += int(u.sum())
+        return u
+
+    def observe(self, t: Transition) -> None:
+        applied = t.next_obs.valves  # the plant publishes the valves it applied
+        for i in np.flatnonzero(applied != t.valves):
+            self.stuck[int(i)] = int(applied[i])
+        predicted = self.model.predict(t.obs.level, applied)
+        self.errors.append(predicted - t.next_obs.level)
+        self.model.add(t.obs.level, applied, t.next_obs.level)
+        burnt = float(np.sum(t.obs.level - t.next_obs.level) + np.sum(t.next_obs.deficit))
+        self.demand = DEMAND_MEMORY * self.demand + (1 - DEMAND_MEMORY) * burnt
+
+    def end_online(self) -> dict[str, Any]:
+        errors = np.asarray(self.errors)
+        seen = len(errors) > 0
+        return {"model_one_step_rmse": float(np.sqrt(np.mean(errors ** 2))) if seen else None,
+                "model_max_step_error": float(np.abs(errors).max()) if seen else None,
+                "open_fraction": self.opened / (self.cfg.steps_per_interval * NUM_TANKS),
+                "decisions_per_second": (self.decisions / self.plan_seconds
+                                         if self.plan_seconds else None)}
+
+    def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
+        self.model.settle()
+        return {"demand_estimate": self.demand, "stuck_valves": len(self.stuck)}
+
+    # -- persistence ---------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {"np_rng": self.rng.bit_generator.state, "demand": self.demand,
+                "stuck": {str(k): v for k, v in self.stuck.items()},
+                "learned_model": self.model.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        missing = sorted({"np_rng", "demand", "stuck", "learned_model"} - set(state))
+        if missing:
+            raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
+        self.rng.bit_generator.state = state["np_rng"]
+        self.demand = float(state["demand"])
+        self.stuck = {int(k): int(v) for k, v in state["stuck"].items()}
+        self.model.load_state_dict(state["learned_model"])
