@@ -14,7 +14,8 @@ import pytest
 
 from ftc import _core
 from ftc.control.physics_evaluators import ParamsEvaluator
-from ftc.control.ppo_robust_agent import PlanCache
+from ftc.control.guided_ppo import PlanCache
+from ftc.control.ppo_robust_agent import _same_plan
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -78,7 +79,7 @@ def test_each_fit_keeps_a_bounded_memory_of_the_levels_earlier_fits_labelled(run
 def test_recent_distinct_keeps_the_last_occurrences_most_recent_last():
     import numpy as np
 
-    from ftc.control.ppo_robust_agent import _recent_distinct
+    from ftc.control.guided_ppo import _recent_distinct
 
     a, b, c, d = (np.full(6, v) for v in (0.1, 0.2, 0.3, 0.4))
     rows = np.array([a, b, a, c, d, c])
@@ -120,7 +121,7 @@ def test_the_check_prices_a_policy_that_strands_fuel_behind_a_dead_pump():
         head = [m for m in last if m.out_features == 6][-1]
         head.weight.zero_()
         head.bias.fill_(-10.0)
-    from ftc.control.ppo_robust_agent import regret
+    from ftc.control.guided_ppo import regret
 
     def price(level):
         return regret(agent.ppo, agent.teacher, agent.teacher_eval, level)
@@ -138,15 +139,15 @@ def test_labels_are_kept_only_for_the_parameters_they_were_planned_with():
     evaluate.params = _core.degraded_params(_core.load_scenario(str(REPO / "scenarios" /
                                                                     "single.toml")), 2.0)
     cache = PlanCache()
-    cache.begin(evaluate)
+    cache.begin((evaluate.params, dict(evaluate.stuck)), _same_plan)
     cache.labels[b"level"] = np.ones(6)
     evaluate.params = {k: np.array(v, copy=True) for k, v in evaluate.params.items()}
-    cache.begin(evaluate)  # equal values in a new dict: kept
+    cache.begin((evaluate.params, dict(evaluate.stuck)), _same_plan)  # equal values in a new dict: kept
     assert b"level" in cache.labels
     evaluate.stuck[2] = 1
-    cache.begin(evaluate)  # a stuck valve changes every plan: dropped
+    cache.begin((evaluate.params, dict(evaluate.stuck)), _same_plan)  # a stuck valve changes every plan: dropped
     assert not cache.labels
     cache.labels[b"level"] = np.ones(6)
     evaluate.params = {**evaluate.params, "pump": np.asarray(evaluate.params["pump"]) * 0.5}
-    cache.begin(evaluate)  # other parameters: dropped
+    cache.begin((evaluate.params, dict(evaluate.stuck)), _same_plan)  # other parameters: dropped
     assert not cache.labels

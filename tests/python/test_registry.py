@@ -85,7 +85,7 @@ def test_a_former_name_warns_and_maps(alias, name, capsys):
 
 @pytest.mark.parametrize("tool,argv,message", [
     (controller_cli, ["--method", "ppo", "--teacher-rounds", "1"],
-     "--teacher-rounds has no effect with --method ppo (it configures ppo-robust)"),
+     "--teacher-rounds has no effect with --method ppo (it configures ppo-robust, ppo-learned)"),
     (controller_cli, ["--method", "closed", "--offline-steps", "8"],
      "--offline-steps has no effect with --method closed"),
     (controller_cli, ["--method", "ppo-offline", "--pretrain-lr", "0.1"],

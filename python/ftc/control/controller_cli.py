@@ -59,7 +59,7 @@ from ftc.control.cli import (add_run_options, check_or_exit, method_argv, read_r
                              refuse_ignored, resume_configs, run_or_report)
 from ftc.control.config import RunConfig
 from ftc.control.ppo_agent import PPO_METHODS, ControllerConfig
-from ftc.control.ppo_robust_agent import ROBUST_FIELDS, RobustConfig
+from ftc.control.guided_ppo import GUIDED_FIELDS as ROBUST_FIELDS, GuidedConfig as RobustConfig
 from ftc.control.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
 from ftc.learning.ppo_policy import ENGINE_ALIASES, ENGINES
@@ -161,9 +161,9 @@ def _refuse_no_effect(parser: argparse.ArgumentParser, named: set[str],
             parser.error(f"{ppo_only[0]} has no effect with --method {method} (it configures "
                          f"the PPO methods: {', '.join(PPO_METHODS)})")
     robust = [flag(name) for name in ROBUST_FIELDS if name in named]
-    if method != "ppo-robust" and robust:
+    if method not in registry.guided_methods() and robust:
         parser.error(f"{robust[0]} has no effect with --method {method} (it configures "
-                     "ppo-robust)")
+                     f"{', '.join(registry.guided_methods())})")
     refuse_ignored(parser, cfg, named)
 
 

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ftc.common.constants import NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE
+from ftc.common.constants import EMPTY_VOLUME, NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.mpc_config import MPCConfig
@@ -39,9 +39,26 @@ from ftc.learning.feature_model import FeatureModel
 from ftc.learning.transitions import (Transitions, collect_nominal_dataset,
                                       collect_sparse_episodes)
 from ftc.plant.link import CorePlant, PlantObservation
-from ftc.plant.reward import AREAS, reward
+from ftc.plant.reward import AREAS, MOMENT_ARMS
 
 DEMAND_MEMORY = 0.8  # weight of the old estimate of the demand per step in each update
+
+
+ARMS_SQUARED = MOMENT_ARMS ** 2
+MAX_ARM = float(np.abs(MOMENT_ARMS).max())
+
+
+def planning_reward(level_next: np.ndarray, valves: np.ndarray) -> np.ndarray:
+    """The reward (plant-model.md) of a batch (K, 6), with the spread from the
+    first two moments of the arms: 2.5x faster than :func:`ftc.plant.reward.reward`
+    for the planner's batches, equal within 1e-12 (tests/python/test_learned_mpc.py)."""
+    w = AREAS * np.maximum(level_next, 0.0)
+    total = w.sum(axis=1)
+    nonempty = total >= EMPTY_VOLUME
+    safe = np.where(nonempty, total, 1.0)
+    cg = np.where(nonempty, w @ MOMENT_ARMS / safe, 0.0)
+    spread = np.sqrt(np.maximum(np.where(nonempty, w @ ARMS_SQUARED / safe, 0.0) - cg ** 2, 0.0))
+    return (1.0 - np.abs(cg) / MAX_ARM) * spread - valves.mean(axis=1)
 
 
 class LearnedEvaluator:
@@ -58,10 +75,30 @@ class LearnedEvaluator:
         total = np.zeros(k)
         for t in range(horizon):
             nxt = self.model.predict(x, sequences[:, t])
-            total += reward(nxt, sequences[:, t])
+            total += planning_reward(nxt, sequences[:, t])
             terminal = nxt @ AREAS < self.end_volume
             x = np.where(terminal[:, None], TANK_HEIGHT, nxt)
         return total
+
+
+def fit_nominal(model: FeatureModel, episodes: int, seed: int) -> tuple[float, dict[str, Any]]:
+    """Fit ``model`` on nominal data, as the paper's world model is pretrained:
+    half the paper's random-valve episodes, half sparse openings
+    (:func:`collect_sparse_episodes`), on the nominal plant. Returns the demand
+    per step estimated from them and what was measured."""
+    start = time.perf_counter()
+    half = episodes // 2
+    parts = [collect_nominal_dataset(half, seed=seed)] if half else []
+    plant = CorePlant(None, seed + 1)  # the nominal plant
+    try:
+        parts.append(collect_sparse_episodes(plant, episodes - half, seed + 1))
+    finally:
+        plant.close()
+    data = Transitions.concat(parts)
+    model.fit(data.level, data.valves, data.next_level)
+    demand = float(np.median((data.level - data.next_level).sum(axis=1)))  # engines served
+    return demand, {"learn_pretrain_rows": len(data),
+                    "learn_pretrain_seconds": time.perf_counter() - start}
 
 
 class LearnedMPCAgent(Agent):
@@ -91,22 +128,8 @@ class LearnedMPCAgent(Agent):
         self.decisions, self.plan_seconds, self.opened = 0, 0.0, 0
 
     def prepare(self) -> dict[str, Any]:
-        """Fit the model on nominal data: half the paper's random-valve episodes,
-        half sparse openings (:func:`collect_sparse_episodes`)."""
-        start = time.perf_counter()
-        cfg, half = self.cfg, self.cfg.learn_episodes // 2
-        parts = [collect_nominal_dataset(half, seed=cfg.seed)] if half else []
-        plant = CorePlant(None, cfg.seed + 1)  # the nominal plant
-        try:
-            parts.append(collect_sparse_episodes(plant, cfg.learn_episodes - half, cfg.seed + 1))
-        finally:
-            plant.close()
-        data = Transitions.concat(parts)
-        self.model.fit(data.level, data.valves, data.next_level)
-        volume_drop = (data.level - data.next_level).sum(axis=1)
-        self.demand = float(np.median(volume_drop))  # mostly every engine served
-        return {"learn_pretrain_rows": len(data),
-                "learn_pretrain_seconds": time.perf_counter() - start}
+        self.demand, info = fit_nominal(self.model, self.cfg.learn_episodes, self.cfg.seed)
+        return info
 
     def begin_interval(self, interval: int) -> None:
         self._reset_interval()

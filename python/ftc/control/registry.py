@@ -79,7 +79,7 @@ class Method:
 
 
 _CONTROLLER = "ftc.control.ppo_agent:ControllerConfig"
-_ROBUST = "ftc.control.ppo_robust_agent:RobustConfig"
+_ROBUST = "ftc.control.guided_ppo:GuidedConfig"
 _MPC = "ftc.control.mpc_config:MPCConfig"
 _BASELINE = "ftc.control.baselines:BaselineAgent"
 
@@ -108,6 +108,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            knows="the plant's equations",
            experiment_args=("--pretrain", "--offline-steps", "0", "--ppo-engine", "native"),
            cost=30.0, learns=True),
+    Method("ppo-learned", "PPO online + guided offline on a model learned online",
+           "ftc.controller", ("--method", "ppo-learned"),
+           "ftc.control.ppo_learned_agent:LearnedPPOAgent", _ROBUST, knows="the learned model",
+           experiment_args=("--pretrain", "--offline-steps", "0", "--ppo-engine", "native"),
+           cost=10.0, learns=True),
     Method("oracle-mpc", "MPC, faults known (oracle)", "ftc.mpc", ("--method", "oracle-mpc"),
            "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the true faults", cost=1.5),
     # whole episodes optimised on the true physics (episode_planner.py), never below
@@ -152,6 +157,11 @@ def tool_methods(tool: str) -> tuple[str, ...]:
 def config_values(tool: str) -> tuple[str, ...]:
     """The values of ``tool``'s config ``method`` field (the methods with an agent)."""
     return tuple(m.name for m in METHODS.values() if m.tool == tool and m.agent)
+
+
+def guided_methods() -> tuple[str, ...]:
+    """The methods whose runs take the guided fit's options (ppo-robust, ppo-learned)."""
+    return tuple(m.name for m in METHODS.values() if m.config == _ROBUST)
 
 
 def policy_methods(tool: str = "ftc.controller") -> tuple[str, ...]:

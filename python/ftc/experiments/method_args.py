@@ -19,7 +19,7 @@ from typing import Sequence
 from ftc.common.cli import config_from_namespace
 from ftc.control import controller_cli, mpc_cli, plugin_cli, registry
 from ftc.control.mpc_config import MPCConfig
-from ftc.control.ppo_robust_agent import ROBUST_FIELDS, RobustConfig
+from ftc.control.guided_ppo import GUIDED_FIELDS as ROBUST_FIELDS, GuidedConfig as RobustConfig
 from ftc.control.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec
 
@@ -70,7 +70,7 @@ def takes(spec: MethodSpec, option: str) -> bool:
         return False
     if spec.module == "ftc.mpc":
         return True
-    return spec.learns and (parsed.method == "ppo-robust" or dest not in ROBUST_FIELDS)
+    return spec.learns and (parsed.method in registry.guided_methods() or dest not in ROBUST_FIELDS)
 
 
 @functools.cache
