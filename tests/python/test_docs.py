@@ -292,3 +292,51 @@ def test_every_result_table_in_the_docs_equals_its_file():
     blocks = [m.group(2) for doc in DOCS for m in render.BLOCK.finditer(doc.read_text())]
     assert blocks, "no rendered result tables in the docs"
     assert render.main(["--check"]) == 0
+
+
+# tables typed into the docs that hold specifications, not measurements (header rows)
+SPEC_TABLES = {
+    "| figure | group | what it measures | aim |",  # docs/benchmarks.md: the aims
+    "| exit | cause | example |",  # docs/controller.md: exit codes (an option's default)
+    "| test | what it shows |",  # docs/ecosystem.md: a test's own thresholds
+    "| symbol | meaning | nominal |",  # docs/plant-model.md: nominal parameters
+}
+DECIMAL = re.compile(r"(?<![\w.])\d+\.\d+")
+
+
+def typed_tables(text: str) -> list[tuple[int, list[str]]]:
+    """The Markdown tables of ``text`` outside rendered result blocks: (first
+    line number, lines)."""
+    tables, start, inside = [], None, False
+    lines = text.split("\n")
+    for i, line in enumerate([*lines, ""]):
+        inside = (inside or line.startswith("<!-- results:")) and \
+            not line.startswith("<!-- /results")
+        if line.startswith("|") and not inside:
+            start = i if start is None else start
+        elif start is not None:
+            tables.append((start + 1, lines[start:i]))
+            start = None
+    return tables
+
+
+def measured_tables(text: str) -> list[tuple[int, str]]:
+    """Typed tables that hold decimal figures and are not specification tables."""
+    return [(n, rows[0]) for n, rows in typed_tables(text)
+            if rows[0].strip() not in SPEC_TABLES and DECIMAL.search("\n".join(rows[2:]))]
+
+
+def test_a_typed_table_of_figures_is_found_and_a_rendered_one_is_not():
+    typed = "text\n\n| method | mean |\n|---|---|\n| a | 0.91 |\n\nmore\n"
+    rendered = "<!-- results: x -->\n| method | mean |\n|---|---|\n| a | 0.91 |\n<!-- /results -->\n"
+    spec = "| exit | cause | example |\n|---|---|---|\n| 3 | after 0.05 s | x |\n"
+    assert measured_tables(typed) == [(3, "| method | mean |")]
+    assert measured_tables(rendered) == [] and measured_tables(spec) == []
+    assert measured_tables("| a | b |\n|---|---|\n| x | 3 |\n") == []  # no decimal figure
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=_rel)
+def test_tables_of_measured_figures_are_rendered_from_result_files(doc):
+    found = measured_tables(doc.read_text())
+    assert not found, (f"{_rel(doc)}: tables of figures typed by hand (render them from "
+                       f"docs/results/ with scripts/render_results.py): {found}")
