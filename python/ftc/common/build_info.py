@@ -29,6 +29,14 @@ def echo_binary() -> Path:
     return path
 
 
+def policy_node_binary() -> Path:
+    """build/policy_node: the embedded controller (cpp/policy/policy_node.cpp)."""
+    path = BUILD_DIR / "policy_node"
+    if not path.is_file():
+        raise BuildMissingError(f"policy_node not found at {path}; run scripts/setup.sh")
+    return path
+
+
 def recorder_binary() -> Path:
     """build/lcm_recorder: records a run's traffic in lcm-logger's file format
     without lcm-logger's 30-message subscription queue, which dropped plant

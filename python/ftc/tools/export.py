@@ -54,6 +54,7 @@ from ftc.control import checkpoint
 from ftc.control.cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
 from ftc.learning.ppo import ActorCritic
+from ftc.tools import policy_weights
 
 TOOL = "ftc.export"
 INPUT = "levels"
@@ -205,8 +206,11 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("checkpoint", type=checked(Path, nonempty=True),
                         help="a controller checkpoint.pt (or its run directory)")
-    parser.add_argument("--out", type=checked(Path, nonempty=True), required=True,
+    parser.add_argument("--out", type=checked(Path, nonempty=True),
                         help="the .onnx file to write (atomically)")
+    parser.add_argument("--weights", type=checked(Path, nonempty=True),
+                        help="also (or only) write the weights file build/policy_node reads "
+                             "(ftc.tools.policy_weights has its format), atomically")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --out file (atomically, once the new model "
                              "is verified; default: refuse it)")
@@ -220,7 +224,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """The command line; a bad --out exits 2 with one line before anything runs."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    check_out_file(parser, args.out, args.overwrite, "the .onnx file")
+    if args.out is None and args.weights is None:
+        parser.error("give --out (the .onnx file), --weights (the node's weights file) or both")
+    if args.out is not None:
+        check_out_file(parser, args.out, args.overwrite, "the .onnx file")
+    if args.weights is not None:
+        check_out_file(parser, args.weights, args.overwrite, "the weights file")
     return args
 
 
@@ -229,18 +238,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
 
     def run() -> None:
-        with RunLock(args.out, TOOL, beside=True) as lock:
+        first = args.out if args.out is not None else args.weights
+        with RunLock(first, TOOL, beside=True) as lock:
             lock.announce_takeover()
-            refuse_existing(args.out, args.overwrite)  # again, now that no one else writes
+            for target in (args.out, args.weights):  # again, now that no one else writes
+                if target is not None:
+                    refuse_existing(target, args.overwrite)
             path = checkpoint_path(args.checkpoint)
             policy, source = load_policy(path)
-            model = export_model(policy, source)
-            gap = verify(model, policy, args.verify_states) if args.verify_states else None
-            atomic_write_bytes(args.out, model.SerializeToString())
-        checked_text = (f"; onnxruntime agrees on {args.verify_states} states (logits within "
-                        f"{gap:.2g})" if gap is not None else "")
-        print(f"{TOOL}: wrote {args.out} ({source['method']} policy of {path}, after "
-              f"{source['interval']} intervals){checked_text}")
+            written = []
+            if args.out is not None:
+                model = export_model(policy, source)
+                gap = verify(model, policy, args.verify_states) if args.verify_states else None
+                atomic_write_bytes(args.out, model.SerializeToString())
+                written.append(str(args.out) + (
+                    f" (onnxruntime agrees on {args.verify_states} states, logits within "
+                    f"{gap:.2g})" if gap is not None else ""))
+            if args.weights is not None:
+                widths, params = policy_weights.actor_layers(policy)
+                policy_weights.write_weights(args.weights, widths, params,
+                                             version=int(source["interval"]) + 1)
+                written.append(str(args.weights))
+        print(f"{TOOL}: wrote {' and '.join(written)} ({source['method']} policy of {path}, "
+              f"after {source['interval']} intervals)")
 
     return run_or_report(TOOL, run)
 

@@ -1,0 +1,186 @@
+// build/policy_node: the embedded controller. It flies a policy exported by
+// ftc.export (--weights) on a plant in real-time mode over LCM: every state
+// the plant publishes gets one valve command, computed from the newest state,
+// and a pushed policy_t replaces the policy between two steps (or is rejected
+// with a logged reason). At exit it prints one line:
+//   steps N deadline_misses M latency_p50_us A latency_p99_us B latency_max_us C
+// A deadline miss is a plant step taken without the command answering the
+// state before it (the next state's command_seq is older than that command).
+#include <lcm/lcm-cpp.hpp>
+
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <iostream>
+#include <memory>
+#include <optional>
+#include <vector>
+
+#include "ftc/plant_state_t.hpp"
+#include "ftc/policy_t.hpp"
+#include "ftc/valve_command_t.hpp"
+#include "policy/policy.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+volatile std::sig_atomic_t g_stop = 0;
+void OnSignal(int) { g_stop = 1; }
+
+std::int64_t WallMicros() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+class Node {
+ public:
+  Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy)
+      : lcm_(lcm), command_channel_(prefix + "COMMAND"), policy_(std::move(policy)) {
+    auto* state = lcm_->subscribe(prefix + "STATE", &Node::OnState, this);
+    state->setQueueCapacity(1000);
+    lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this);
+  }
+
+  // Waits up to timeout_ms for messages, takes every queued one, then acts on
+  // the newest state if there is a new one. Returns false on an LCM error.
+  bool Spin(int timeout_ms) {
+    if (lcm_->handleTimeout(timeout_ms) < 0) return false;
+    while (lcm_->handleTimeout(0) > 0) {
+    }
+    if (pending_) Act();
+    return true;
+  }
+
+  std::int64_t steps() const { return steps_; }
+  std::int64_t misses() const { return misses_; }
+  std::int64_t watchdog_states() const { return watchdog_states_; }
+  std::vector<double>& latencies_us() { return latencies_us_; }
+
+ private:
+  void OnState(const lcm::ReceiveBuffer*, const std::string&, const ftc::plant_state_t* s) {
+    if (s->seq <= last_state_seq_ || s->num_tanks != ftc::policy::kTanks) return;
+    if (last_sent_seq_ && s->command_seq < *last_sent_seq_) ++misses_;
+    if (s->watchdog_tripped) ++watchdog_states_;
+    last_state_seq_ = s->seq;
+    pending_ = *s;
+    received_ = Clock::now();
+  }
+
+  void OnPolicy(const lcm::ReceiveBuffer*, const std::string&, const ftc::policy_t* m) {
+    std::string why;
+    std::vector<int> widths(m->widths.begin(), m->widths.end());
+    std::vector<float> params(m->params.begin(), m->params.end());
+    if (m->version <= policy_->version()) {
+      why = "version " + std::to_string(m->version) + " is not above the running " +
+            std::to_string(policy_->version());
+    } else if (static_cast<std::uint64_t>(m->checksum) != ftc::policy::Checksum(widths, params)) {
+      why = "checksum mismatch (corrupted in transit or made by other code)";
+    }
+    std::unique_ptr<ftc::policy::Policy> next;
+    if (why.empty()) next = ftc::policy::Policy::Make(widths, params, m->version, &why);
+    if (!next) {
+      std::cerr << "policy_node: rejected policy version " << m->version << ": " << why
+                << "; keeping version " << policy_->version() << "\n";
+      return;
+    }
+    policy_ = std::move(next);  // between two states: the next one is acted on by it
+    std::cerr << "policy_node: policy version " << policy_->version() << " in use\n";
+  }
+
+  void Act() {
+    std::array<double, ftc::policy::kTanks> level{};
+    std::copy(pending_->level.begin(), pending_->level.end(), level.begin());
+    const auto u = policy_->Act(level);
+    ftc::valve_command_t cmd{};
+    cmd.utime = WallMicros();
+    cmd.seq = ++seq_;
+    cmd.state_seq = pending_->seq;
+    cmd.num_valves = ftc::policy::kTanks;
+    cmd.valve.assign(u.begin(), u.end());
+    lcm_->publish(command_channel_, &cmd);
+    latencies_us_.push_back(
+        std::chrono::duration<double, std::micro>(Clock::now() - received_).count());
+    last_sent_seq_ = cmd.seq;
+    pending_.reset();
+    ++steps_;
+  }
+
+  lcm::LCM* lcm_;
+  std::string command_channel_;
+  std::unique_ptr<ftc::policy::Policy> policy_;
+  std::optional<ftc::plant_state_t> pending_;
+  Clock::time_point received_;
+  std::int64_t last_state_seq_ = 0;
+  std::optional<std::int64_t> last_sent_seq_;
+  // Commands start above any seq a lockstep client of the same plant used: the
+  // wall clock in microseconds (the plant ignores a seq below its last one).
+  std::int64_t seq_ = WallMicros();
+  std::int64_t steps_ = 0, misses_ = 0, watchdog_states_ = 0;
+  std::vector<double> latencies_us_;
+};
+
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  const auto i = static_cast<std::size_t>(std::ceil(q * static_cast<double>(v.size())) - 1);
+  return v[std::min(i, v.size() - 1)];
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string policy_path, url, prefix = "FTC_";
+  std::int64_t max_steps = 0;
+  CLI::App app{"The embedded controller: flies an exported policy (ftc.export --weights) on a "
+               "plant in real-time mode over LCM; takes pushed policy_t weights between steps"};
+  app.add_option("--policy", policy_path, "weights file written by ftc.export --weights")
+      ->required();
+  app.add_option("--lcm-url", url, "LCM provider URL (must keep ttl=0: loopback only)")
+      ->required();
+  app.add_option("--prefix", prefix, "channel prefix of the plant")->capture_default_str();
+  app.add_option("--steps", max_steps, "stop after acting on this many states (0: until a signal)")
+      ->check(CLI::NonNegativeNumber);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e) == 0 ? 0 : 2;
+  }
+  if (url.find("ttl=0") == std::string::npos) {
+    std::cerr << "policy_node: --lcm-url " << url << " lacks ttl=0 (loopback only)\n";
+    return 2;
+  }
+  std::string error;
+  auto policy = ftc::policy::Policy::FromFile(policy_path, &error);
+  if (!policy) {
+    std::cerr << "policy_node: " << error << "\n";
+    return 2;
+  }
+  lcm::LCM lcm(url);
+  if (!lcm.good()) {
+    std::cerr << "policy_node: cannot open LCM at " << url << "\n";
+    return 1;
+  }
+  std::signal(SIGINT, OnSignal);
+  std::signal(SIGTERM, OnSignal);
+  Node node(&lcm, prefix, std::move(policy));
+  while (!g_stop && (max_steps == 0 || node.steps() < max_steps)) {
+    if (!node.Spin(100) && !g_stop) {
+      std::cerr << "policy_node: LCM failed while waiting for the plant\n";
+      return 1;
+    }
+  }
+  auto& lat = node.latencies_us();
+  std::printf("steps %lld deadline_misses %lld latency_p50_us %.0f latency_p99_us %.0f "
+              "latency_max_us %.0f\n",
+              static_cast<long long>(node.steps()), static_cast<long long>(node.misses()),
+              Percentile(lat, 0.50), Percentile(lat, 0.99),
+              lat.empty() ? 0.0 : *std::max_element(lat.begin(), lat.end()));
+  if (node.watchdog_states())
+    std::cerr << "policy_node: " << node.watchdog_states()
+              << " states with the plant's watchdog tripped\n";
+  return 0;
+}

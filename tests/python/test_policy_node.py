@@ -1,0 +1,165 @@
+"""build/policy_node, the embedded controller: the weights file's arithmetic
+is the policy's deterministic action; the node flies it on the real plant in
+real-time mode over LCM, acting on every state with the policy it holds; a
+pushed policy takes over at a step boundary; a corrupted or stale push is
+rejected with a logged reason and the old policy kept; a bad weights file is
+refused with one line."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import lcm
+import numpy as np
+import pytest
+import torch
+
+from ftc.plant_state_t import plant_state_t
+from ftc.valve_command_t import valve_command_t
+from ftc.common.build_info import plant_binary, policy_node_binary
+from ftc.common.errors import UsageError
+from ftc.learning.ppo import ActorCritic
+from ftc.plant import private_lcm_url, private_prefix
+from ftc.tools import policy_weights as pw
+
+SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
+                     r"latency_p99_us (\d+) latency_max_us (\d+)$")
+
+
+def _policy(seed: int) -> tuple[list[int], np.ndarray]:
+    torch.manual_seed(seed)
+    policy = ActorCritic()
+    with torch.no_grad():  # logits of a useful size (a fresh head's are ~0.01)
+        head = [m for m in policy.policy_head.modules() if isinstance(m, torch.nn.Linear)][-1]
+        head.weight.mul_(300.0)
+    return pw.actor_layers(policy)
+
+
+def test_the_formats_arithmetic_is_the_policys_deterministic_action():
+    torch.manual_seed(0)
+    policy = ActorCritic()
+    with torch.no_grad():
+        head = [m for m in policy.policy_head.modules() if isinstance(m, torch.nn.Linear)][-1]
+        head.weight.mul_(300.0)
+    widths, params = pw.actor_layers(policy)
+    assert widths == [6, 64, 64, 16, 16, 6]
+    levels = np.random.default_rng(0).uniform(0, 1, (2000, 6))
+    with torch.no_grad():
+        logits, _ = policy(torch.as_tensor(levels, dtype=torch.float32))
+    expected = (logits > 0).numpy().astype(np.int8)
+    # float32 in both; rows whose logit is within rounding of 0 may differ
+    close = (np.abs(logits.numpy()) < 1e-4).any(axis=1)
+    assert np.array_equal(pw.actions(widths, params, levels)[~close], expected[~close])
+    assert 0.1 < expected.mean() < 0.9  # both valve states occur: the check means something
+
+
+def test_a_weights_file_round_trips_and_damage_is_named(tmp_path):
+    widths, params = _policy(1)
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, widths, params, version=3)
+    w, p, v = pw.read_weights(path)
+    assert (w, v) == (widths, 3) and np.array_equal(p, params)  # 9 digits: float32 exactly
+    text = path.read_text().splitlines()
+    text[5] = text[5].replace(text[5].split()[0], "0.5", 1)  # one weight changed
+    path.write_text("\n".join(text) + "\n")
+    with pytest.raises(UsageError, match="checksum mismatch"):
+        pw.read_weights(path)
+    lines = pw.format_weights(widths, params).splitlines()
+    path.write_text("\n".join(lines[:7] + lines[-1:]) + "\n")  # params cut, checksum kept
+    with pytest.raises(UsageError, match="truncated"):
+        pw.read_weights(path)
+    path.write_text("\n".join(lines[:7]) + "\n")  # cut before the checksum line
+    with pytest.raises(UsageError, match="missing or malformed"):
+        pw.read_weights(path)
+
+
+def test_the_node_refuses_a_bad_weights_file_with_one_line(tmp_path):
+    widths, params = _policy(1)
+    path = tmp_path / "p.txt"
+    path.write_text(pw.format_weights(widths, params).replace("checksum ", "checksum 1"))
+    out = subprocess.run([str(policy_node_binary()), "--policy", str(path), "--lcm-url", private_lcm_url()],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2
+    assert out.stderr.count("\n") == 1 and "checksum mismatch" in out.stderr
+
+
+class _Bus:
+    """Records the states and commands of one private plant (prefix)."""
+
+    def __init__(self, url: str, prefix: str) -> None:
+        self.lc = lcm.LCM(url)
+        self.states: dict[int, np.ndarray] = {}
+        self.commands: list[tuple[int, np.ndarray]] = []  # (state_seq, valves)
+        self.lc.subscribe(prefix + "STATE", self._state)
+        self.lc.subscribe(prefix + "COMMAND", self._command)
+        self.stop = False
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _state(self, channel, data):
+        s = plant_state_t.decode(data)
+        self.states[s.seq] = np.array(s.level)
+
+    def _command(self, channel, data):
+        c = valve_command_t.decode(data)
+        self.commands.append((c.state_seq, np.array(c.valve, np.int8)))
+
+    def _spin(self):
+        while not self.stop:
+            self.lc.handle_timeout(50)
+
+
+@pytest.mark.subprocess
+def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path, scenarios):
+    url, prefix = private_lcm_url(), private_prefix()
+    first, second = _policy(1), _policy(2)
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, *first, version=1)
+    bus = _Bus(url, prefix)
+    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                              "--mode", "realtime", "--rate", "50", "--watchdog", "1",
+                              "--lcm-url", url, "--prefix", prefix], stderr=subprocess.PIPE)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url, "--prefix",
+                             prefix, "--steps", "150"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while len(bus.commands) < 50:
+            assert time.monotonic() < deadline, "no commands from the node on the bus"
+            time.sleep(0.02)
+        pushed_at = max(bus.states)
+        pw.push(url, prefix, pw.policy_message(*second, version=2))
+        time.sleep(0.3)
+        pw.push(url, prefix, pw.policy_message(*first, version=3, checksum_value=12345))
+        pw.push(url, prefix, pw.policy_message(*first, version=1))  # not above the running 2
+        out, err = node.communicate(timeout=30)
+    finally:
+        node.kill()
+        plant.kill()
+        plant.wait()
+        bus.stop = True
+    summary = SUMMARY.match(out.strip())
+    assert summary and int(summary.group(1)) == 150, out
+    assert "policy version 2 in use" in err
+    assert "rejected policy version 3: checksum mismatch" in err
+    assert "rejected policy version 1: version 1 is not above the running 2" in err
+    # every command is the action of the policy in use for the state it answers:
+    # the first up to the push, the second after it, never a mixture within a step
+    switched = None
+    for state_seq, valves in bus.commands:
+        level = bus.states[state_seq][None]
+        old = pw.actions(*first, level)[0]
+        new = pw.actions(*second, level)[0]
+        if np.array_equal(old, new):
+            continue  # both policies agree here: says nothing about which acted
+        assert np.array_equal(valves, old) or np.array_equal(valves, new)
+        if np.array_equal(valves, new):
+            switched = state_seq if switched is None else switched
+        else:
+            assert switched is None, "the old policy acted after the new one had"
+            assert state_seq <= pushed_at + 20
+    assert switched is not None and switched > pushed_at - 1
