@@ -13,6 +13,19 @@ class BuildMissingError(RuntimeError):
     """The C++ build (plant binary, bindings or generated types) is not there."""
 
 
+def ftc_version() -> str:
+    """The package's version: the one place it lives is pyproject.toml (read from
+    the installed metadata, or from the checkout's pyproject.toml)."""
+    pyproject = REPO_ROOT / "pyproject.toml"
+    if pyproject.is_file():
+        import tomllib
+
+        return str(tomllib.loads(pyproject.read_text())["project"]["version"])
+    from importlib import metadata
+
+    return metadata.version("ftc")
+
+
 def plant_binary() -> Path:
     """Path of the plant executable (``FTC_PLANT_BIN`` overrides ``build/plant``)."""
     path = Path(os.environ.get("FTC_PLANT_BIN", BUILD_DIR / "plant"))

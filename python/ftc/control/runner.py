@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
-from ftc.common.build_info import git_revision
+from ftc.common.build_info import ftc_version, git_revision
 from ftc.common.errors import CheckpointError, PlantLostError, RunError, UsageError
 from ftc.common.replacing import Replacement
 from ftc.common.run_lock import RunLock
@@ -338,7 +338,8 @@ class IntervalRunner:
 
     def write_config(self) -> None:
         doc = {**{name: dataclasses.asdict(c) for name, c in self.configs.items()},
-               "seed": self.cfg.seed, "git_revision": git_revision(), "argv": sys.argv,
+               "seed": self.cfg.seed, "git_revision": git_revision(),
+               "ftc_version": ftc_version(), "argv": sys.argv,
                **self.agent.config_doc()}
         atomic_write_json(self.out / "config.json", doc)
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable, TextIO
 
 from ftc.common.atomic import atomic_write_json, atomic_write_text
-from ftc.common.build_info import git_revision
+from ftc.common.build_info import ftc_version, git_revision
 from ftc.common.errors import StorageError
 from ftc.experiments import report
 from ftc.experiments.collect import collect
@@ -192,6 +192,7 @@ def provenance(config, methods, previous: dict) -> dict:
     """The record of what a run directory was made with (its JSON's first keys);
     ``previous``: the record already there, whose creation time and revisions are kept."""
     return {"config": config.to_json(), "git_revision": git_revision(),
+            "ftc_version": ftc_version(),
             "git_revisions": sorted(set(previous.get("git_revisions", [])) | {git_revision()}),
             "created": previous.get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z")),
             "python": sys.version.split()[0],

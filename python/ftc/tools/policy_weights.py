@@ -38,6 +38,7 @@ import numpy as np
 from ftc.common.atomic import atomic_write_text
 from ftc.common.cli import OneLineParser, at_least, checked
 from ftc.common.errors import UsageError
+from ftc.plant.lcm_link import check_loopback_url
 
 FORMAT = "ftc-policy 1"
 FNV_OFFSET, FNV_PRIME, MASK = 1469598103934665603, 1099511628211, (1 << 64) - 1
@@ -145,8 +146,6 @@ def policy_message(widths: Sequence[int], params: np.ndarray, version: int,
 def push(lcm_url: str, prefix: str, message) -> None:
     """Publish ``message`` once on ``<prefix>POLICY``."""
     import lcm
-
-    from ftc.plant.lcm_link import check_loopback_url
 
     check_loopback_url(lcm_url)
     lcm.LCM(lcm_url).publish(prefix + "POLICY", message.encode())
