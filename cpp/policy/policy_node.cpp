@@ -133,7 +133,7 @@ double Percentile(std::vector<double> v, double q) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string policy_path, url, prefix = "FTC_";
+  std::string policy_path, url, prefix = "FTC_", latency_log;
   std::int64_t max_steps = 0;
   CLI::App app{"The embedded controller: flies an exported policy (ftc.export --weights) on a "
                "plant in real-time mode over LCM; takes pushed policy_t weights between steps"};
@@ -142,6 +142,9 @@ int main(int argc, char** argv) {
   app.add_option("--lcm-url", url, "LCM provider URL (must keep ttl=0: loopback only)")
       ->required();
   app.add_option("--prefix", prefix, "channel prefix of the plant")->capture_default_str();
+  app.add_option("--latency-log", latency_log,
+                 "write each step's latency (state received to command sent, microseconds), "
+                 "one per line, to this file at exit");
   app.add_option("--steps", max_steps, "stop after acting on this many states (0: until a signal)")
       ->check(CLI::NonNegativeNumber);
   try {
@@ -174,6 +177,15 @@ int main(int argc, char** argv) {
     }
   }
   auto& lat = node.latencies_us();
+  if (!latency_log.empty()) {
+    std::FILE* f = std::fopen(latency_log.c_str(), "w");
+    if (f == nullptr) {
+      std::cerr << "policy_node: cannot write " << latency_log << "\n";
+      return 5;
+    }
+    for (double us : lat) std::fprintf(f, "%.1f\n", us);
+    std::fclose(f);
+  }
   std::printf("steps %lld deadline_misses %lld latency_p50_us %.0f latency_p99_us %.0f "
               "latency_max_us %.0f\n",
               static_cast<long long>(node.steps()), static_cast<long long>(node.misses()),
