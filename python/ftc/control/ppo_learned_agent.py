@@ -25,12 +25,13 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from ftc.common.constants import NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE, offline_seed
+from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Transition
 from ftc.control.guided_ppo import GuidedConfig, GuidedPPOAgent
 from ftc.control.learned_agent import DEMAND_MEMORY, LearnedEvaluator, fit_nominal
 from ftc.control.mpc_config import MPCConfig
+from ftc.learning.branched import BranchedStarts
 from ftc.learning.feature_model import FeatureModel
 from ftc.learning.ppo import PPOConfig
 from ftc.learning.rollout import EnvStep, train_on_env
@@ -40,7 +41,7 @@ from ftc.plant.reward import AREAS, reward
 MODEL = MPCConfig(method="learned-mpc")
 
 
-class LearnedModelEnv:
+class LearnedModelEnv(BranchedStarts):
     """N plants simulated on the learned model, stepped side by side (the step
     interface of :class:`ftc.learning.model_env.ModelEnv`). Episodes start from
     full tanks or, with probability ``branch_fraction``, from an observed level
@@ -50,30 +51,11 @@ class LearnedModelEnv:
     def __init__(self, model: FeatureModel, demand: float, band: float, num_envs: int, *,
                  max_episode_steps: int, seed: int, starts: np.ndarray | None = None,
                  branch_fraction: float = 0.0, branch_steps: int = 64) -> None:
-        self.model, self.num_envs = model, num_envs
+        super().__init__(num_envs, max_episode_steps=max_episode_steps, starts=starts,
+                         branch_fraction=branch_fraction, branch_steps=branch_steps, seed=seed)
+        self.model = model
         self.end_volume = demand + TERMINAL_TOLERANCE - band
-        self.max_episode_steps, self.branch_steps = max_episode_steps, branch_steps
-        self.starts = None if starts is None or len(starts) == 0 else np.asarray(starts, float)
-        self.branch_fraction = branch_fraction if self.starts is not None else 0.0
-        self.rng = np.random.default_rng(seed)
-        self.level = np.full((num_envs, NUM_TANKS), TANK_HEIGHT)
-        self.steps = np.zeros(num_envs, int)
-        self.limit = np.full(num_envs, max_episode_steps)
         self.errors = 0  # nothing is refused on the model
-
-    def _start(self, i: int) -> None:
-        if self.branch_fraction and self.rng.random() < self.branch_fraction:
-            self.level[i] = self.starts[self.rng.integers(len(self.starts))]
-            self.limit[i] = self.branch_steps
-        else:
-            self.level[i] = TANK_HEIGHT
-            self.limit[i] = self.max_episode_steps
-        self.steps[i] = 0
-
-    def reset(self) -> torch.Tensor:
-        for i in range(self.num_envs):
-            self._start(i)
-        return torch.as_tensor(self.level, dtype=torch.float32).clone()
 
     def step(self, actions: torch.Tensor) -> EnvStep:
         u = actions.numpy().astype(np.int64)

@@ -15,12 +15,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ftc.common.constants import NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE
+from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE
+from ftc.learning.branched import BranchedStarts
 from ftc.learning.rollout import EnvStep
 from ftc.plant.reward import AREAS, reward
 
 
-class PhysicsEnv:
+class PhysicsEnv(BranchedStarts):
     def __init__(self, params: dict, num_envs: int, *, max_episode_steps: int = 512,
                  starts: np.ndarray | None = None, branch_fraction: float = 0.0,
                  branch_steps: int = 64, seed: int = 0, rtol: float = 1e-6,
@@ -29,31 +30,10 @@ class PhysicsEnv:
 
         self.rollout = _core.BatchRollout(rtol=rtol, atol=atol)
         self.params = params
-        self.num_envs = num_envs
-        self.max_episode_steps = max_episode_steps
-        self.starts = None if starts is None or len(starts) == 0 else np.asarray(starts, float)
-        self.branch_fraction = branch_fraction if self.starts is not None else 0.0
-        self.branch_steps = branch_steps
-        self.rng = np.random.default_rng(seed)
+        super().__init__(num_envs, max_episode_steps=max_episode_steps, starts=starts,
+                         branch_fraction=branch_fraction, branch_steps=branch_steps, seed=seed)
         self.demand = float(np.sum(params["demand"]))
-        self.level = np.full((num_envs, NUM_TANKS), TANK_HEIGHT)
-        self.steps = np.zeros(num_envs, int)
-        self.limit = np.full(num_envs, max_episode_steps)
         self.errors = 0  # steps the integrator refused (ended as truncations)
-
-    def _start(self, i: int) -> None:
-        if self.branch_fraction and self.rng.random() < self.branch_fraction:
-            self.level[i] = self.starts[self.rng.integers(len(self.starts))]
-            self.limit[i] = self.branch_steps
-        else:
-            self.level[i] = TANK_HEIGHT
-            self.limit[i] = self.max_episode_steps
-        self.steps[i] = 0
-
-    def reset(self) -> torch.Tensor:
-        for i in range(self.num_envs):
-            self._start(i)
-        return torch.as_tensor(self.level, dtype=torch.float32).clone()
 
     def step(self, actions: torch.Tensor) -> EnvStep:
         u = actions.numpy().astype(np.int64)
