@@ -81,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
         for rate in sorted(args.rates):
             log = Path(tmp) / f"latency-{rate:g}.txt"
             rows.append(run_rate(weights, rate, args.steps, log))
-            first_log = first_log or np.loadtxt(log)
+            if first_log is None:
+                first_log = np.loadtxt(log)
             print(" ".join(f"{k} {v}" for k, v in rows[-1].items()), flush=True)
     kept = [float(r["rate_hz"]) for r in rows if r["keeps_up"] == "yes"]
     print(f"bench_realtime: highest rate with < 0.1% misses: "

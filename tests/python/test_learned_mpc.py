@@ -112,6 +112,33 @@ def test_the_evaluator_sums_rewards_and_restarts_full_after_a_predicted_end():
         pytest.approx(expected[0])
 
 
+class _Moves:
+    """A model under which an open valve 4 moves 0.05 m from tank 4 to tank 1."""
+
+    def predict(self, level, valves):
+        out = np.array(np.broadcast_to(level, np.shape(valves)), np.float64)
+        moved = 0.05 * np.asarray(valves)[..., 3]
+        out[..., 3] -= moved
+        out[..., 0] += moved
+        return out
+
+
+def test_a_stuck_valve_is_planned_as_it_will_be():
+    seq = hold_candidates(3, 5)
+    x0 = np.array([0.2, 0.5, 0.5, 0.9, 0.5, 0.5])  # heavy right: opening valve 4 pays
+    free = LearnedEvaluator(_Moves(), demand=0.0, band=0.0)(x0, seq)
+    stuck = LearnedEvaluator(_Moves(), demand=0.0, band=0.0, stuck={3: 0})(x0, seq)
+    opens_4 = seq[:, 0, 3] == 1
+    closed_twin = [int(np.flatnonzero((seq[:, 0] == np.where(np.arange(6) == 3, 0, seq[k, 0]))
+                                      .all(axis=1))[0]) for k in np.flatnonzero(opens_4)]
+    # free, valve 4 alone is the best plan (the transfer balances the wings); stuck
+    # closed, every plan that opens it scores exactly as its twin with it closed
+    assert int(np.argmax(free)) == int(np.flatnonzero((seq[:, 0] == [0, 0, 0, 1, 0, 0])
+                                                      .all(axis=1))[0])
+    assert np.array_equal(stuck[opens_4], stuck[closed_twin])
+    assert stuck.max() < free.max()
+
+
 def test_the_model_learns_a_pump_that_died(tmp_path):
     """Tank 3's pump dead (factor 0.5, age 1), every valve closed: the nominal fit
     expects tank 3 to drain first, and the model learns otherwise from the steps

@@ -64,12 +64,21 @@ def planning_reward(level_next: np.ndarray, valves: np.ndarray) -> np.ndarray:
 class LearnedEvaluator:
     """Candidate valve sequences rolled out on the learned model, all in one batch
     per step; after a predicted terminal step the tanks are full again, as the
-    plant resets them."""
+    plant resets them. Valves seen not to follow their command (``stuck``: valve
+    -> the state it stays in) are planned as they will be, and commanded so: a
+    plan that opens a valve stuck closed would be rolled out on a transfer the
+    model learned before the valve stuck."""
 
-    def __init__(self, model: FeatureModel, demand: float, band: float) -> None:
+    def __init__(self, model: FeatureModel, demand: float, band: float,
+                 stuck: dict[int, int] | None = None) -> None:
         self.model, self.end_volume = model, demand + TERMINAL_TOLERANCE - band
+        self.stuck = stuck or {}
 
     def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
+        if self.stuck:
+            sequences = np.array(sequences, copy=True)
+            for i, state in self.stuck.items():
+                sequences[:, :, i] = state
         k, horizon, _ = sequences.shape
         x = np.broadcast_to(np.asarray(x0, np.float64), (k, NUM_TANKS))
         total = np.zeros(k)
@@ -142,7 +151,8 @@ class LearnedMPCAgent(Agent):
         horizon = self.cfg.horizon
         if ctx.steps_left is not None and self.cfg.truncate_at_interval:
             horizon = max(1, min(horizon, ctx.steps_left))
-        evaluate = LearnedEvaluator(self.model, self.demand, self.cfg.learn_terminal_band)
+        evaluate = LearnedEvaluator(self.model, self.demand, self.cfg.learn_terminal_band,
+                                    self.stuck)
         t0 = time.perf_counter()
         u, _, _ = self.planner.plan(evaluate, obs.level, horizon)
         self.plan_seconds += time.perf_counter() - t0

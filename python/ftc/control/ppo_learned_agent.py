@@ -83,6 +83,7 @@ class LearnedPPOAgent(GuidedPPOAgent):
         self.model = FeatureModel(MODEL.learn_features, MODEL.learn_forget, MODEL.learn_ridge,
                                   seed=cfg.seed)
         self.demand, self.added = 0.0, 0  # steps the model has learned from
+        self.stuck: dict[int, int] = {}  # valves seen not to follow their command
         self._reset_interval()
 
     def _reset_interval(self) -> None:
@@ -91,7 +92,7 @@ class LearnedPPOAgent(GuidedPPOAgent):
 
     @property
     def teacher_eval(self) -> LearnedEvaluator:  # type: ignore[override]
-        return LearnedEvaluator(self.model, self.demand, MODEL.learn_terminal_band)
+        return LearnedEvaluator(self.model, self.demand, MODEL.learn_terminal_band, self.stuck)
 
     def prepare(self) -> dict[str, Any]:
         info = super().prepare()  # the policy (--pretrain)
@@ -104,6 +105,8 @@ class LearnedPPOAgent(GuidedPPOAgent):
 
     def watch(self, t: Transition) -> bool:
         applied = t.next_obs.valves  # the plant publishes the valves it applied
+        for i in np.flatnonzero(applied != t.valves):
+            self.stuck[int(i)] = int(applied[i])
         self.errors.append(self.model.predict(t.obs.level, applied) - t.next_obs.level)
         self.model.add(t.obs.level, applied, t.next_obs.level)
         self.added += 1
@@ -155,7 +158,7 @@ class LearnedPPOAgent(GuidedPPOAgent):
 
     def model_state(self) -> dict[str, Any]:
         return {"learned_model": self.model.state_dict(), "demand": self.demand,
-                "added": self.added}
+                "added": self.added, "stuck": {str(k): v for k, v in self.stuck.items()}}
 
     def load_model_state(self, state: dict[str, Any]) -> None:
         missing = sorted({"learned_model", "demand", "added"} - set(state))
@@ -163,3 +166,4 @@ class LearnedPPOAgent(GuidedPPOAgent):
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.model.load_state_dict(state["learned_model"])
         self.demand, self.added = float(state["demand"]), int(state["added"])
+        self.stuck = {int(k): int(v) for k, v in state.get("stuck", {}).items()}

@@ -42,7 +42,8 @@ STYLE = {"font.size": 8, "axes.titlesize": 9, "axes.labelsize": 8, "legend.fonts
 METHOD_COLORS = {"closed": "tab:blue", "open": "tab:orange", "ppo-online": "tab:green",
                  "ppo-offline": "tab:red", "random": "tab:gray", "oracle-mpc": "black",
                  "model-mpc": "tab:purple", "ppo-pretrained": "tab:olive", "balance": "tab:pink",
-                 "ppo-robust": "tab:brown", "identified-mpc": "tab:cyan"}  # one colour per method
+                 "ppo-robust": "tab:brown", "identified-mpc": "tab:cyan",
+                 "learned-mpc": "#1f3f99", "ppo-learned": "#d4a017"}  # one colour per method
 TANK_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02"]
 
 
