@@ -27,6 +27,7 @@
 namespace {
 
 using Clock = std::chrono::steady_clock;
+constexpr std::int64_t kLoggedMisses = 10;  // the first misses are logged, then only counted
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
@@ -63,7 +64,12 @@ class Node {
  private:
   void OnState(const lcm::ReceiveBuffer*, const std::string&, const ftc::plant_state_t* s) {
     if (s->seq <= last_state_seq_ || s->num_tanks != ftc::policy::kTanks) return;
-    if (last_sent_seq_ && s->command_seq < *last_sent_seq_) ++misses_;
+    if (last_sent_seq_ && s->command_seq < *last_sent_seq_) {
+      if (++misses_ <= kLoggedMisses)
+        std::cerr << "policy_node: deadline miss: the plant took step " << s->step
+                  << " of episode " << s->episode << " (state " << s->seq
+                  << ") before command " << *last_sent_seq_ << " arrived\n";
+    }
     if (s->watchdog_tripped) ++watchdog_states_;
     last_state_seq_ = s->seq;
     pending_ = *s;
