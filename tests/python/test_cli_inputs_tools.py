@@ -41,6 +41,7 @@ ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("ftc.experiments", "--controller-args"): {""},  # no extra arguments
     ("ftc.experiments", "--tensorboard"): NAMES,     # a directory name (relative to the cwd)
     ("ftc.export", "--out"): NAMES,                  # an .onnx file name (relative to the cwd)
+    ("ftc.export", "--weights"): NAMES,              # the node's weights file name
     ("ftc.export", "--verify-states"): {"0"},        # 0: no onnxruntime check
     ("ftc.simulate", "--seed"): {"0"},
     ("ftc.simulate", "--out"): NAMES,                # a CSV file name
@@ -86,7 +87,7 @@ CASES = [(tool, flag, value) for tool, module in TOOLS.items()
 
 def test_every_option_is_walked():
     walked = {(t, f) for t, f, _ in CASES}
-    assert len(walked) == 13 + 6 + 4 + 6 + 2, sorted(walked)
+    assert len(walked) == 13 + 6 + 4 + 6 + 3, sorted(walked)
     for tool, flag in ACCEPTED:
         assert tool == "plant" or (tool, flag) in walked, (tool, flag)
 

@@ -177,3 +177,25 @@ def test_bad_out_is_refused_before_the_checkpoint_is_read(exported, tmp_path, ca
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "--out" in lines[0], err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker"]
+
+
+def test_the_weights_file_takes_the_agents_deterministic_actions(exported, tmp_path):
+    """ftc.export --weights: the file build/policy_node reads, whose arithmetic
+    (ftc.tools.policy_weights.actions, the node's) is the trained policy's."""
+    from ftc.tools import policy_weights
+
+    run, _ = exported
+    out = tmp_path / "policy.txt"
+    code, err = _quiet(export.main, [str(run), "--weights", str(out)])
+    assert code == 0, err
+    widths, params, version = policy_weights.read_weights(out)
+    assert widths == [6, 64, 64, 16, 16, 6] and version >= 1
+    states = _states(2000)
+    agent = _agent(run)
+    with torch.no_grad():
+        logits, _ = agent.ppo.policy(torch.as_tensor(states))
+    clear = (logits.abs() > 1e-4).all(axis=1).numpy()  # rows not within rounding of a tie
+    expected = (logits > 0).numpy().astype(np.int8)
+    assert np.array_equal(policy_weights.actions(widths, params, states)[clear], expected[clear])
+    code, err = _quiet(export.main, [str(run), "--weights", str(out)])
+    assert code == 2 and "exists" in err  # an existing file is refused without --overwrite
