@@ -322,7 +322,8 @@ def _distill_step(fit: Callable, epochs: int = 10) -> float:
 def _plans(closed_form: bool, count: int = 200) -> float:
     """Seconds per plan of the teacher's planner at ``count`` random levels."""
     from ftc import _core
-    from ftc.control.planners import HoldPlanner, ParamsEvaluator
+    from ftc.control.physics_evaluators import ParamsEvaluator
+    from ftc.control.planners import HoldPlanner
     from ftc.experiments.suite import write_suite
 
     with tempfile.TemporaryDirectory() as tmp:
