@@ -110,6 +110,29 @@ def fit_nominal(model: FeatureModel, episodes: int, seed: int) -> tuple[float, d
                     "learn_pretrain_seconds": time.perf_counter() - start}
 
 
+def learn_step(model: FeatureModel, t: Transition, stuck: dict[int, int],
+               errors: list[np.ndarray], demand: float) -> float:
+    """One plant step into what a learned controller keeps: valves seen not to
+    follow their command into ``stuck``, the model's error on the step (before
+    learning it) into ``errors``, the step into ``model``. Returns the demand
+    per step estimated anew from what was burnt (level drop plus deficit)."""
+    applied = t.next_obs.valves  # the plant publishes the valves it applied
+    for i in np.flatnonzero(applied != t.valves):
+        stuck[int(i)] = int(applied[i])
+    errors.append(model.add(t.obs.level, applied, t.next_obs.level))
+    burnt = float(np.sum(t.obs.level - t.next_obs.level) + np.sum(t.next_obs.deficit))
+    return DEMAND_MEMORY * demand + (1 - DEMAND_MEMORY) * burnt
+
+
+def error_metrics(errors: list[np.ndarray]) -> dict[str, float | None]:
+    """The model's one-step RMSE and largest error over ``errors``, m (None: no step)."""
+    e = np.asarray(errors)
+    if not len(e):
+        return {"model_one_step_rmse": None, "model_max_step_error": None}
+    return {"model_one_step_rmse": float(np.sqrt(np.mean(e ** 2))),
+            "model_max_step_error": float(np.abs(e).max())}
+
+
 class LearnedMPCAgent(Agent):
     """MPC on the model learned online; see the module docstring."""
 
@@ -165,20 +188,10 @@ class LearnedMPCAgent(Agent):
         return u
 
     def observe(self, t: Transition) -> None:
-        applied = t.next_obs.valves  # the plant publishes the valves it applied
-        for i in np.flatnonzero(applied != t.valves):
-            self.stuck[int(i)] = int(applied[i])
-        predicted = self.model.predict(t.obs.level, applied)
-        self.errors.append(predicted - t.next_obs.level)
-        self.model.add(t.obs.level, applied, t.next_obs.level)
-        burnt = float(np.sum(t.obs.level - t.next_obs.level) + np.sum(t.next_obs.deficit))
-        self.demand = DEMAND_MEMORY * self.demand + (1 - DEMAND_MEMORY) * burnt
+        self.demand = learn_step(self.model, t, self.stuck, self.errors, self.demand)
 
     def end_online(self) -> dict[str, Any]:
-        errors = np.asarray(self.errors)
-        seen = len(errors) > 0
-        return {"model_one_step_rmse": float(np.sqrt(np.mean(errors ** 2))) if seen else None,
-                "model_max_step_error": float(np.abs(errors).max()) if seen else None,
+        return {**error_metrics(self.errors),
                 "open_fraction": self.opened / (self.cfg.steps_per_interval * NUM_TANKS),
                 "decisions_per_second": (self.decisions / self.plan_seconds
                                          if self.plan_seconds else None)}

@@ -29,7 +29,8 @@ from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Transition
 from ftc.control.guided_ppo import GuidedConfig, GuidedPPOAgent
-from ftc.control.learned_agent import DEMAND_MEMORY, LearnedEvaluator, fit_nominal
+from ftc.control.learned_agent import (LearnedEvaluator, error_metrics, fit_nominal,
+                                       learn_step)
 from ftc.control.mpc_config import MPCConfig
 from ftc.learning.branched import BranchedStarts
 from ftc.learning.feature_model import FeatureModel
@@ -104,14 +105,8 @@ class LearnedPPOAgent(GuidedPPOAgent):
         self._reset_interval()
 
     def watch(self, t: Transition) -> bool:
-        applied = t.next_obs.valves  # the plant publishes the valves it applied
-        for i in np.flatnonzero(applied != t.valves):
-            self.stuck[int(i)] = int(applied[i])
-        self.errors.append(self.model.predict(t.obs.level, applied) - t.next_obs.level)
-        self.model.add(t.obs.level, applied, t.next_obs.level)
+        self.demand = learn_step(self.model, t, self.stuck, self.errors, self.demand)
         self.added += 1
-        burnt = float(np.sum(t.obs.level - t.next_obs.level) + np.sum(t.next_obs.deficit))
-        self.demand = DEMAND_MEMORY * self.demand + (1 - DEMAND_MEMORY) * burnt
         self.levels.append(np.asarray(t.next_obs.level, np.float64))
         return False  # the model follows the plant step by step; the checks catch a change
 
@@ -131,9 +126,8 @@ class LearnedPPOAgent(GuidedPPOAgent):
 
     def end_model(self, interval: int) -> dict[str, Any]:
         self.model.settle()
-        errors = np.asarray(self.errors)
-        return {"model_one_step_rmse": float(np.sqrt(np.mean(errors ** 2))) if len(errors)
-                else None, "detected_changes": 0, "mispredicted_steps": None}
+        return {"model_one_step_rmse": error_metrics(self.errors)["model_one_step_rmse"],
+                "detected_changes": 0, "mispredicted_steps": None}
 
     def offline(self, interval: int, observed: np.ndarray) -> tuple[float, int, int]:
         """PPO on the learned model (--offline-steps; half the episodes branched

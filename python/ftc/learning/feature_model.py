@@ -69,9 +69,11 @@ class FeatureModel:
         self.prior = np.zeros_like(self.prior)
         self.settle()
 
-    def add(self, level: np.ndarray, valves: np.ndarray, next_level: np.ndarray) -> None:
-        """One observed step (each (6,)): older ones fade by ``forget``."""
+    def add(self, level: np.ndarray, valves: np.ndarray, next_level: np.ndarray) -> np.ndarray:
+        """One observed step (each (6,)): older ones fade by ``forget``. Returns the
+        prediction's error on it (6,) m, made before it was learned."""
         f = self.features(level, valves)
+        error = np.clip(level + f @ self.weights * SCALE, 0.0, TANK_HEIGHT) - next_level
         self.gram *= self.forget
         self.moment *= self.forget
         self.gram += np.outer(f, f)
@@ -79,6 +81,7 @@ class FeatureModel:
         self.pending += 1
         if self.pending >= self.solve_every:
             self.solve()
+        return error
 
     def solve(self) -> None:
         self.weights = np.linalg.solve(self.gram + self.ridge * np.eye(self.size),
