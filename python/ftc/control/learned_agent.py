@@ -50,8 +50,9 @@ MAX_ARM = float(np.abs(MOMENT_ARMS).max())
 
 def planning_reward(level_next: np.ndarray, valves: np.ndarray) -> np.ndarray:
     """The reward (plant-model.md) of a batch (K, 6), with the spread from the
-    first two moments of the arms: 2.5x faster than :func:`ftc.plant.reward.reward`
-    for the planner's batches, equal within 1e-12 (tests/python/test_learned_mpc.py)."""
+    first two moments of the arms: fewer NumPy passes than :func:`ftc.plant.reward.reward`
+    over the planner's batches (measured 1.7x faster at 640 rows), equal within 1e-12
+    (tests/python/test_learned_mpc.py)."""
     w = AREAS * np.maximum(level_next, 0.0)
     total = w.sum(axis=1)
     nonempty = total >= EMPTY_VOLUME
