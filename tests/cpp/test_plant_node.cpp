@@ -61,6 +61,7 @@ class PlantNodeTest : public ::testing::Test {
     msg.utime = 0;
     msg.seq = seq;
     msg.command = command;
+    msg.operating_step = 0;
     lcm_.publish(channels_.control, &msg);
   }
 
@@ -277,6 +278,84 @@ TEST_F(PlantNodeTest, RealtimeRetryIsCountedButNotAnswered) {
   Drain();
   EXPECT_TRUE(states_.empty());
   EXPECT_EQ(node_->counters().duplicate_commands, 1);
+}
+
+TEST_F(PlantNodeTest, RealtimeCountsStepsTakenWithoutAFreshCommandAndWatchdogTrips) {
+  StartNode(RunMode::kRealtime);
+  const auto tick = [&] { return ExchangeOne([&] { node_->Tick(now_); }); };
+  const plant_state_t unanswered = tick();  // nobody commands yet: a missed tick
+  EXPECT_EQ(unanswered.missed_ticks, 1);
+  EXPECT_EQ(unanswered.watchdog_trips, 0);  // safe from the start: not a trip
+  EXPECT_DOUBLE_EQ(unanswered.rate_hz, 10.0);
+
+  Exchange([&] { SendCommand(1, kAllOpen); });
+  now_ += milliseconds(100);
+  const plant_state_t answered = tick();
+  EXPECT_EQ(answered.missed_ticks, 1);  // this step had its command
+  EXPECT_EQ(answered.command_seq, 1);
+  now_ += milliseconds(100);
+  const plant_state_t held = tick();  // zero-order hold on command 1: missed
+  EXPECT_EQ(held.missed_ticks, 2);
+  EXPECT_EQ(held.valve, kAllOpen);
+
+  // A HELLO from some other client answers a state but does not use up a command.
+  Exchange([&] { SendCommand(2, kAllOpen); });
+  Exchange([&] { SendControl(99, plant_control_t::HELLO); });
+  now_ += milliseconds(100);
+  EXPECT_EQ(tick().missed_ticks, 2);
+
+  now_ += milliseconds(1500);  // silence beyond --watchdog: one trip, however long
+  EXPECT_EQ(tick().watchdog_trips, 1);
+  now_ += milliseconds(100);
+  EXPECT_EQ(tick().watchdog_trips, 1);
+  Exchange([&] { SendCommand(3, kAllOpen); });
+  now_ += milliseconds(100);
+  EXPECT_FALSE(tick().watchdog_tripped);
+  now_ += milliseconds(1500);
+  EXPECT_EQ(tick().watchdog_trips, 2);
+}
+
+TEST_F(PlantNodeTest, RealtimeStartsTheNextEpisodeOnATickOfItsOwn) {
+  StartNode(RunMode::kRealtime);
+  // START one step before the interval boundary: the next step truncates.
+  plant_control_t start;
+  start.utime = 0;
+  start.seq = 1;
+  start.command = plant_control_t::START;
+  start.operating_step = FaultScenario{}.steps_per_interval - 1;
+  const plant_state_t started = ExchangeOne([&] { lcm_.publish(channels_.control, &start); });
+  EXPECT_EQ(started.step, 0);
+  EXPECT_EQ(started.operating_steps, FaultScenario{}.steps_per_interval - 1);
+  EXPECT_EQ(started.command_seq, 1);
+
+  Exchange([&] { SendCommand(2, kAllOpen); });
+  const plant_state_t last = ExchangeOne([&] { node_->Tick(now_); });
+  EXPECT_TRUE(last.truncated);
+  EXPECT_EQ(last.missed_ticks, 0);
+  // The next tick opens the next episode without stepping: its first step
+  // waits for a command that answers its initial state.
+  const plant_state_t next = ExchangeOne([&] { node_->Tick(now_); });
+  EXPECT_EQ(next.step, 0);
+  EXPECT_EQ(next.episode, last.episode + 1);
+  EXPECT_EQ(next.operating_steps, last.operating_steps);
+  EXPECT_EQ(next.missed_ticks, 0);
+  EXPECT_EQ(next.true_level, started.true_level);  // full tanks again (no noise, fixed start)
+  Exchange([&] { SendCommand(3, kAllClosed); });
+  const plant_state_t first = ExchangeOne([&] { node_->Tick(now_); });
+  EXPECT_EQ(first.step, 1);
+  EXPECT_EQ(first.valve, kAllClosed);
+  EXPECT_EQ(first.missed_ticks, 0);
+}
+
+TEST_F(PlantNodeTest, StartWithANegativeStepIsRejected) {
+  StartNode(RunMode::kRealtime);
+  plant_control_t start;
+  start.utime = 0;
+  start.seq = 1;
+  start.command = plant_control_t::START;
+  start.operating_step = -1;
+  EXPECT_TRUE(Exchange([&] { lcm_.publish(channels_.control, &start); }).empty());
+  EXPECT_EQ(node_->counters().rejected_commands, 1);
 }
 
 TEST_F(PlantNodeTest, ShutdownEndsTheLoopAfterAFinalState) {

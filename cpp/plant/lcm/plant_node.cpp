@@ -43,6 +43,11 @@ void PlantNode::PublishState(std::int64_t command_seq) {
   auto msg = ToStateMessage(plant_->last(), ++state_seq_, command_seq, plant_->operating_steps(),
                             counters_);
   msg.watchdog_tripped = watchdog_tripped_;
+  if (options_.mode == RunMode::kRealtime) {
+    msg.rate_hz = options_.rate_hz;
+    msg.missed_ticks = missed_ticks_;
+    msg.watchdog_trips = watchdog_trips_;
+  }
   lcm_->publish(channels_.state, &msg);
 }
 
@@ -50,13 +55,28 @@ void PlantNode::Tick(Clock::time_point now) {
   const bool stale = !last_valid_command_time_ ||
                      now - *last_valid_command_time_ >
                          std::chrono::duration<double>(options_.watchdog_s);
-  if (stale && !watchdog_tripped_ && options_.verbose)
-    std::cerr << "plant: watchdog: no valid command for " << options_.watchdog_s
-              << " s, valves to safe state\n";
+  if (stale && !watchdog_tripped_) {
+    ++watchdog_trips_;
+    if (options_.verbose)
+      std::cerr << "plant: watchdog: no valid command for " << options_.watchdog_s
+                << " s, valves to safe state\n";
+  }
   watchdog_tripped_ = stale;
-  Valves u = held_;
-  if (watchdog_tripped_ && options_.safe_state == SafeState::kClosed) u.setZero();
-  plant_->Step(u);
+  if (plant_->episode_over()) {
+    // The next episode starts here, and its first step waits for a command
+    // answering its initial state (not the one sent for the last episode's end).
+    if (plant_->last().evaluation) {
+      plant_->ResetEvaluation();
+    } else {
+      plant_->Reset();
+    }
+  } else {
+    if (!fresh_command_) ++missed_ticks_;
+    Valves u = held_;
+    if (watchdog_tripped_ && options_.safe_state == SafeState::kClosed) u.setZero();
+    plant_->Step(u);
+  }
+  fresh_command_ = false;  // the next step needs a command answering this state
   PublishState();
 }
 
@@ -122,6 +142,7 @@ void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& cha
   } else {
     held_ = u;
     last_valid_command_time_ = now_();
+    fresh_command_ = true;
   }
 }
 
@@ -148,6 +169,16 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
     case plant_control_t::SHUTDOWN:
       shutdown_ = true;
       break;
+    case plant_control_t::START:
+      if (msg.operating_step < 0) {
+        ++counters_.rejected_commands;
+        std::cerr << "plant: rejected START seq " << msg.seq << ": operating_step "
+                  << msg.operating_step << " is negative\n";
+        return;
+      }
+      plant_->SetOperatingSteps(msg.operating_step);
+      plant_->Reset();
+      break;
     default:
       ++counters_.rejected_commands;
       std::cerr << "plant: rejected control seq " << msg.seq << ": unknown command "
@@ -155,6 +186,7 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
       return;
   }
   answered_seq_ = msg.seq;
+  fresh_command_ = false;  // a new episode: its first step needs a command answering it
   PublishState();
 }
 

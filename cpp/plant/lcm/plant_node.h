@@ -10,7 +10,10 @@
 // stepping. Older seqs are stale and ignored. Both are counted in the state.
 // Real-time mode: the plant steps at rate_hz with zero-order hold on the last
 // valid command; a watchdog puts the valves into the safe state when no valid
-// command arrives for watchdog_s seconds.
+// command arrives for watchdog_s seconds. The tick after an episode's last
+// step starts the next episode and publishes its initial state without
+// stepping. A step taken without a command newer than the state before it is
+// a missed tick; missed ticks and watchdog trips are counted in every state.
 //
 // The node owns no process concerns: options parsing and signals stay in the
 // app (apps/main.cpp), which hands in the stop predicate. The clock is
@@ -96,6 +99,9 @@ class PlantNode final {
   std::optional<Clock::time_point> last_valid_command_time_;
   std::optional<Clock::time_point> next_tick_;  // set by the first RunOnce
   bool watchdog_tripped_;
+  bool fresh_command_ = false;  // a valid command arrived since the last published state
+  std::int64_t missed_ticks_ = 0;
+  std::int64_t watchdog_trips_ = 0;
 };
 
 }  // namespace ftc
