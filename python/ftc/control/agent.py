@@ -72,13 +72,18 @@ class Agent:
     episode after each interval; extra_columns: the metrics.csv columns it adds
     to every run's (:data:`ftc.control.metrics.METRIC_COLUMNS`); progress_keys: (metric, label) pairs shown per interval;
     telemetry: set by the runner (--tensorboard), for the agent's own scalars
-    (PPO: ``telemetry.update(stats)`` after every update); a no-op by default."""
+    (PPO: ``telemetry.update(stats)`` after every update); a no-op by default;
+    background_learning: set by the runner on a real-time plant
+    (:mod:`ftc.control.realtime`): ``act`` and ``observe`` must return within
+    a plant step, so updates, refits and offline phases run on another thread
+    or process and the acting policy is swapped in between two steps."""
 
     name = "agent"
     evaluates = True
     extra_columns: tuple[str, ...] = ()
     progress_keys: tuple[tuple[str, str], ...] = ()
     telemetry: Telemetry = NULL_TELEMETRY
+    background_learning = False
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "Agent":

@@ -11,6 +11,7 @@ from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX
 from ftc.common.errors import PlantLostError, RunError, UsageError
 from ftc.plant.lcm_link import LcmPlant, LinkConfig, check_loopback_url, launch
 from ftc.plant.link import CorePlant, PlantError, PlantGoneError, PlantLink
+from ftc.plant.realtime_link import RealtimeLink
 
 LINKS = ("lcm", "core")
 MAX_INTERVALS = 10_000
@@ -42,6 +43,14 @@ class RunConfig:
         "LCM URL of the plant; must stay on this machine (memq://, or udpm:// with ttl=0) "
         "unless --allow-network (None: a private loopback port when launching; "
         f"{DEFAULT_LCM_URL} with --attach)")})
+    realtime: float | None = field(default=None, metadata={"check": positive(10_000.0), "help": (
+        "launch the plant in real-time mode at this many steps per second and control it "
+        "as it runs: it does not wait for the controller, learning runs off the control "
+        "loop, and metrics.csv gains the deadline columns (docs/deploy.md). With --attach "
+        "a plant in real-time mode is recognised by itself (None: lockstep)")})
+    watchdog: float = field(default=1.0, metadata={"check": positive(3600.0), "help": (
+        "with --realtime: seconds without a valid command after which the plant puts the "
+        "valves in the safe state (all closed)")})
     allow_network: bool = field(default=False, metadata={"help": (
         "accept an --lcm-url whose traffic may leave this machine (ttl != 0, tcpq://); "
         "with --attach only, as launched plants are kept on loopback")})
@@ -82,6 +91,9 @@ class RunConfig:
             raise ValueError("--overwrite replaces a run, --resume continues it: give one")
         if self.tensorboard is not None and not self.tensorboard.strip():
             raise ValueError("--tensorboard must name a directory, got ''")
+        if self.realtime is not None and (self.link != "lcm" or self.attach):
+            raise ValueError("--realtime launches a real-time plant process: it needs --link lcm "
+                             "and no --attach (an attached plant's own mode is used)")
         if self.prefix is not None and not self.prefix.strip():
             raise ValueError("--prefix must not be empty (None: a private one)")
         if not self.link_retry_timeout <= self.link_give_up_timeout:
@@ -106,6 +118,7 @@ class RunConfig:
 # values of these may be resumed (everything else must match), and a resumed
 # run takes them from its own command line.
 RUN_LOCAL_FIELDS = ("out", "resume", "overwrite", "lcm_url", "prefix", "attach", "allow_network",
+                    "realtime", "watchdog",
                     "quiet", "link_retry_timeout", "link_backoff", "link_give_up_timeout",
                     "pretrain_cache", "tensorboard")
 # Fields a resumed run may raise: more intervals extend it.
@@ -125,8 +138,12 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
             return CorePlant(scenario, cfg.seed, steps_per_interval=cfg.steps_per_interval,
                              start_step=start_step)
         if cfg.attach:
-            link = LcmPlant(cfg.lcm_url or DEFAULT_LCM_URL, cfg.prefix or DEFAULT_PREFIX,
-                            config=cfg.link_config(), allow_network=cfg.allow_network)
+            url, prefix = cfg.lcm_url or DEFAULT_LCM_URL, cfg.prefix or DEFAULT_PREFIX
+            link = LcmPlant(url, prefix, config=cfg.link_config(), allow_network=cfg.allow_network)
+            if link.last_state.rate_hz > 0:  # real time: the run STARTs it at its own age
+                link.close()
+                return RealtimeLink(url, prefix, config=cfg.link_config(),
+                                    allow_network=cfg.allow_network)
             at = link.hello().operating_steps
             if at != start_step:
                 link.close()
@@ -136,8 +153,12 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
         extra = ["--steps-per-interval", str(cfg.steps_per_interval)]
         if start_step:
             extra += ["--start-step", str(start_step)]
+        if cfg.realtime is not None:
+            extra += ["--mode", "realtime", "--rate", repr(cfg.realtime),
+                      "--watchdog", repr(cfg.watchdog)]
         return launch(scenario, cfg.seed, lcm_url=cfg.lcm_url, prefix=cfg.prefix,
-                      extra_args=extra, config=cfg.link_config())
+                      extra_args=extra, config=cfg.link_config(),
+                      link_class=RealtimeLink if cfg.realtime is not None else None)
     except PlantGoneError as e:
         raise PlantLostError(f"plant gone before the first step: {e}") from None
     except PlantError as e:  # refused to start; its exit code 2 means bad input

@@ -103,9 +103,8 @@ class GuidedPPOAgent(Agent):
     what the planner's labels depend on and how two compare; ``rollout_env(seed)``:
     one env on the model for the policy's DAgger rollouts; ``end_model(interval)``:
     fit the model for the next interval, plan on it, return what was measured;
-    ``offline(interval, observed)``: PPO on the model after the guided fit
-    (reward per step, updates, refused steps); ``take_refused()``; ``model_state()``
-    and ``load_model_state(state)``."""
+    ``offline(interval, observed)``: PPO on the model after the guided fit (reward
+    per step, updates, refused steps); ``take_refused()``; ``(load_)model_state``."""
 
     extra_columns = (*PPO_COLUMNS, "distill_loss", "distill_agreement", "distill_epochs",
                      "teacher_labels", "teacher_plans", "teacher_memory", "teach_seconds",
@@ -152,7 +151,7 @@ class GuidedPPOAgent(Agent):
                                      cfg.fresh_optimizer) if cfg.pretrain else {})
 
     def begin_interval(self, interval: int) -> None:
-        self.online.begin_interval()
+        self.online.begin_interval(self.background_learning)
         self.refits = 0
         self.interval = interval
         self.checks, self.check_refits = 0, 0
@@ -190,8 +189,9 @@ class GuidedPPOAgent(Agent):
         self._guided_fit(self.observed_levels(), fit_id, rounds)
         self.online.drop_rollout()
 
-    def end_online(self) -> dict[str, Any]:
-        return self.online.end_online()
+    def end_online(self) -> dict[str, Any]: return self.online.end_online()
+    def finish(self) -> None: self.online.finish()  # a background update in flight
+    def close(self) -> None: self.online.close()
 
     def end_interval(self, interval: int, data: Any) -> dict[str, Any]:
         start = time.perf_counter()
@@ -230,6 +230,7 @@ class GuidedPPOAgent(Agent):
         where fuel is stranded behind a dead pump, which the fit before had taught
         (random-19, seed 2, interval 7: the policy then closed every valve there
         for the rest of the interval, 0.24 of the oracle)."""
+        self.online.finish()  # an update in flight would overwrite the fit when taken in
         cfg = self.cfg
         seed = offline_seed(cfg.seed, interval)
         rng = np.random.default_rng(seed)

@@ -175,6 +175,7 @@ class PPOAgent(Agent):
         self.executor: concurrent.futures.ProcessPoolExecutor | None = None
         self.pending: tuple[concurrent.futures.Future, int] | None = None
         self.pending_data: tuple[int, Transitions] | None = None
+        self.queued: int | None = None  # background learning: the next phase's interval
         self.swaps = 0
         self._swaps_before = 0
         self._late: list[tuple[int, dict[str, Any]]] = []
@@ -210,7 +211,7 @@ class PPOAgent(Agent):
 
     # -- online -----------------------------------------------------------------
     def begin_interval(self, interval: int) -> None:
-        self.online.begin_interval()
+        self.online.begin_interval(self.background_learning)
         self._swaps_before = self.swaps
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
@@ -220,8 +221,11 @@ class PPOAgent(Agent):
         stats = self.online.observe(t)
         if stats is not None:  # an update boundary: where a finished offline phase swaps in
             self.telemetry.update(stats._asdict())
-            if self.pending is not None and self.pending[0].done():
+            if self.pending is not None and self.pending[0].done() and not self.online.updating:
                 self._take_pending()
+            if self.pending is None and self.queued is not None:
+                self._submit(self._offline_inputs(self.queued))
+                self.queued = None
 
     def end_online(self) -> dict[str, Any]:
         return self.online.end_online()
@@ -231,12 +235,15 @@ class PPOAgent(Agent):
         metrics: dict[str, Any] = {}
         if self.cfg.offline:
             self.window.add(data)
-            inputs = self._offline_inputs(interval)
-            if self.cfg.offline_mode == "sequential":
-                metrics = self._apply(offline_phase(*inputs), interval)
+            if self.cfg.offline_mode == "sequential" and not self.background_learning:
+                metrics = self._apply(offline_phase(*self._offline_inputs(interval)), interval)
+            elif self.background_learning and self.pending is not None:
+                # the control loop does not wait: it starts once the phase in flight
+                # has swapped in (observe), as its model is this refit's start
+                self.queued = interval
             else:
                 self._wait_pending()  # the previous phase's model is the next refit's start
-                self._submit(inputs)
+                self._submit(self._offline_inputs(interval))
         metrics["policy_swaps"] = self.swaps - self._swaps_before
         return metrics
 
@@ -285,9 +292,15 @@ class PPOAgent(Agent):
         return late
 
     def finish(self) -> None:
+        self.online.finish()
         self._wait_pending()
+        if self.queued is not None:
+            self._submit(self._offline_inputs(self.queued))
+            self.queued = None
+            self._wait_pending()
 
     def close(self) -> None:
+        self.online.close()
         if self.executor is not None:
             self.executor.shutdown(cancel_futures=True)
             self.executor = None

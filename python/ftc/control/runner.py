@@ -49,6 +49,7 @@ from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import finite_observation
 from ftc.control.config import RUN_FILES, RunConfig, open_plant
 from ftc.control.metrics import format_cell, metric_columns, progress_line
+from ftc.control.realtime import REALTIME_COLUMNS, RealtimeLoop
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantGoneError, PlantLink, PlantObservation
@@ -164,6 +165,7 @@ class IntervalRunner:
         self.where = "before the first step"  # position in the run, for error messages
         self.telemetry: Telemetry = NULL_TELEMETRY  # --tensorboard: opened by run()
         self.columns = metric_columns(agent.extra_columns)
+        self.loop: RealtimeLoop | None = None  # the plant runs in real time
 
     # -- the run ----------------------------------------------------------------
     def run(self, stop_after: int | None = None, plant: PlantLink | None = None
@@ -205,7 +207,8 @@ class IntervalRunner:
                         raise PlantLostError(f"at interval {self.interval}: {e}") from None
                 self._run_intervals(plant, start, stop_after)
             except PlantGoneError as e:
-                raise PlantLostError(f"plant gone at {self.where}: {e}; results of the "
+                where = self.loop.where if self.loop is not None else self.where
+                raise PlantLostError(f"plant gone at {where}: {e}; results of the "
                                      f"{self.interval} finished intervals are in {self.out}, "
                                      "--resume continues from them") from None
             finally:
@@ -217,6 +220,10 @@ class IntervalRunner:
             return self.rows
 
     def _run_intervals(self, plant: PlantLink, start: float, stop_after: int | None) -> None:
+        if getattr(plant, "realtime", False):
+            self.loop = RealtimeLoop(plant, self.agent, self.telemetry)
+            self.agent.background_learning = True
+            self.columns = metric_columns((*self.agent.extra_columns, *REALTIME_COLUMNS))
         with _driving(plant, self.out):
             while self.interval < self.cfg.intervals:
                 self._one_interval(plant, start)
@@ -236,6 +243,10 @@ class IntervalRunner:
         row = {"interval": k, **online, "online_seconds": time.perf_counter() - t0}
         row["eval_reward_per_step"], row["eval_steps"] = (
             self.evaluate(plant) if self.agent.evaluates else (None, None))
+        if self.loop is not None:
+            row.update(self.loop.deadline_row())
+            if k + 1 < self.cfg.intervals:  # the plant does not wait for the bookkeeping
+                self.loop.open_next(k + 1, self.cfg.steps_per_interval)
         self.rows.append(row)
         row.update(self.agent.end_interval(k, data))
         self._merge_late_metrics()
@@ -256,6 +267,9 @@ class IntervalRunner:
         that wants them, its transitions."""
         n, k, agent = self.cfg.steps_per_interval, self.interval, self.agent
         keep = agent.wants_data()
+        if self.loop is not None:
+            metrics, observations = self.loop.online(k, n, keep)
+            return metrics, (Transitions.from_observations(observations) if keep else None)
         rewards = np.zeros(n)
         observations: list[PlantObservation] = []
         self.where = f"interval {k}, step 0"
@@ -295,6 +309,8 @@ class IntervalRunner:
         cut off after steps_per_interval steps: fuel stranded behind a dead pump
         can keep an episode from ever ending. Returns (reward per step, steps)."""
         k, limit = self.interval, self.cfg.steps_per_interval
+        if self.loop is not None:
+            return self.loop.evaluate(k, limit)
         self.where = f"interval {k}, evaluation step 0"
         o = finite_observation(plant.evaluate(), self.where)
         self.agent.start_episode(o)

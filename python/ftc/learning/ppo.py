@@ -25,6 +25,7 @@ bootstrapped from the critic's value of the final observation.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -209,6 +210,18 @@ class PPO:
         stats = self.engine.update(self.policy, self.optimizer, buffer.batch(), c, self.generator)
         buffer.reset()
         return stats
+
+    def clone(self) -> "PPO":
+        """An independent copy (policy, optimiser state, generator) that can
+        update on another thread while this one acts."""
+        other = object.__new__(PPO)
+        other.config, other._engines = self.config, {}
+        other.policy = copy.deepcopy(self.policy)
+        other.generator = torch.Generator()
+        other.generator.set_state(self.generator.get_state())
+        other.optimizer = other.new_optimizer()
+        other.optimizer.load_state_dict(copy.deepcopy(self.optimizer.state_dict()))
+        return other
 
     def state_dict(self) -> dict[str, Any]:
         """Tensors and plain containers only (loadable with weights_only=True)."""

@@ -168,9 +168,9 @@ class LcmPlant:
                 # a controller's SIGTERM) with the link intact for close().
                 # Anything else ends as "did not answer" at the timeout.
                 time.sleep(min(wait, 0.005))
-            for state in self._answers:
+            for i, state in enumerate(self._answers):
                 if state.command_seq == seq:
-                    self._answers.clear()
+                    del self._answers[:i + 1]  # a real-time plant's later ticks stay queued
                     self.last_state = state
                     return state
             self._answers.clear()
@@ -269,8 +269,8 @@ def _from_message(msg) -> PlantObservation:
 
 def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = None,
            prefix: str | None = None, extra_args: Sequence[str] = (),
-           config: LinkConfig = LinkConfig(), die_with_caller: bool | None = None
-           ) -> LcmPlant:
+           config: LinkConfig = LinkConfig(), die_with_caller: bool | None = None,
+           link_class: type | None = None) -> LcmPlant:
     """Start ``build/plant`` on a private LCM port and prefix; the link owns it.
 
     die_with_caller: the plant gets SIGKILL when the calling thread ends (so a
@@ -278,6 +278,9 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
         plant behind); only for a thread that lives as long as the link. None
         (default): when called from the main thread (PR_SET_PDEATHSIG is per
         thread: from any other thread only close() stops the plant).
+
+    link_class: the link to make (default LcmPlant, the lockstep link; a plant
+        launched with ``--mode realtime`` takes ftc.plant.realtime_link.RealtimeLink).
 
     Raises PlantError with the plant's own message if it refuses to start
     (e.g. a malformed scenario file).
@@ -296,7 +299,8 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
                             stderr=stderr, preexec_fn=preexec)
     stderr.close()
     try:
-        return LcmPlant(url, prefix, config=config, process=proc, stderr_path=stderr.name)
+        return (link_class or LcmPlant)(url, prefix, config=config, process=proc,
+                                        stderr_path=stderr.name)
     except PlantGoneError as e:
         if proc.poll() is None:
             proc.kill()
