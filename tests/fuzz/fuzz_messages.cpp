@@ -45,7 +45,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     if (!ok && reason.empty()) std::abort();
   }
 
-  ftc::plant_control_t control;
+  ftc::plant_control_t control{};
   if (ftc::DecodeMessage(data, n, &control)) CheckRoundTrip(data, size, control);
 
   // The controller side decodes states; the C++ decoder must be as robust.

@@ -35,6 +35,10 @@ plant_state_t ToStateMessage(const StepOutcome& outcome, std::int64_t seq, std::
   msg.stale_commands = counters.stale_commands;
   msg.rejected_commands = counters.rejected_commands;
   msg.decode_errors = counters.decode_errors;
+  msg.watchdog_tripped = false;
+  msg.rate_hz = 0.0;  // lockstep; the real-time node sets these three
+  msg.missed_ticks = 0;
+  msg.watchdog_trips = 0;
   return msg;
 }
 

@@ -36,24 +36,22 @@ import time
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
 import torch
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
 from ftc.common.build_info import ftc_version, git_revision
-from ftc.common.errors import CheckpointError, PlantLostError, RunError, UsageError
+from ftc.common.errors import CheckpointError, PlantLostError, UsageError
 from ftc.common.replacing import Replacement
 from ftc.common.run_lock import RunLock
 from ftc.control import checkpoint
-from ftc.control.agent import Agent, StepContext, Transition
-from ftc.control.checkpoint import finite_observation
+from ftc.control.agent import Agent
 from ftc.control.config import RUN_FILES, RunConfig, open_plant
+from ftc.control.lockstep import LockstepLoop
 from ftc.control.metrics import format_cell, metric_columns, progress_line
 from ftc.control.realtime import REALTIME_COLUMNS, RealtimeLoop
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
-from ftc.plant.link import PlantGoneError, PlantLink, PlantObservation
-from ftc.plant.reward import reward
+from ftc.plant.link import PlantGoneError, PlantLink
 
 
 @contextlib.contextmanager
@@ -162,10 +160,9 @@ class IntervalRunner:
         self.rows: list[dict[str, Any]] = []
         self.info: dict[str, Any] = {}
         self.interval = 0
-        self.where = "before the first step"  # position in the run, for error messages
         self.telemetry: Telemetry = NULL_TELEMETRY  # --tensorboard: opened by run()
         self.columns = metric_columns(agent.extra_columns)
-        self.loop: RealtimeLoop | None = None  # the plant runs in real time
+        self.loop: LockstepLoop | RealtimeLoop = LockstepLoop(None, agent, NULL_TELEMETRY)
 
     # -- the run ----------------------------------------------------------------
     def run(self, stop_after: int | None = None, plant: PlantLink | None = None
@@ -207,8 +204,7 @@ class IntervalRunner:
                         raise PlantLostError(f"at interval {self.interval}: {e}") from None
                 self._run_intervals(plant, start, stop_after)
             except PlantGoneError as e:
-                where = self.loop.where if self.loop is not None else self.where
-                raise PlantLostError(f"plant gone at {where}: {e}; results of the "
+                raise PlantLostError(f"plant gone at {self.loop.where}: {e}; results of the "
                                      f"{self.interval} finished intervals are in {self.out}, "
                                      "--resume continues from them") from None
             finally:
@@ -224,6 +220,8 @@ class IntervalRunner:
             self.loop = RealtimeLoop(plant, self.agent, self.telemetry)
             self.agent.background_learning = True
             self.columns = metric_columns((*self.agent.extra_columns, *REALTIME_COLUMNS))
+        else:
+            self.loop = LockstepLoop(plant, self.agent, self.telemetry)
         with _driving(plant, self.out):
             while self.interval < self.cfg.intervals:
                 self._one_interval(plant, start)
@@ -243,7 +241,7 @@ class IntervalRunner:
         row = {"interval": k, **online, "online_seconds": time.perf_counter() - t0}
         row["eval_reward_per_step"], row["eval_steps"] = (
             self.evaluate(plant) if self.agent.evaluates else (None, None))
-        if self.loop is not None:
+        if isinstance(self.loop, RealtimeLoop):
             row.update(self.loop.deadline_row())
             if k + 1 < self.cfg.intervals:  # the plant does not wait for the bookkeeping
                 self.loop.open_next(k + 1, self.cfg.steps_per_interval)
@@ -265,63 +263,15 @@ class IntervalRunner:
     def online(self, plant: PlantLink) -> tuple[dict[str, Any], Transitions | None]:
         """One interval of operating steps; returns its metrics and, for an agent
         that wants them, its transitions."""
-        n, k, agent = self.cfg.steps_per_interval, self.interval, self.agent
-        keep = agent.wants_data()
-        if self.loop is not None:
-            metrics, observations = self.loop.online(k, n, keep)
-            return metrics, (Transitions.from_observations(observations) if keep else None)
-        rewards = np.zeros(n)
-        observations: list[PlantObservation] = []
-        self.where = f"interval {k}, step 0"
-        o = finite_observation(plant.reset(), self.where)
-        agent.start_episode(o)
-        observations.append(o)
-        episodes = 1
-        for t in range(n):
-            u = agent.act(o, StepContext(k, t, n - t))
-            self.where = f"interval {k}, step {t + 1}"
-            nxt = finite_observation(plant.step(u), self.where)
-            observations.append(nxt)
-            rewards[t] = reward(nxt.level, u)
-            self.telemetry.step(nxt.level, u)
-            last = t == n - 1
-            if last and not nxt.done:
-                raise RunError(f"plant did not end the interval after {t + 1} steps at "
-                               f"{self.where} (is its steps_per_interval the same as ours?)")
-            if nxt.truncated and not last:
-                raise RunError(f"plant truncated the episode at {self.where}, before the "
-                               "interval's end (is its steps_per_interval the same as ours?)")
-            following = nxt
-            if nxt.terminal and not last:
-                following = finite_observation(plant.reset(), self.where)
-                observations.append(following)
-                episodes += 1
-            agent.observe(Transition(o, u, float(rewards[t]), nxt, following))
-            if following is not nxt:
-                agent.start_episode(following)
-            o = following
-        metrics = {"reward_per_step": float(rewards.mean()), "episodes": episodes,
-                   **agent.end_online()}
+        keep = self.agent.wants_data()
+        metrics, observations = self.loop.online(self.interval, self.cfg.steps_per_interval, keep)
         return metrics, (Transitions.from_observations(observations) if keep else None)
 
     def evaluate(self, plant: PlantLink) -> tuple[float, int]:
         """One evaluation episode (age frozen; a learned policy acts greedily),
         cut off after steps_per_interval steps: fuel stranded behind a dead pump
         can keep an episode from ever ending. Returns (reward per step, steps)."""
-        k, limit = self.interval, self.cfg.steps_per_interval
-        if self.loop is not None:
-            return self.loop.evaluate(k, limit)
-        self.where = f"interval {k}, evaluation step 0"
-        o = finite_observation(plant.evaluate(), self.where)
-        self.agent.start_episode(o)
-        total, steps = 0.0, 0
-        while not o.done and steps < limit:
-            u = self.agent.act(o, StepContext(k, steps, None, evaluation=True))
-            self.where = f"interval {k}, evaluation step {steps + 1}"
-            o = finite_observation(plant.step(u), self.where)
-            total += float(reward(o.level, u))
-            steps += 1
-        return total / max(steps, 1), steps
+        return self.loop.evaluate(self.interval, self.cfg.steps_per_interval)
 
     # -- persistence -------------------------------------------------------------
     def checkpoint(self) -> None:
