@@ -24,6 +24,7 @@ Deadlines are measured per interval (metrics.csv, TensorBoard):
     latency_*_ms        from a state's arrival to its command's send (p50, p99, max)
     watchdog_trips      times the plant's watchdog put the valves in the safe state
     plant_missed_ticks  the plant's own count of deadline_misses (a cross-check)
+    lost_states         states that never arrived (their steps are not learned from)
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from ftc.plant.realtime_link import RealtimeLink, observation
 from ftc.plant.reward import reward
 
 REALTIME_COLUMNS = ("deadline_misses", "latency_p50_ms", "latency_p99_ms", "latency_max_ms",
-                    "watchdog_trips", "plant_missed_ticks")
+                    "watchdog_trips", "plant_missed_ticks", "lost_states")
 KEPT_COMMANDS = 256  # sent commands remembered to tell which one the plant applied
 
 
@@ -64,6 +65,7 @@ class RealtimeLoop:
     def _restart_counts(self) -> None:
         self.latencies_ns: list[int] = []
         self.misses = 0
+        self.lost = 0  # states that never arrived (a gap in the plant's state counter)
         self._plant_counts = self._counts(self.msg)
 
     @staticmethod
@@ -78,7 +80,7 @@ class RealtimeLoop:
                            if len(lat) else (None, None, None))
         return {"deadline_misses": self.misses, "latency_p50_ms": p50, "latency_p99_ms": p99,
                 "latency_max_ms": worst, "watchdog_trips": int(trips),
-                "plant_missed_ticks": int(missed)}
+                "plant_missed_ticks": int(missed), "lost_states": self.lost}
 
     # -- decisions ----------------------------------------------------------------
     def _act(self, ctx: StepContext) -> None:
@@ -122,46 +124,53 @@ class RealtimeLoop:
     # -- the interval ---------------------------------------------------------------
     def online(self, interval: int, steps: int, keep: bool) -> tuple[dict[str, Any], list]:
         """Operating steps of one interval; returns its metrics and observations
-        (for Transitions, when ``keep``)."""
-        n, agent = steps, self.agent
+        (for Transitions, when ``keep``). The plant's own operating-step count
+        says where the interval is: a state lost on the way (a gap in the state
+        counter) costs its transition, not the run."""
+        n, agent, first = steps, self.agent, interval * steps
         self.where = f"interval {interval}, step 0"
         if not self.opened:  # the run's first interval: start the plant at its age
-            self._open(self.link.START, StepContext(interval, 0, n),
-                       operating_step=interval * n, new_interval=True)
+            self._open(self.link.START, StepContext(interval, 0, n), operating_step=first,
+                       new_interval=True)
         self.opened = False
         observations, rewards, episodes = [self.obs], [], 1
         ended = None  # a terminal step's (obs, valves, reward, next obs) until the next episode
         t = 0
         while t < n:
             for s in self.link.next_states():
+                gap = s.seq != self.msg.seq + 1
                 if s.step == 0:  # the plant opened the next episode after a terminal step
-                    if ended is None:
-                        raise RunError(f"plant started episode {s.episode} at {self.where} "
-                                       "without ending the one before (another controller?)")
                     o = finite_observation(observation(s), self.where)
                     observations.append(o)
                     episodes += 1
-                    agent.observe(Transition(*ended, o))
+                    if ended is not None and not gap:
+                        agent.observe(Transition(*ended, o))
                     agent.start_episode(o)
                     ended = None
                     self.msg, self.obs, self.awaited = s, o, None
                     continue
-                self.where = f"interval {interval}, step {t + 1}"
+                t = int(s.operating_steps) - first
+                self.where = f"interval {interval}, step {t}"
+                if s.evaluation or not 0 < t <= n:
+                    raise RunError(f"plant at operating step {s.operating_steps}"
+                                   f"{' in an evaluation episode' if s.evaluation else ''} "
+                                   f"while the run is at {self.where} (another controller?)")
                 o, u = self._stepped(s)
-                t += 1
                 r = float(reward(o.level, u))
                 rewards.append(r)
                 observations.append(o)
                 self.telemetry.step(o.level, u)
                 _check_boundary(o, t == n, self.where)
-                if o.terminal and t < n:
+                if gap:
+                    self.lost += int(s.seq - self.msg.seq - 1)
+                elif o.terminal and t < n:
                     ended = (self.obs, u, r, o)
                 else:
                     agent.observe(Transition(self.obs, u, r, o, o))
                 self.msg, self.obs, self.awaited = s, o, None
                 if t == n:
                     break
-            if t < n and ended is None:
+            if t < n and not self.obs.terminal:
                 self._act(StepContext(interval, t, n - t))
         metrics = {"reward_per_step": float(np.mean(rewards)), "episodes": episodes,
                    **agent.end_online()}

@@ -27,6 +27,9 @@ from ftc.plant.link import PlantError, PlantGoneError, PlantObservation, valves_
 # Ticks without a state after which the plant counts as gone (at least
 # LinkConfig.give_up_timeout): a real-time plant publishes every tick.
 GONE_TICKS = 20
+# States LCM keeps for a controller that is late (LCM's default, 30, is 1.5 s
+# at 20 Hz: a controller stopped for longer would lose the oldest).
+QUEUE_CAPACITY = 100_000
 
 
 class RealtimeLink(LcmPlant):
@@ -43,6 +46,7 @@ class RealtimeLink(LcmPlant):
         self._last_seq = 0  # newest state handed out
         super().__init__(lcm_url, prefix, config=config, process=process,
                          stderr_path=stderr_path, allow_network=allow_network)
+        self._sub.set_queue_capacity(QUEUE_CAPACITY)
         rate = float(self.last_state.rate_hz)
         if rate <= 0:
             self.close()
