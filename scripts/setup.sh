@@ -3,7 +3,8 @@
 #   1. Debian packages (SUNDIALS, Eigen, CLI11, GoogleTest, toml++, CMake, a C++ compiler);
 #   2. a virtual environment .venv with the pinned Python dependencies
 #      (requirements.txt, then the interoperability ones in requirements-extra.txt) and the
-#      ftc package installed in editable mode;
+#      checkout's python/ on its path (as an editable install would put it, without
+#      building the C++ parts twice: `pip install .` builds them into the package);
 #   3. SUNDIALS' CVODE built optimised from Debian's source into build/sundials
 #      (Debian's library is built -O0; see below);
 #   4. CMake configure and build into build/ (plant, tests, Python bindings,
@@ -54,9 +55,12 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   quiet_pip install -q --upgrade pip
   quiet_pip install -q -r requirements.txt
   quiet_pip install -q -r requirements-extra.txt
-  quiet_pip install -q --no-deps --no-build-isolation -e .
+  quiet_pip uninstall -q -y ftc >/dev/null 2>&1 || true  # an install of the package itself
   echo "$want" > "$stamp"
 fi
+site_packages="$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
+[ "$(cat "$site_packages/ftc-checkout.pth" 2>/dev/null)" = "$root/python" ] \
+  || echo "$root/python" > "$site_packages/ftc-checkout.pth"
 
 # SUNDIALS, optimised. Debian's libsundials 6.4.1 is built without optimisation
 # (-O0): a CVODE step with the valves changing costs ~3x what the same source

@@ -6,7 +6,7 @@ import os
 import subprocess
 from pathlib import Path
 
-from ftc import BUILD_DIR, REPO_ROOT
+from ftc import BUILD_DIR, PACKAGE_DIR, REPO_ROOT
 
 
 class BuildMissingError(RuntimeError):
@@ -26,28 +26,35 @@ def ftc_version() -> str:
     return metadata.version("ftc")
 
 
+def _program(name: str, what: str) -> Path:
+    """A C++ program of the project: a checkout's build/NAME, else the one
+    installed with the package (ftc/bin/NAME)."""
+    for path in (BUILD_DIR / name, PACKAGE_DIR / "bin" / name):
+        if path.is_file():
+            return path
+    raise BuildMissingError(f"{what} not found at {BUILD_DIR / name} (a checkout: run "
+                            f"scripts/setup.sh) or {PACKAGE_DIR / 'bin' / name} (installed: "
+                            "pip install the project)")
+
+
 def plant_binary() -> Path:
-    """Path of the plant executable (``FTC_PLANT_BIN`` overrides ``build/plant``)."""
-    path = Path(os.environ.get("FTC_PLANT_BIN", BUILD_DIR / "plant"))
-    if not path.is_file():
-        raise BuildMissingError(f"plant executable not found at {path}; run scripts/setup.sh")
-    return path
+    """Path of the plant executable (``FTC_PLANT_BIN`` overrides where it is looked for)."""
+    if "FTC_PLANT_BIN" in os.environ:
+        path = Path(os.environ["FTC_PLANT_BIN"])
+        if not path.is_file():
+            raise BuildMissingError(f"plant executable not found at {path} (FTC_PLANT_BIN)")
+        return path
+    return _program("plant", "plant executable")
 
 
 def echo_binary() -> Path:
     """Path of the LCM echo responder used as the benchmark floor."""
-    path = BUILD_DIR / "lcm_echo"
-    if not path.is_file():
-        raise BuildMissingError(f"lcm_echo not found at {path}; run scripts/setup.sh")
-    return path
+    return _program("lcm_echo", "lcm_echo")
 
 
 def policy_node_binary() -> Path:
     """build/policy_node: the embedded controller (cpp/policy/policy_node.cpp)."""
-    path = BUILD_DIR / "policy_node"
-    if not path.is_file():
-        raise BuildMissingError(f"policy_node not found at {path}; run scripts/setup.sh")
-    return path
+    return _program("policy_node", "policy_node")
 
 
 def recorder_binary() -> Path:
@@ -55,10 +62,7 @@ def recorder_binary() -> Path:
     without lcm-logger's 30-message subscription queue, which dropped plant
     states whenever the recorder was briefly descheduled (measured: 2 to 752
     of ~5,000 per run on a loaded 2-core machine). See cpp/plant/apps/recorder.cpp."""
-    path = BUILD_DIR / "lcm_recorder"
-    if not path.is_file():
-        raise BuildMissingError(f"lcm_recorder not found at {path}; run scripts/setup.sh")
-    return path
+    return _program("lcm_recorder", "lcm_recorder")
 
 
 def git_revision() -> str:

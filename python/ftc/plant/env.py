@@ -27,14 +27,16 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ftc import REPO_ROOT
+from ftc import PACKAGE_DIR, REPO_ROOT
 from ftc.common.constants import NUM_TANKS
 from ftc.plant.lcm_link import launch
 from ftc.plant.link import CorePlant, PlantLink, PlantObservation
 from ftc.plant.render import draw_plant
 from ftc.plant.reward import reward_terms
 
-SCENARIO_DIR = REPO_ROOT / "scenarios"
+# the checkout's scenarios/, or the copy installed with the package
+SCENARIO_DIR = next((d for d in (REPO_ROOT / "scenarios", PACKAGE_DIR / "scenarios")
+                     if d.is_dir()), REPO_ROOT / "scenarios")
 LINKS = ("lcm", "core")
 MAX_SEED = 2**64  # the plant's --seed and the core's seed are uint64
 
