@@ -163,3 +163,32 @@ def test_a_factory_gets_the_config_only_where_it_has_a_parameter_to_fill(tmp_pat
         assert plugins.load_agent("factories_for_test:with_cfg", cfg).seed == cfg.seed
     finally:
         sys.path.remove(str(tmp_path))
+
+
+def test_sb3_learn_fine_tunes_the_model_on_the_plant_and_checkpoints_it(policies, tmp_path):
+    import torch
+    from stable_baselines3 import PPO
+
+    out = tmp_path / "learn"
+    proc = subprocess.run([sys.executable, "-m", "ftc.controller", "--method",
+                           f"sb3:{policies['sb3']}", "--sb3-learn", "--intervals", "1",
+                           "--steps-per-interval", "512", "--link", "core", "--quiet",
+                           "--out", str(out)], cwd=REPO, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    model = PPO.load(str(policies["sb3"]), device="cpu")
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    # the example's n_steps (256) plant steps per update: two in a 512-step interval
+    assert model.n_steps == 256 and rows[0]["sb3_updates"] == "2"
+    trained = torch.load(out / "checkpoint.pt", weights_only=True)["agent"]["policy"]
+    before = model.policy.state_dict()
+    assert trained.keys() == before.keys()
+    assert any(not torch.equal(trained[k], before[k]) for k in before)  # it learned
+    # without the flag the model only acts, and the flag is refused for other kinds
+    fixed = subprocess.run([sys.executable, "-m", "ftc.controller", "--method",
+                            f"onnx:{policies['onnx']}", "--sb3-learn", "--out",
+                            str(tmp_path / "no")], cwd=REPO, capture_output=True, text=True,
+                           timeout=300)
+    assert fixed.returncode == 2
+    assert "--sb3-learn fine-tunes an sb3:PATH.zip model" in fixed.stderr
+    assert not (tmp_path / "no").exists()

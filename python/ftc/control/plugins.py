@@ -7,7 +7,8 @@
                           cfg is the run's :class:`PluginConfig` (seed, scenario, ...)
     sb3:PATH.zip          a Stable-Baselines3 policy (PPO or A2C, as
                           examples/sb3_ppo.py saves it), acting deterministically
-                          on the published levels
+                          on the published levels; with --sb3-learn fine-tuned on
+                          the plant as it runs (:mod:`ftc.control.sb3_agent`)
     onnx:PATH.onnx        a policy exported by ``ftc.export``, or any ONNX model
                           with its input (levels, float32 [N, 6], metres) and an
                           output of 0/1 valves [N, 6] (named ``valves``, or its first)
@@ -47,9 +48,15 @@ class PluginConfig(RunConfig):
         "the controller: module.path:factory (a user's Agent), sb3:PATH.zip (an SB3 policy) "
         "or onnx:PATH.onnx (an exported policy)")})
     out: str = field(default="runs/plugin", metadata={"help": "output directory"})
+    sb3_learn: bool = field(default=False, metadata={"help": (
+        "sb3:PATH.zip only: fine-tune the model on the plant as it runs (its actions "
+        "sampled, its own train() every n_steps plant steps); the evaluation episode "
+        "acts deterministically")})
 
     def validate(self) -> None:
         super().validate()
+        if self.sb3_learn and not self.agent.startswith("sb3:"):
+            raise ValueError(f"--sb3-learn fine-tunes an sb3:PATH.zip model, not {self.agent!r}")
         if not is_plugin(self.agent):
             raise ValueError(f"--agent {self.agent!r}: not a plug-in spec (one of "
                              f"{', '.join(KINDS)})")
@@ -84,7 +91,13 @@ def load_agent(spec: str, cfg: PluginConfig) -> Agent:
     """The agent ``spec`` names; PluginError saying what is wrong and where."""
     kind, _, rest = spec.partition(":")
     if kind == "sb3":
-        return PolicyAgent(default_name(spec), _checked(_sb3_policy(Path(rest)), spec))
+        model = _sb3_model(Path(rest))
+        policy = _checked(lambda levels: model.predict(levels, deterministic=True)[0], spec)
+        if cfg.sb3_learn:
+            from ftc.control.sb3_agent import SB3Agent
+
+            return SB3Agent(default_name(spec), model)
+        return PolicyAgent(default_name(spec), policy)
     if kind == "onnx":
         return PolicyAgent(default_name(spec), _checked(_onnx_policy(Path(rest)), spec))
     return _factory_agent(kind, rest, cfg)
@@ -125,7 +138,7 @@ def _library(kind: str, path: Path, module: str) -> Any:
         raise PluginError(f"{kind}:{path}: {module} is not installed ({e})")
 
 
-def _sb3_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
+def _sb3_model(path: Path) -> Any:
     sb3 = _library("sb3", path, "stable_baselines3")
     PPO, A2C = sb3.PPO, sb3.A2C
     errors = []
@@ -137,7 +150,7 @@ def _sb3_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
             errors.append(f"{algorithm.__name__}: {type(e).__name__}: {e}")
     else:
         raise PluginError(f"sb3:{path}: not a PPO or A2C model ({'; '.join(errors)})")
-    return lambda levels: model.predict(levels, deterministic=True)[0]
+    return model
 
 
 def _onnx_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
