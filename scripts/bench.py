@@ -52,6 +52,12 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
   short_run_fresh_python_s / short_run_forked_s   a closed-valves run of 1 x 128 steps
                             as a fresh python, and forked from the experiments' fork
                             server (experiments/fork_server.py): start-up and exit
+  realtime_node_hz / realtime_ppo_hz / realtime_mpc_hz   the highest plant rate (of
+                            those tried) at which each controller misses fewer than 0.1%
+                            of its deadlines on the plant in real-time mode: build/policy_node
+                            (2,000 steps per rate), ftc.controller ppo-offline learning on and
+                            ftc.mpc oracle-mpc (scripts/bench_realtime.py, which also writes
+                            the whole table); aims 100 / 20 / 20 Hz
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -469,6 +475,15 @@ def bench_runs(rounds: int) -> list[Figure]:
                for engine in ("native", "torch") for link in ("core", "lcm")])
 
 
+def bench_realtime(rounds: int) -> list[Figure]:
+    import bench_realtime as rt
+
+    rows, _ = rt.measure(["node", "ppo", "mpc"], 2000, [100, 200, 500, 1000], [20, 50, 100])
+    aims = {"node": ">= 100", "ppo": ">= 20", "mpc": ">= 20"}
+    return [Figure(f"realtime_{c}_hz", rt.highest_rate(rows, c) or 0.0, "Hz", aims[c])
+            for c in ("node", "ppo", "mpc")]
+
+
 def bench_long() -> list[Figure]:
     full = _run(["-m", "ftc.experiments", "all", "--full", "--jobs", "2"]) / 60
     suite = _run(["-m", "ftc.experiments", "benchmark", "--jobs", "2"]) / 60
@@ -479,7 +494,7 @@ def bench_long() -> list[Figure]:
 GROUPS: dict[str, Callable[[int], list[Figure]]] = {
     "cvode": lambda rounds: bench_cvode(), "lockstep": bench_lockstep,
     "learning": bench_learning, "robust": bench_robust, "startup": bench_startup,
-    "runs": bench_runs}
+    "runs": bench_runs, "realtime": bench_realtime}
 
 
 def main() -> int:

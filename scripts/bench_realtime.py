@@ -35,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "python"))
@@ -109,6 +110,36 @@ def run_python(controller: str, rate: float, out: Path) -> dict:
                 1000 * p50, 1000 * p99, 1000 * worst)
 
 
+def measure(controllers: list[str], steps: int, rates: list[float],
+            python_rates: list[float], echo: bool = False) -> tuple[list[dict], Any]:
+    """Every controller at every rate: the table's rows, and the node's latencies
+    at its lowest rate with that row (or None)."""
+    torch.manual_seed(0)
+    rows, first_log = [], None
+    with tempfile.TemporaryDirectory() as tmp:
+        weights = Path(tmp) / "policy.txt"
+        policy_weights.write_weights(weights, *policy_weights.actor_layers(ActorCritic()))
+        for controller in controllers:
+            for rate in sorted(rates if controller == "node" else python_rates):
+                if controller == "node":
+                    log = Path(tmp) / f"latency-{rate:g}.txt"
+                    rows.append(run_rate(weights, rate, steps, log))
+                    if first_log is None:
+                        first_log = (np.loadtxt(log), rows[-1])
+                else:
+                    rows.append(run_python(controller, rate, Path(tmp) / f"{controller}-{rate:g}"))
+                if echo:
+                    print(" ".join(f"{k} {v}" for k, v in rows[-1].items()), flush=True)
+    return rows, first_log
+
+
+def highest_rate(rows: list[dict], controller: str) -> float | None:
+    """The highest rate at which ``controller`` missed fewer than 0.1% of its deadlines."""
+    kept = [float(r["rate_hz"]) for r in rows
+            if r["controller"] == controller and r["keeps_up"] == "yes"]
+    return max(kept) if kept else None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--controllers", nargs="+", choices=["node", *PYTHON_RUNS],
@@ -122,26 +153,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--results", type=Path, help="write the table as a result file")
     p.add_argument("--figure", type=Path, help="draw the latency histogram at the lowest rate")
     args = p.parse_args(argv)
-    torch.manual_seed(0)
-    with tempfile.TemporaryDirectory() as tmp:
-        weights = Path(tmp) / "policy.txt"
-        policy_weights.write_weights(weights, *policy_weights.actor_layers(ActorCritic()))
-        rows, first_log = [], None
-        for controller in args.controllers:
-            for rate in sorted(args.rates if controller == "node" else args.python_rates):
-                if controller == "node":
-                    log = Path(tmp) / f"latency-{rate:g}.txt"
-                    rows.append(run_rate(weights, rate, args.steps, log))
-                    if first_log is None:
-                        first_log = (np.loadtxt(log), rows[-1])
-                else:
-                    rows.append(run_python(controller, rate, Path(tmp) / f"{controller}-{rate:g}"))
-                print(" ".join(f"{k} {v}" for k, v in rows[-1].items()), flush=True)
+    rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
+                              echo=True)
     for controller in args.controllers:
-        kept = [float(r["rate_hz"]) for r in rows
-                if r["controller"] == controller and r["keeps_up"] == "yes"]
+        best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
-              + (f"{max(kept):g} Hz" if kept else "none tried"))
+              + (f"{best:g} Hz" if best else "none tried"))
     if args.results:
         from suite_results import write_result_file
 

@@ -22,22 +22,14 @@ from pathlib import Path
 # NumPy is first imported; an explicit OPENBLAS_NUM_THREADS wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-PACKAGE_DIR = Path(__file__).resolve().parent
-REPO_ROOT = PACKAGE_DIR.parents[1]  # a checkout's root (meaningless when installed)
-BUILD_DIR = Path(os.environ.get("FTC_BUILD_DIR", REPO_ROOT / "build")).resolve()
+from ftc.common.paths import BUILD_DIR, PACKAGE_DIR, REPO_ROOT  # noqa: E402,F401
+
+# ftc.plant_binary(): the plant program, in a checkout's build/ or installed
+from ftc.common.build_info import plant_binary  # noqa: E402,F401
 
 for _generated in (BUILD_DIR / "lcmtypes" / "ftc", BUILD_DIR / "python"):
     if _generated.is_dir() and str(_generated) not in __path__:
         __path__.append(str(_generated))
-
-
-def plant_binary() -> Path:
-    """The plant program: ``FTC_PLANT_BIN``, else a checkout's ``build/plant``,
-    else the one installed with the package. Raises
-    :class:`ftc.common.build_info.BuildMissingError` saying how to build it."""
-    from ftc.common.build_info import plant_binary as find
-
-    return find()
 
 
 def _register_envs() -> None:

@@ -8,7 +8,9 @@ refused with one line."""
 from __future__ import annotations
 
 import re
+import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -26,6 +28,7 @@ from ftc.learning.ppo import ActorCritic
 from ftc.plant import private_lcm_url, private_prefix
 from ftc.tools import policy_weights as pw
 
+REPO = Path(__file__).resolve().parents[2]
 SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
                      r"latency_p99_us (\d+) latency_max_us (\d+)$")
 
@@ -163,3 +166,62 @@ def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path,
             assert switched is None, "the old policy acted after the new one had"
             assert state_seq <= pushed_at + 20
     assert switched is not None and switched > pushed_at - 1
+
+
+@pytest.mark.subprocess
+def test_a_learning_run_pushes_its_policy_to_a_running_node_after_every_interval(
+        tmp_path, scenarios):
+    url, prefix = private_lcm_url(), private_prefix()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, *_policy(1), version=1)
+    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                              "--mode", "realtime", "--rate", "50", "--watchdog", "1",
+                              "--lcm-url", url, "--prefix", prefix], stderr=subprocess.DEVNULL)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    from ftc.policy_t import policy_t
+    pushed = []
+    lc = lcm.LCM(url)
+    lc.subscribe(prefix + "POLICY", lambda _c, data: pushed.append(policy_t.decode(data)))
+    try:
+        time.sleep(0.5)  # the node subscribed
+        # the learner runs elsewhere (here in process, lockstep) and flies nothing itself
+        run = subprocess.run(
+            [sys.executable, "-m", "ftc.controller", "--link", "core", "--intervals", "2",
+             "--steps-per-interval", "64", "--update-every", "32", "--no-offline", "--quiet",
+             "--push-policy", prefix, "--push-url", url, "--out", str(tmp_path / "run")],
+            cwd=REPO, capture_output=True, text=True, timeout=300)
+        time.sleep(0.3)  # the last push reaches the node between two of its steps
+        while lc.handle_timeout(10) > 0:
+            pass
+        node.send_signal(signal.SIGINT)
+        out, err = node.communicate(timeout=30)
+    finally:
+        node.kill()
+        plant.kill()
+        plant.wait()
+    assert run.returncode == 0, run.stderr[-2000:]
+    taken = re.findall(r"policy version (\d+) in use", err)
+    assert len(taken) == 2, err  # one push per interval, each newer than the last
+    assert int(taken[0]) < int(taken[1])
+    assert "rejected" not in err
+    # the last push carries the run's final policy, as ftc.export writes it
+    checkpoint = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+    policy = ActorCritic()
+    policy.load_state_dict(checkpoint["agent"]["ppo"]["policy"])
+    widths, params = pw.actor_layers(policy)
+    assert [m.version for m in pushed] == [int(v) for v in taken]
+    assert list(pushed[-1].widths) == widths
+    assert np.array_equal(np.array(pushed[-1].params, np.float32), params)
+    assert not np.array_equal(np.array(pushed[0].params, np.float32), params)  # it learned
+
+
+def test_push_policy_refuses_a_method_without_a_policy(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "ftc.controller", "--method", "closed",
+                          "--link", "core", "--intervals", "1", "--push-policy", "RT_",
+                          "--out", str(tmp_path / "run")], cwd=REPO, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 2
+    assert "--push-policy: closed has no policy to push" in run.stderr
+    assert not (tmp_path / "run" / "config.json").exists()

@@ -6,7 +6,7 @@ import os
 import subprocess
 from pathlib import Path
 
-from ftc import BUILD_DIR, PACKAGE_DIR, REPO_ROOT
+from ftc.common.paths import BUILD_DIR, PACKAGE_DIR, REPO_ROOT
 
 
 class BuildMissingError(RuntimeError):

@@ -132,6 +132,11 @@ class Agent:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         pass
 
+    def exported_policy(self) -> Any:
+        """The acting policy as ``ftc.export`` writes it (an ActorCritic), for
+        --push-policy; None when the agent has none."""
+        return None
+
     def config_doc(self) -> dict[str, Any]:
         """Extra entries of config.json (e.g. the world model's config)."""
         return {}

@@ -117,8 +117,7 @@ class GuidedPPOAgent(Agent):
         self.cfg = cfg
         self.ppo = PPO(ppo_config, seed=cfg.seed)
         self.online = OnlinePPO(self.ppo, cfg.update_every)
-        self.refits = 0
-        self.teacher = HoldPlanner(3, 10)  # the oracle MPC's planner (H = 3, L = 10)
+        self.refits, self.teacher = 0, HoldPlanner(3, 10)  # the oracle MPC's planner (H3, L10)
         # distinct levels labelled by earlier fits, most recent last (DAgger's aggregate)
         self.memory = np.empty((0, NUM_TANKS))
         self.plan_cache = PlanCache()
@@ -158,6 +157,7 @@ class GuidedPPOAgent(Agent):
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         return self.online.act(obs, ctx)
+    def close(self) -> None: self.online.close()
 
     def observe(self, t: Transition) -> None:
         stats = self.online.observe(t)
@@ -191,7 +191,7 @@ class GuidedPPOAgent(Agent):
 
     def end_online(self) -> dict[str, Any]: return self.online.end_online()
     def finish(self) -> None: self.online.finish()  # a background update in flight
-    def close(self) -> None: self.online.close()
+    def exported_policy(self) -> Any: return self.ppo.policy
 
     def end_interval(self, interval: int, data: Any) -> dict[str, Any]:
         start = time.perf_counter()

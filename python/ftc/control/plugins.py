@@ -30,6 +30,7 @@ import numpy as np
 from ftc.common.constants import NUM_TANKS, TANK_HEIGHT
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import RunConfig
+from ftc.control.sb3_agent import SB3Agent
 from ftc.plant.link import PlantObservation
 
 API_VERSION = 1  # the Agent protocol a plug-in is written against
@@ -94,8 +95,6 @@ def load_agent(spec: str, cfg: PluginConfig) -> Agent:
         model = _sb3_model(Path(rest))
         policy = _checked(lambda levels: model.predict(levels, deterministic=True)[0], spec)
         if cfg.sb3_learn:
-            from ftc.control.sb3_agent import SB3Agent
-
             return SB3Agent(default_name(spec), model)
         return PolicyAgent(default_name(spec), policy)
     if kind == "onnx":

@@ -200,6 +200,9 @@ class PPOAgent(Agent):
     def wants_data(self) -> bool:
         return self.cfg.offline
 
+    def exported_policy(self) -> Any:
+        return self.ppo.policy
+
     def config_doc(self) -> dict[str, Any]:
         doc: dict[str, Any] = {}
         if self.cfg.offline:

@@ -48,6 +48,7 @@ from ftc.control.agent import Agent
 from ftc.control.config import RUN_FILES, RunConfig, open_plant
 from ftc.control.lockstep import LockstepLoop
 from ftc.control.metrics import format_cell, metric_columns, progress_line
+from ftc.control.policy_weights import push_policy
 from ftc.control.realtime import REALTIME_COLUMNS, RealtimeLoop
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
@@ -190,6 +191,9 @@ class IntervalRunner:
                 if record_extension(self.out, list(self.configs), cfg.intervals):
                     self._say(f"extending {self.out} to {cfg.intervals} intervals")
             else:
+                if self.cfg.push_policy and self.agent.exported_policy() is None:
+                    raise UsageError(f"--push-policy: {self.agent.name} has no policy to push "
+                                     "(the PPO methods have)")
                 self.write_config()
                 self.info.update(self.agent.prepare())
                 self._say(" ".join(f"{k}={v:.4g}" for k, v in self.info.items()))
@@ -252,6 +256,8 @@ class IntervalRunner:
         self.interval += 1
         self.checkpoint()
         self.write_metrics()
+        if self.cfg.push_policy:
+            push_policy(self.agent.exported_policy(), self.cfg.push_url, self.cfg.push_policy)
         self.telemetry.end_interval(row)
         self._say(progress_line(row, self.cfg.intervals, self.agent.progress_keys))
 

@@ -54,7 +54,7 @@ from ftc.control import checkpoint
 from ftc.control.cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
 from ftc.learning.ppo import ActorCritic
-from ftc.tools import policy_weights
+from ftc.control import policy_weights
 
 TOOL = "ftc.export"
 INPUT = "levels"
@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the .onnx file to write (atomically)")
     parser.add_argument("--weights", type=checked(Path, nonempty=True),
                         help="also (or only) write the weights file build/policy_node reads "
-                             "(ftc.tools.policy_weights has its format), atomically")
+                             "(ftc.control.policy_weights has its format), atomically")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --out file (atomically, once the new model "
                              "is verified; default: refuse it)")

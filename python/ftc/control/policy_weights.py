@@ -1,0 +1,158 @@
+"""The policy's weights for the embedded controller (``build/policy_node``):
+the weights file ``ftc.export --weights`` writes, and the ``policy_t`` message
+that pushes new weights to a running node.
+
+    python -m ftc.export runs/s0 --weights policy.txt
+    ./build/policy_node --policy policy.txt --lcm-url 'udpm://239.255.76.67:7667?ttl=0' --prefix RT_
+    python -m ftc.tools.policy_weights push policy.txt --version 2 --lcm-url ... --prefix RT_
+    python -m ftc.controller ... --push-policy RT_ --push-url ...   (after every interval)
+
+The weights file (text, ``ftc-policy 1``)::
+
+    ftc-policy 1
+    version 1
+    widths 6 64 64 16 16 6
+    params 5734
+    <the params, whitespace-separated, 9 significant digits (float32 exactly)>
+    checksum 0123456789abcdef
+
+The actor as a chain of dense layers: the input is the levels in metres
+mapped to 2 x - 1; every layer but the last is followed by tanh; a valve
+opens where its logit (the last layer's output) is positive, as the policy's
+deterministic action. ``params`` holds, layer by layer, W (inputs x outputs,
+row-major) then b. ``checksum``: FNV-1a 64 of the widths (int32
+little-endian) then the params (float32 little-endian), in hex; the node
+refuses a file or push whose checksum differs, a version not above its own,
+or widths that are not 6 -> ... -> 6, naming the reason, and keeps its policy.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ftc.common.atomic import atomic_write_text
+from ftc.common.errors import UsageError
+from ftc.plant.lcm_link import check_loopback_url
+
+FORMAT = "ftc-policy 1"
+FNV_OFFSET, FNV_PRIME, MASK = 1469598103934665603, 1099511628211, (1 << 64) - 1
+
+
+def checksum(widths: Sequence[int], params: np.ndarray) -> int:
+    """FNV-1a 64 of the widths (int32 LE) then the params (float32 LE)."""
+    data = (np.asarray(widths, "<i4").tobytes() + np.asarray(params, "<f4").tobytes())
+    h = FNV_OFFSET
+    for byte in data:
+        h = ((h ^ byte) * FNV_PRIME) & MASK
+    return h
+
+
+def actor_layers(policy) -> tuple[list[int], np.ndarray]:
+    """(widths, params float32) of an :class:`ftc.learning.ppo.ActorCritic`'s
+    actor: its trunk's layers then its policy head's, each W (in x out) then b."""
+    import torch
+
+    linears = [m for part in (policy.trunk, policy.policy_head) for m in part.modules()
+               if isinstance(m, torch.nn.Linear)]
+    widths = [linears[0].in_features, *(m.out_features for m in linears)]
+    params = np.concatenate([np.concatenate([m.weight.detach().numpy().T.ravel(),
+                                             m.bias.detach().numpy()]) for m in linears])
+    return widths, params.astype(np.float32)
+
+
+def actions(widths: Sequence[int], params: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """The valves (N, 6) int8 the node computes for levels (N, 6): the format's
+    arithmetic in NumPy (float32), for checks."""
+    x = 2.0 * np.asarray(levels, np.float32) - 1.0
+    offset = 0
+    for i, (n_in, n_out) in enumerate(zip(widths[:-1], widths[1:])):
+        w = params[offset:offset + n_in * n_out].reshape(n_in, n_out)
+        b = params[offset + n_in * n_out:offset + (n_in + 1) * n_out]
+        offset += (n_in + 1) * n_out
+        x = x @ w + b
+        if i < len(widths) - 2:
+            x = np.tanh(x)
+    return (x > 0).astype(np.int8)
+
+
+def format_weights(widths: Sequence[int], params: np.ndarray, version: int = 1) -> str:
+    params = np.asarray(params, np.float32)
+    rows = [" ".join(f"{v:.9g}" for v in params[i:i + 8]) for i in range(0, len(params), 8)]
+    return "\n".join([FORMAT, f"version {int(version)}", "widths " + " ".join(map(str, widths)),
+                      f"params {len(params)}", *rows,
+                      f"checksum {checksum(widths, params):016x}"]) + "\n"
+
+
+def write_weights(path: Path, widths: Sequence[int], params: np.ndarray, version: int = 1) -> None:
+    atomic_write_text(Path(path), format_weights(widths, params, version))
+
+
+def read_weights(path: Path) -> tuple[list[int], np.ndarray, int]:
+    """(widths, params, version) of a weights file; UsageError naming the file
+    and what is wrong (the node's checks)."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read the weights file ({e.strerror})") from None
+    if not lines or lines[0].strip() != FORMAT:
+        raise UsageError(f"{path}:1: not an {FORMAT} weights file")
+    fields, values = {}, []
+    for n, line in enumerate(lines[1:], start=2):
+        head, _, rest = line.partition(" ")
+        if head in ("version", "widths", "params", "checksum"):
+            fields[head] = rest.split()
+        elif line.strip() and not line.startswith("#"):
+            try:
+                values += [float(v) for v in line.split()]
+            except ValueError:
+                raise UsageError(f"{path}:{n}: a number expected: {line[:40]!r}") from None
+    try:
+        widths = [int(w) for w in fields["widths"]]
+        count, version = int(fields["params"][0]), int(fields.get("version", ["0"])[0])
+        expected = int(fields["checksum"][0], 16)
+    except (KeyError, IndexError, ValueError):
+        raise UsageError(f"{path}: a version, widths, params or checksum line is missing or "
+                         "malformed") from None
+    params = np.asarray(values, np.float32)
+    if len(params) != count:
+        raise UsageError(f"{path}: params says {count} values, the file holds {len(params)} "
+                         "(truncated?)")
+    if checksum(widths, params) != expected:
+        raise UsageError(f"{path}: checksum mismatch: the weights were changed or truncated")
+    return widths, params, version
+
+
+def policy_message(widths: Sequence[int], params: np.ndarray, version: int,
+                   checksum_value: int | None = None):
+    """A ``policy_t`` carrying the weights (its checksum computed unless given)."""
+    from ftc.policy_t import policy_t  # generated by lcm-gen at build time
+
+    msg = policy_t()
+    msg.utime, msg.version = int(time.time() * 1e6), int(version)
+    msg.num_widths, msg.widths = len(widths), [int(w) for w in widths]
+    msg.num_params, msg.params = len(params), [float(v) for v in np.asarray(params, np.float32)]
+    value = checksum(widths, params) if checksum_value is None else checksum_value
+    msg.checksum = value - (1 << 64) if value >= 1 << 63 else value  # int64 on the wire
+    return msg
+
+
+def push(lcm_url: str, prefix: str, message) -> None:
+    """Publish ``message`` once on ``<prefix>POLICY``."""
+    import lcm
+
+    check_loopback_url(lcm_url)
+    lcm.LCM(lcm_url).publish(prefix + "POLICY", message.encode())
+
+
+def push_policy(policy, lcm_url: str, prefix: str) -> int:
+    """Push ``policy``'s actor (an ActorCritic) to the node on ``lcm_url``/``prefix``
+    as the version of the time in milliseconds (above any earlier push and any
+    file's); returns the version."""
+    version = time.time_ns() // 1_000_000
+    push(lcm_url, prefix, policy_message(*actor_layers(policy), version=version))
+    return version
