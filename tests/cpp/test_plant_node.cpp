@@ -56,12 +56,12 @@ class PlantNodeTest : public ::testing::Test {
     lcm_.publish(channels_.command, &cmd);
   }
 
-  void SendControl(std::int64_t seq, std::int8_t command) {
+  void SendControl(std::int64_t seq, std::int8_t command, std::int64_t operating_step = 0) {
     plant_control_t msg;
     msg.utime = 0;
     msg.seq = seq;
     msg.command = command;
-    msg.operating_step = 0;
+    msg.operating_step = operating_step;
     lcm_.publish(channels_.control, &msg);
   }
 
@@ -318,14 +318,11 @@ TEST_F(PlantNodeTest, RealtimeCountsStepsTakenWithoutAFreshCommandAndWatchdogTri
 TEST_F(PlantNodeTest, RealtimeStartsTheNextEpisodeOnATickOfItsOwn) {
   StartNode(RunMode::kRealtime);
   // START one step before the interval boundary: the next step truncates.
-  plant_control_t start;
-  start.utime = 0;
-  start.seq = 1;
-  start.command = plant_control_t::START;
-  start.operating_step = FaultScenario{}.steps_per_interval - 1;
-  const plant_state_t started = ExchangeOne([&] { lcm_.publish(channels_.control, &start); });
+  const std::int64_t before_boundary = FaultScenario{}.steps_per_interval - 1;
+  const plant_state_t started =
+      ExchangeOne([&] { SendControl(1, plant_control_t::START, before_boundary); });
   EXPECT_EQ(started.step, 0);
-  EXPECT_EQ(started.operating_steps, FaultScenario{}.steps_per_interval - 1);
+  EXPECT_EQ(started.operating_steps, before_boundary);
   EXPECT_EQ(started.command_seq, 1);
 
   Exchange([&] { SendCommand(2, kAllOpen); });
@@ -349,12 +346,7 @@ TEST_F(PlantNodeTest, RealtimeStartsTheNextEpisodeOnATickOfItsOwn) {
 
 TEST_F(PlantNodeTest, StartWithANegativeStepIsRejected) {
   StartNode(RunMode::kRealtime);
-  plant_control_t start;
-  start.utime = 0;
-  start.seq = 1;
-  start.command = plant_control_t::START;
-  start.operating_step = -1;
-  EXPECT_TRUE(Exchange([&] { lcm_.publish(channels_.control, &start); }).empty());
+  EXPECT_TRUE(Exchange([&] { SendControl(1, plant_control_t::START, -1); }).empty());
   EXPECT_EQ(node_->counters().rejected_commands, 1);
 }
 
