@@ -344,6 +344,15 @@ TEST_F(PlantNodeTest, RealtimeStartsTheNextEpisodeOnATickOfItsOwn) {
   EXPECT_EQ(first.missed_ticks, 0);
 }
 
+TEST_F(PlantNodeTest, RealtimeRepeatedControlIsAnsweredAgainButActsOnce) {
+  StartNode(RunMode::kRealtime);
+  const plant_state_t reset = ExchangeOne([&] { SendControl(1, plant_control_t::RESET); });
+  const plant_state_t again = ExchangeOne([&] { SendControl(1, plant_control_t::RESET); });
+  EXPECT_EQ(again.command_seq, 1);
+  EXPECT_EQ(again.episode, reset.episode);  // answered, not reset a second time
+  EXPECT_EQ(again.duplicate_commands, 1);
+}
+
 TEST_F(PlantNodeTest, StartWithANegativeStepIsRejected) {
   StartNode(RunMode::kRealtime);
   EXPECT_TRUE(Exchange([&] { SendControl(1, plant_control_t::START, -1); }).empty());

@@ -158,7 +158,12 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
     PublishState(msg.seq);
     return;
   }
-  if (!Admit(msg.seq)) return;
+  if (!Admit(msg.seq)) {
+    // A control message sent again (its answer was lost): in real-time mode
+    // too it gets one, the current state (lockstep's Admit re-sent it already).
+    if (options_.mode == RunMode::kRealtime && msg.seq == answered_seq_) PublishState();
+    return;
+  }
   switch (msg.command) {
     case plant_control_t::RESET:
       plant_->Reset();
