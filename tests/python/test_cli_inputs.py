@@ -32,6 +32,8 @@ ACCEPTED = {
     ("--scenario", ""),                       # the nominal plant
     ("--prefix", "0"), ("--prefix", "-1"), ("--prefix", "nan"), ("--prefix", "inf"),
     ("--prefix", "1e18"), ("--prefix", "abc"),  # any non-empty channel prefix
+    ("--push-policy", "0"), ("--push-policy", "-1"), ("--push-policy", "nan"),
+    ("--push-policy", "inf"), ("--push-policy", "1e18"), ("--push-policy", "abc"),
     ("--pretrain-cache", ""), ("--pretrain-cache", "0"), ("--pretrain-cache", "-1"),
     ("--pretrain-cache", "nan"), ("--pretrain-cache", "inf"), ("--pretrain-cache", "1e18"),
     ("--pretrain-cache", "abc"),              # a cache directory ('' disables it)

@@ -51,13 +51,6 @@ class RunConfig:
     watchdog: float = field(default=1.0, metadata={"check": positive(3600.0), "help": (
         "with --realtime: seconds without a valid command after which the plant puts the "
         "valves in the safe state (all closed)")})
-    push_policy: str | None = field(default=None, metadata={"help": (
-        "after every interval, push the acting policy's weights (policy_t, the version "
-        "the time in ms) to a policy node (build/policy_node) listening on this channel "
-        "prefix at --push-url: learn here, fly there (docs/deploy.md). PPO methods only "
-        "(None: no push)")})
-    push_url: str = field(default=DEFAULT_LCM_URL, metadata={"help": (
-        "with --push-policy: the node's LCM URL (ttl=0)")})
     allow_network: bool = field(default=False, metadata={"help": (
         "accept an --lcm-url whose traffic may leave this machine (ttl != 0, tcpq://); "
         "with --attach only, as launched plants are kept on loopback")})
@@ -101,13 +94,6 @@ class RunConfig:
         if self.realtime is not None and (self.link != "lcm" or self.attach):
             raise ValueError("--realtime launches a real-time plant process: it needs --link lcm "
                              "and no --attach (an attached plant's own mode is used)")
-        if self.push_policy is not None:
-            if not self.push_policy.strip():
-                raise ValueError("--push-policy must name the node's channel prefix, got ''")
-            try:
-                check_loopback_url(self.push_url)
-            except ValueError as e:
-                raise ValueError(f"--push-url: {e}") from None
         if self.prefix is not None and not self.prefix.strip():
             raise ValueError("--prefix must not be empty (None: a private one)")
         if not self.link_retry_timeout <= self.link_give_up_timeout:

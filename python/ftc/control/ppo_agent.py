@@ -36,6 +36,7 @@ import numpy as np
 
 from ftc.common.cli import at_least, between, positive
 from ftc.common.errors import CheckpointError
+from ftc.common.constants import DEFAULT_LCM_URL
 from ftc.control import checkpoint, registry
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import check_finite_state
@@ -48,6 +49,7 @@ from ftc.learning.ppo import PPO, PPOConfig
 from ftc.learning.pretrain import PretrainSettings, code_fingerprint
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
+from ftc.plant.lcm_link import check_loopback_url
 from ftc.plant.link import PlantObservation
 
 METHODS = registry.config_values("ftc.controller")  # the values of ControllerConfig.method
@@ -124,6 +126,13 @@ class ControllerConfig(RunConfig):
     fresh_optimizer: bool = field(default=True, metadata={"help": (
         "reset Adam's state when adaptation starts, after pretraining (narrows the spread "
         "across seeds)")})
+    push_policy: str | None = field(default=None, metadata={"help": (
+        "after every interval, push the acting policy's weights (policy_t, the version "
+        "the time in ms) to a policy node (build/policy_node) listening on this channel "
+        "prefix at --push-url: learn here, fly there (docs/deploy.md). PPO methods only "
+        "(None: no push)")})
+    push_url: str = field(default=DEFAULT_LCM_URL, metadata={"help": (
+        "with --push-policy: the node's LCM URL (ttl=0)")})
 
     def ignored(self) -> dict[str, str]:
         """The pretraining options that have no effect on this run, each with why
@@ -136,6 +145,15 @@ class ControllerConfig(RunConfig):
 
     def validate(self) -> None:
         super().validate()
+        if self.push_policy is not None and not self.push_policy.strip():
+            raise ValueError("--push-policy must name the node's channel prefix, got ''")
+        try:
+            check_loopback_url(self.push_url)
+        except ValueError as e:
+            raise ValueError(f"--push-url: {e}") from None
+        if self.push_policy is None and self.push_url != DEFAULT_LCM_URL:
+            raise ValueError("--push-url is where --push-policy sends the policy: give "
+                             "--push-policy PREFIX with it")
         if self.method == "ppo" and self.offline and self.offline_steps < 1:
             raise ValueError("--offline-steps must be >= 1 with --method ppo --offline")
         if self.method in PPO_METHODS and self.steps_per_interval % self.update_every:

@@ -191,7 +191,7 @@ class IntervalRunner:
                 if record_extension(self.out, list(self.configs), cfg.intervals):
                     self._say(f"extending {self.out} to {cfg.intervals} intervals")
             else:
-                if self.cfg.push_policy and self.agent.exported_policy() is None:
+                if getattr(cfg, "push_policy", None) and self.agent.exported_policy() is None:
                     raise UsageError(f"--push-policy: {self.agent.name} has no policy to push "
                                      "(the PPO methods have)")
                 self.write_config()
@@ -256,7 +256,7 @@ class IntervalRunner:
         self.interval += 1
         self.checkpoint()
         self.write_metrics()
-        if self.cfg.push_policy:
+        if getattr(self.cfg, "push_policy", None):  # the controller's option
             push_policy(self.agent.exported_policy(), self.cfg.push_url, self.cfg.push_policy)
         self.telemetry.end_interval(row)
         self._say(progress_line(row, self.cfg.intervals, self.agent.progress_keys))
