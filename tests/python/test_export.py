@@ -199,3 +199,30 @@ def test_the_weights_file_takes_the_agents_deterministic_actions(exported, tmp_p
     assert np.array_equal(policy_weights.actions(widths, params, states)[clear], expected[clear])
     code, err = _quiet(export.main, [str(run), "--weights", str(out)])
     assert code == 2 and "exists" in err  # an existing file is refused without --overwrite
+
+
+def test_the_check_allows_float32_rounding_of_large_logits_and_no_more():
+    """A distilled policy's logits reach the hundreds: onnxruntime and torch then
+    differ by float32's relative rounding (2.1e-5 measured on ppo-robust), which
+    the check allows; a model whose weights differ is still refused."""
+    from ftc.learning.ppo import ActorCritic
+    from ftc.common.errors import RunError
+
+    torch.manual_seed(0)
+    policy = ActorCritic()
+    with torch.no_grad():
+        head = [m for m in policy.policy_head.modules() if isinstance(m, torch.nn.Linear)][-1]
+        head.weight.mul_(3e4)  # logits in the hundreds
+        head.bias.fill_(0.0)
+        logits, _ = policy(torch.from_numpy(export.sample_levels(512)))
+    assert float(logits.abs().max()) > 100
+    model = export.export_model(policy, {"source": "test"})
+    gap = export.verify(model, policy, 512)
+    assert 1e-5 < gap < export.LOGIT_ATOL + export.LOGIT_RTOL * float(logits.abs().max())
+    other = ActorCritic()
+    other.load_state_dict(policy.state_dict())
+    with torch.no_grad():
+        [m for m in other.policy_head.modules() if isinstance(m, torch.nn.Linear)][-1] \
+            .bias.add_(1.0)  # beyond 1e-5 + 1e-5 x the largest logit on every state
+    with pytest.raises(RunError, match="logits beyond"):
+        export.verify(model, other, 512)

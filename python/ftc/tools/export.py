@@ -60,7 +60,12 @@ TOOL = "ftc.export"
 INPUT = "levels"
 OUTPUTS = ("valves", "logits")
 EXPORTABLE = ("ppo", "ppo-robust")  # controller methods whose agent state holds a policy
-LOGIT_ATOL = 1e-5  # onnxruntime vs torch on the logits (float32; measured: < 1e-6)
+# onnxruntime vs torch on the logits, float32: |difference| <= ATOL + RTOL x the
+# state's largest |logit| (float32 rounds relative to the terms summed, and the
+# largest logit bounds them; measured: < 1e-6 on a fresh policy, 2.1e-5 on a
+# distilled ppo-robust policy whose logits reach the hundreds)
+LOGIT_ATOL = 1e-5
+LOGIT_RTOL = 1e-5
 
 
 class DeterministicPolicy(nn.Module):
@@ -177,8 +182,9 @@ def sample_levels(n: int, seed: int = 0) -> np.ndarray:
 
 def verify(model: Any, policy: ActorCritic, states: int) -> float:
     """onnxruntime's valves on ``states`` sampled states equal torch's deterministic
-    actions, and its logits agree within LOGIT_ATOL; returns the largest logit
-    difference. Raises RunError otherwise."""
+    actions, and its logits agree within LOGIT_ATOL + LOGIT_RTOL x the state's
+    largest |logit|;
+    returns the largest logit difference. Raises RunError otherwise."""
     try:
         import onnxruntime
     except ImportError:
@@ -192,10 +198,15 @@ def verify(model: Any, policy: ActorCritic, states: int) -> float:
         actions, _, _ = policy.act(torch.from_numpy(x), deterministic=True)
         expected_logits, _ = policy(torch.from_numpy(x))
     differ = int((valves != actions.numpy().astype(np.int8)).any(axis=1).sum())
-    gap = float(np.abs(logits - expected_logits.numpy()).max())
-    if differ or gap > LOGIT_ATOL or valves.shape != (states, NUM_VALVES):
-        raise RunError(f"the exported model disagrees with torch on {differ} of {states} "
-                       f"states (largest logit difference {gap:.3g}); nothing written")
+    expected = expected_logits.numpy()
+    difference = np.abs(logits - expected)
+    gap = float(difference.max())
+    scale = np.abs(expected).max(axis=1, keepdims=True)
+    beyond = int((difference > LOGIT_ATOL + LOGIT_RTOL * scale).any(axis=1).sum())
+    if differ or beyond or valves.shape != (states, NUM_VALVES):
+        raise RunError(f"the exported model disagrees with torch on {states} states: valves "
+                       f"on {differ}, logits beyond {LOGIT_ATOL:g} + {LOGIT_RTOL:g} x max |logit| "
+                       f"on {beyond} (largest difference {gap:.3g}); nothing written")
     return gap
 
 
