@@ -192,3 +192,24 @@ def test_sb3_learn_fine_tunes_the_model_on_the_plant_and_checkpoints_it(policies
     assert fixed.returncode == 2
     assert "--sb3-learn fine-tunes an sb3:PATH.zip model" in fixed.stderr
     assert not (tmp_path / "no").exists()
+
+
+def test_a_benchmark_gives_sb3_learn_to_its_sb3_methods_only(policies, tmp_path):
+    out = tmp_path / "bench"
+    proc = _benchmark("--scenarios", str(REPO / "scenarios" / "single.toml"), "--seeds", "0",
+                      "--intervals", "1", "--steps-per-interval", "256", "--link", "core",
+                      "--jobs", "2", "--reference", "oracle-mpc", "--methods",
+                      f"tuned=sb3:{policies['sb3']}", f"exported=onnx:{policies['onnx']}",
+                      "--controller-args=--sb3-learn", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    runs = {p.parents[2].name: json.loads(p.read_text())["plugin"]
+            for p in out.glob("runs/single/t00/*/s0/controller/config.json")
+            if p.parents[2].name in ("tuned", "exported")}
+    assert runs["tuned"]["sb3_learn"] is True and runs["exported"]["sb3_learn"] is False
+    metrics = (out / "runs" / "single" / "t00" / "tuned" / "s0" / "controller" /
+               "metrics.csv").read_text()
+    assert "sb3_updates" in metrics.splitlines()[0]
+    # with no sb3: method the option acts on nothing: refused before any run
+    proc = _benchmark(*SHORT, "--methods", f"exported=onnx:{policies['onnx']}",
+                      "--controller-args=--sb3-learn", "--out", str(tmp_path / "none"))
+    assert proc.returncode == 2 and "--sb3-learn" in proc.stderr

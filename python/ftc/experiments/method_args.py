@@ -62,8 +62,9 @@ def takes(spec: MethodSpec, option: str) -> bool:
         return False
     if flag in run:
         return True
-    if spec.module == "ftc.plugin":  # its one own option, --agent, is its spec
-        return False
+    if spec.module == "ftc.plugin":  # its own options: --agent is its spec, and
+        # --sb3-learn acts on an sb3: model only
+        return flag == "--sb3-learn" and spec.args[-1].startswith("sb3:")
     parsed = _parsed(spec)
     dest = flag[2:].replace("-", "_").removeprefix("no_")
     if dest in parsed.ignored():
