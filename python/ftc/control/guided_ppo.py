@@ -29,6 +29,7 @@ from ftc.common.constants import NUM_TANKS, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import check_finite_state
+from ftc.control.deferred import PENDING_KEY, DeferredAgent
 from ftc.control.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
 from ftc.control.planners import Evaluator, HoldPlanner
 from ftc.control.ppo_agent import ControllerConfig
@@ -90,43 +91,21 @@ GUIDED_FIELDS = tuple(f.name for f in dataclasses.fields(GuidedConfig)
                       if f.name not in {g.name for g in dataclasses.fields(ControllerConfig)})
 
 
-class GuidedPPOAgent(Agent):
-    """PPO online on the plant (its :class:`OnlinePPO`, as Algorithm 1's) with
-    the planner-guided fit after every interval and when the plant changes
-    within one (the module's docstring).
+class ModelHooks(DeferredAgent):
+    """What a guided agent's subclass supplies: the model the planner plans on,
+    ``teacher_eval`` (the planner's evaluator), and the hooks: ``watch(t)``
+    learns from one step on the plant and says whether it shows the plant
+    changed; ``observed_levels()`` (N, 6) and ``steps_seen()``: this interval's;
+    ``teacher_ready()``: the planner has a model; ``on_change()``: plan on the
+    model as it is now; ``plan_key()``: what the planner's labels depend on and
+    how two compare; ``rollout_env(seed)``: one env on the model for the
+    policy's DAgger rollouts; ``end_model(interval)``: fit the model for the
+    next interval, plan on it, return what was measured; ``offline(interval,
+    observed)``: PPO on the model after the guided fit (reward per step,
+    updates, refused steps); ``take_refused()``; ``(load_)model_state``."""
 
-    A subclass supplies the model the planner plans on: ``teacher_eval`` (the
-    planner's evaluator) and the hooks: ``watch(t)`` learns from one step on the
-    plant and says whether it shows the plant changed; ``observed_levels()``
-    (N, 6) and ``steps_seen()``: this interval's; ``teacher_ready()``: the planner
-    has a model; ``on_change()``: plan on the model as it is now; ``plan_key()``:
-    what the planner's labels depend on and how two compare; ``rollout_env(seed)``:
-    one env on the model for the policy's DAgger rollouts; ``end_model(interval)``:
-    fit the model for the next interval, plan on it, return what was measured;
-    ``offline(interval, observed)``: PPO on the model after the guided fit (reward
-    per step, updates, refused steps); ``take_refused()``; ``(load_)model_state``."""
-
-    extra_columns = (*PPO_COLUMNS, "distill_loss", "distill_agreement", "distill_epochs",
-                     "teacher_labels", "teacher_plans", "teacher_memory", "teach_seconds",
-                     "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
-                     "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
-    progress_keys = PPO_PROGRESS_KEYS
     teacher_eval: Evaluator
 
-    def __init__(self, cfg: GuidedConfig, ppo_config: PPOConfig) -> None:
-        self.cfg = cfg
-        self.ppo = PPO(ppo_config, seed=cfg.seed)
-        self.online = OnlinePPO(self.ppo, cfg.update_every)
-        self.refits, self.teacher = 0, HoldPlanner(3, 10)  # the oracle MPC's planner (H3, L10)
-        # distinct levels labelled by earlier fits, most recent last (DAgger's aggregate)
-        self.memory = np.empty((0, NUM_TANKS))
-        self.plan_cache = PlanCache()
-
-    @classmethod
-    def from_configs(cls, configs: dict[str, Any]) -> "GuidedPPOAgent":
-        return cls(configs["controller"], configs["ppo"])
-
-    # -- the model's hooks (the class docstring) -------------------------------------
     def watch(self, t: Transition) -> bool: raise NotImplementedError
     def observed_levels(self) -> np.ndarray: raise NotImplementedError
     def plan_key(self) -> tuple[Any, Callable[[Any, Any], bool]]: raise NotImplementedError
@@ -142,6 +121,34 @@ class GuidedPPOAgent(Agent):
     def offline(self, interval: int, observed: np.ndarray) -> tuple[float, int, int]:
         return float("nan"), 0, 0
 
+
+class GuidedPPOAgent(ModelHooks):
+    """PPO online on the plant (its :class:`OnlinePPO`, as Algorithm 1's) with
+    the planner-guided fit after every interval and when the plant changes
+    within one (the module's docstring); on a real-time plant the fits run off
+    the control loop (:class:`ftc.control.deferred.DeferredAgent`). The model
+    comes from a subclass (:class:`ModelHooks`)."""
+
+    extra_columns = (*PPO_COLUMNS, "distill_loss", "distill_agreement", "distill_epochs",
+                     "teacher_labels", "teacher_plans", "teacher_memory", "teach_seconds",
+                     "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
+                     "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
+    progress_keys = PPO_PROGRESS_KEYS
+
+    def __init__(self, cfg: GuidedConfig, ppo_config: PPOConfig) -> None:
+        super().__init__(cfg.seed)
+        self.cfg = cfg
+        self.ppo = PPO(ppo_config, seed=cfg.seed)
+        self.online = OnlinePPO(self.ppo, cfg.update_every)
+        self.refits, self.teacher = 0, HoldPlanner(3, 10)  # the oracle MPC's planner (H3, L10)
+        # distinct levels labelled by earlier fits, most recent last (DAgger's aggregate)
+        self.memory = np.empty((0, NUM_TANKS))
+        self.plan_cache = PlanCache()
+
+    @classmethod
+    def from_configs(cls, configs: dict[str, Any]) -> "GuidedPPOAgent":
+        return cls(configs["controller"], configs["ppo"])
+
     # -- the loop -------------------------------------------------------------------
     def prepare(self) -> dict[str, Any]:
         """Pretrain the policy (--pretrain)."""
@@ -149,17 +156,16 @@ class GuidedPPOAgent(Agent):
         return (self.online.pretrain(cfg.pretrain_settings(), cfg.pretrain_cache,
                                      cfg.fresh_optimizer) if cfg.pretrain else {})
 
-    def begin_interval(self, interval: int) -> None:
+    def _begin_interval(self, interval: int) -> None:
         self.online.begin_interval(self.background_learning)
         self.refits = 0
         self.interval = interval
         self.checks, self.check_refits = 0, 0
 
-    def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
+    def _act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         return self.online.act(obs, ctx)
-    def close(self) -> None: self.online.close()
 
-    def observe(self, t: Transition) -> None:
+    def _observe(self, t: Transition) -> None:
         stats = self.online.observe(t)
         if stats is not None:
             self.telemetry.update(stats._asdict())
@@ -186,14 +192,22 @@ class GuidedPPOAgent(Agent):
 
     def _refit(self, fit_id: int, rounds: int | None = None) -> None:
         """A guided fit within the interval, from the levels observed in it so far."""
-        self._guided_fit(self.observed_levels(), fit_id, rounds)
-        self.online.drop_rollout()
+        def refit() -> dict[str, Any]:
+            metrics = self._guided_fit(self.observed_levels(), fit_id, rounds)
+            self.online.drop_rollout()  # collected by the policy before the fit
+            return metrics
+        self.learn(refit)
 
-    def end_online(self) -> dict[str, Any]: return self.online.end_online()
-    def finish(self) -> None: self.online.finish()  # a background update in flight
-    def exported_policy(self) -> Any: return self.ppo.policy
+    def _end_online(self) -> dict[str, Any]: return self.online.end_online()
+    def _finish(self) -> None: self.online.finish()  # a background update in flight
+    def _close(self) -> None: self.online.close()
+    def acting_policy(self) -> Any: return self.ppo.policy
 
     def end_interval(self, interval: int, data: Any) -> dict[str, Any]:
+        self._poll(wait=True)  # a refit still running, and the steps queued behind it
+        return self.learn(lambda: self._end_interval(interval), interval) or {}
+
+    def _end_interval(self, interval: int) -> dict[str, Any]:
         start = time.perf_counter()
         model_metrics = self.end_model(interval)  # the planner now plans for the next interval
         observed = self.observed_levels()
@@ -278,7 +292,7 @@ class GuidedPPOAgent(Agent):
         self.ppo.reset_optimizer()
         return metrics
 
-    def state_dict(self) -> dict[str, Any]:
+    def _state_dict(self) -> dict[str, Any]:
         return {"ppo": self.online.state_dict(), **self.model_state(),
                 "teacher_memory": self.memory.tolist()}
 
@@ -290,6 +304,8 @@ class GuidedPPOAgent(Agent):
         self.load_model_state(state)
         memory = np.asarray(state["teacher_memory"], dtype=np.float64)
         self.memory = memory.reshape(-1, NUM_TANKS)
+        if state.get(PENDING_KEY) is not None:  # saved while the interval's fit ran: again
+            self._late.append((state[PENDING_KEY], self._end_interval(state[PENDING_KEY])))
 
 
 class PlanCache:

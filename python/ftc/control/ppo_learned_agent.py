@@ -100,8 +100,8 @@ class LearnedPPOAgent(GuidedPPOAgent):
         self.demand, model_info = fit_nominal(self.model, MODEL.learn_episodes, self.cfg.seed)
         return {**info, **model_info}
 
-    def begin_interval(self, interval: int) -> None:
-        super().begin_interval(interval)
+    def _begin_interval(self, interval: int) -> None:
+        super()._begin_interval(interval)
         self._reset_interval()
 
     def watch(self, t: Transition) -> bool:

@@ -57,8 +57,8 @@ class RobustPPOAgent(GuidedPPOAgent):
         self.teacher_eval = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8,
                                                              exact_active_conduit=True))
 
-    def begin_interval(self, interval: int) -> None:
-        super().begin_interval(interval)
+    def _begin_interval(self, interval: int) -> None:
+        super()._begin_interval(interval)
         self.online_id.begin()
 
     def watch(self, t: Transition) -> bool:
