@@ -8,7 +8,10 @@ mode at rising rates, driven by
            on: 2 intervals of 256 steps, a PPO update every 128 steps and the
            offline phase (2048 model steps) after each interval, plus the
            evaluation episodes;
-    mpc    python -m ftc.mpc --method oracle-mpc --realtime RATE, the same run.
+    mpc    python -m ftc.mpc --method oracle-mpc --realtime RATE, the same run;
+    robust python -m ftc.controller --method ppo-robust --pretrain --offline-steps 0
+           --realtime RATE, the same run: PPO updates and the guided fit (DAgger
+           with the planner) after each interval, off the control loop.
 
     .venv/bin/python scripts/bench_realtime.py [--controllers node ppo mpc] [--steps 5000]
         [--rates 100 200 500 1000 2000] [--python-rates 20 50 100 200]
@@ -87,6 +90,8 @@ def _row(controller: str, rate: float, n: int, misses: int, p50: float, p99: flo
 PYTHON_RUNS = {  # controller -> the run (2 intervals of 256 steps, the plant's rate added)
     "ppo": ["ftc.controller", "--method", "ppo-offline", "--update-every", "128"],
     "mpc": ["ftc.mpc", "--method", "oracle-mpc"],
+    "robust": ["ftc.controller", "--method", "ppo-robust", "--pretrain", "--offline-steps", "0",
+               "--update-every", "128"],
 }
 
 
@@ -165,8 +170,9 @@ def main(argv: list[str] | None = None) -> int:
         write_result_file(args.results, (
             f"# what: controllers on the plant in real-time mode, single fault: node = "
             f"build/policy_node, {args.steps} steps per rate, a fresh 6-64-64-16-16-6 policy; "
-            f"ppo = ftc.controller ppo-offline learning on, mpc = ftc.mpc oracle-mpc, 2 x 256 "
-            f"steps and the evaluations; latency: state received to command sent\n"
+            f"ppo = ftc.controller ppo-offline learning on, mpc = ftc.mpc oracle-mpc, robust = "
+            f"ftc.controller ppo-robust (guided fits), 2 x 256 steps and the evaluations; "
+            f"latency: state received to command sent\n"
             f"# command: scripts/bench_realtime.py --controllers {' '.join(args.controllers)} "
             f"--steps {args.steps} --rates {' '.join(f'{r:g}' for r in args.rates)} "
             f"--python-rates {' '.join(f'{r:g}' for r in args.python_rates)}\n"
