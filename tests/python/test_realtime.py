@@ -212,3 +212,20 @@ def test_a_plant_that_restarts_under_the_controller_ends_the_run_with_one_line(
     assert len(lines) == 1, err
     assert "restarted" in lines[0] or "published no state" in lines[0], lines[0]
     assert not (out / "checkpoint.pt").exists() or len(_rows(out)) >= 1
+
+
+def test_a_guided_methods_fits_run_off_the_loop_and_report_late(tmp_path):
+    out = tmp_path / "robust"
+    # ppo-robust: after each interval the guided fit (DAgger with the planner, about
+    # a second) runs on a worker thread while a frozen copy of the policy acts
+    proc = subprocess.run(
+        [sys.executable, "-m", "ftc.controller", "--method", "ppo-robust", "--offline-steps",
+         "0", "--realtime", str(RATE), "--intervals", "2", "--steps-per-interval", "128",
+         "--update-every", "64", "--quiet", "--out", str(out)],
+        capture_output=True, text=True, env=ENV, cwd=REPO, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    rows = _rows(out)
+    assert [r["interval"] for r in rows] == ["0", "1"]
+    for r in rows:  # each interval's fit reported, after the interval had moved on
+        assert float(r["teach_seconds"]) > 0 and int(r["teacher_labels"]) > 0
+        assert int(r["deadline_misses"]) <= int(r["plant_missed_ticks"])
