@@ -1,8 +1,9 @@
 """DeferredAgent: a learning job off the control loop. While the job runs the
 frozen policy acts and the agent's calls queue; when it is done its metrics
-arrive late and the calls are replayed in order; a checkpoint taken meanwhile
-is the state from before the job; without background learning the job runs
-at once, as in lockstep; a job's error reaches the loop."""
+arrive late, the runner's hook saves the state (before the queued calls), and
+the calls are replayed in order; ppo-robust's state saved so equals the one a
+lockstep run checkpoints; without background learning the job runs at once;
+a job's error reaches the loop."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import pytest
 import torch
 
 from ftc.control.agent import StepContext, Transition
-from ftc.control.deferred import PENDING_KEY, DeferredAgent
+from ftc.control.deferred import DeferredAgent
 from ftc.learning.ppo_policy import ActorCritic
 from ftc.plant.link import PlantObservation
 
@@ -93,10 +94,13 @@ def test_while_a_job_runs_the_frozen_policy_acts_and_calls_queue_then_replay():
     agent.observe(_step(0.4))
     agent.observe(_step(0.3))
     assert agent.calls == []  # queued, not run beside the job
-    saved = agent.state_dict()
-    assert saved == {"weights": 0, PENDING_KEY: 3}  # the state before the job, and which
+    with pytest.raises(RuntimeError, match="a fit is running"):
+        agent.state_dict()  # no state while it changes
+    saved = []
+    agent.on_learned = lambda k: saved.append((k, agent.state_dict(), list(agent.calls)))
     release.set()
     agent.end_online()  # waits for the job, then replays
+    assert saved == [(3, {"weights": 1}, [])]  # after the job, before the queued calls
     assert agent.calls == [("begin", 4), ("observe", 0.4), ("observe", 0.3)]
     assert agent.late_metrics() == [(3, {"fit": 2.0})]
     assert list(agent.act(_obs(0.2), CTX)) == [1] * 6  # the agent acts again, learned
@@ -115,3 +119,56 @@ def test_a_jobs_error_is_raised_in_the_loop():
     with pytest.raises(ValueError, match="non-finite weights"):
         agent.finish()
     agent.close()
+
+
+def _robust_interval(background: bool):
+    """ppo-robust driven through one interval of 64 steps on the core plant, then
+    its end_interval; returns (agent, the state saved after the fit)."""
+    from ftc.control.controller_cli import make_agent, parse_args
+    from ftc.plant.link import CorePlant
+    from ftc.plant.reward import reward
+
+    cfg, ppo = parse_args(["--method", "ppo-robust", "--offline-steps", "0", "--link", "core",
+                           "--steps-per-interval", "64", "--update-every", "32",
+                           "--teacher-check-every", "0", "--out", "unused"])
+    torch.manual_seed(0)
+    agent = make_agent(cfg, ppo)
+    saved = []
+    agent.on_learned = lambda k: saved.append(agent.state_dict())
+    plant = CorePlant("scenarios/single.toml", 0, steps_per_interval=64)
+    agent.begin_interval(0)
+    # set after begin_interval: the interval's PPO updates stay inline (the same
+    # steps either way), only the fit after it runs on the worker
+    agent.background_learning = background
+    o = plant.reset()
+    agent.start_episode(o)
+    for t in range(64):
+        u = agent.act(o, StepContext(0, t, 64 - t))
+        nxt = plant.step(u)
+        following = plant.reset() if nxt.terminal and t < 63 else nxt
+        agent.observe(Transition(o, u, float(reward(nxt.level, u)), nxt, following))
+        o = following
+    metrics = agent.end_interval(0, None)
+    if background:
+        assert metrics == {} and agent.learning  # the fit runs on the worker
+        agent.finish()
+        (interval, metrics), = agent.late_metrics()
+        assert interval == 0
+    else:
+        saved.append(agent.state_dict())
+    assert metrics["teacher_labels"] > 0
+    return agent, saved[0]
+
+
+def test_the_state_saved_after_a_background_fit_is_the_lockstep_checkpoint():
+    """The runner checkpoints a real-time interval from on_learned: the agent's
+    state then is the one a lockstep run saves after the same interval."""
+    background, saved = _robust_interval(background=True)
+    lockstep, expected = _robust_interval(background=False)
+    policy, want = saved["ppo"]["policy"], expected["ppo"]["policy"]
+    assert policy.keys() == want.keys()
+    for name in want:
+        assert torch.equal(policy[name], want[name]), name
+    np.testing.assert_array_equal(saved["teacher_memory"], expected["teacher_memory"])
+    background.close()
+    lockstep.close()

@@ -84,6 +84,7 @@ class Agent:
     progress_keys: tuple[tuple[str, str], ...] = ()
     telemetry: Telemetry = NULL_TELEMETRY
     background_learning = False
+    learning = False  # a fit runs off the loop now (ftc.control.deferred)
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "Agent":

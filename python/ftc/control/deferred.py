@@ -5,12 +5,13 @@ guided PPO agents' planner-guided fits, 1-3 s), on a real-time plant
 A learning job (the fit after an interval, or a refit within one) runs on a
 worker thread. Meanwhile the loop acts with a frozen copy of the policy (its
 own random stream) and queues the agent's other calls (``begin_interval``,
-``observe``), and a checkpoint gets the agent's state from just before the
-job with the job's interval, which a resumed run does again. When the job is
-done, between two steps, its metrics go to ``late_metrics`` and the queued
-calls are replayed in order (a replayed step's log-probability is the one of
-the valves applied, under the policy learned meanwhile). Without
-``background_learning`` a job runs at once, in the caller, as before.
+``observe``). When the job is done, between two steps, its metrics go to
+``late_metrics``, ``on_learned`` is called (set by the runner: the agent's
+state is then the one after the interval the fit ended, and the runner saves
+that interval's checkpoint), and the queued calls are replayed in order (a
+replayed step's log-probability is the one of the valves applied, under the
+policy learned meanwhile). Without ``background_learning`` a job runs at
+once, in the caller, as before.
 
 A subclass supplies ``_begin_interval``, ``_act``, ``_observe``,
 ``_end_online``, ``_state_dict``, ``_finish``, ``_close`` and
@@ -30,8 +31,6 @@ import torch
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.plant.link import PlantObservation
 
-PENDING_KEY = "deferred_interval"  # a checkpoint taken while an interval's job ran
-
 
 class DeferredAgent(Agent):
     """The protocol around a subclass's learning jobs (see the module doc)."""
@@ -39,7 +38,7 @@ class DeferredAgent(Agent):
     _worker: concurrent.futures.ThreadPoolExecutor | None = None
     _job: tuple[concurrent.futures.Future, int | None] | None = None
     _frozen: Any = None
-    _saved: dict[str, Any] | None = None
+    on_learned: Callable[[int], None] | None = None
 
     def __init__(self, seed: int) -> None:
         self._queue: list[tuple[Callable, tuple]] = []
@@ -56,7 +55,6 @@ class DeferredAgent(Agent):
         learning, on the worker (None now; an interval's metrics come late)."""
         if not self.background_learning:
             return job()
-        self._saved = {**copy.deepcopy(self._state_dict()), PENDING_KEY: interval}
         self._frozen = copy.deepcopy(self.acting_policy())
         if self._worker is None:
             self._worker = concurrent.futures.ThreadPoolExecutor(1, "guided-fit")
@@ -75,10 +73,12 @@ class DeferredAgent(Agent):
             future, interval = self._job
             if not (wait or future.done()):
                 return
-            self._job, self._frozen, self._saved = None, None, None
+            self._job, self._frozen = None, None
             metrics = future.result()  # a job's error is raised here, in the loop's thread
             if interval is not None:
                 self._late.append((interval, metrics))
+                if self.on_learned is not None:
+                    self.on_learned(interval)
             while self._queue and self._job is None:
                 method, args = self._queue.pop(0)
                 method(*args)
@@ -128,7 +128,9 @@ class DeferredAgent(Agent):
         return self._frozen if self._job is not None else self.acting_policy()
 
     def state_dict(self) -> dict[str, Any]:
-        return dict(self._saved) if self._job is not None else self._state_dict()
+        if self._job is not None:  # the runner saves from on_learned instead
+            raise RuntimeError("the agent's state is changing: a fit is running")
+        return self._state_dict()
 
     # the subclass's halves of the protocol (no-ops where it has nothing to do)
     def _begin_interval(self, interval: int) -> None: pass

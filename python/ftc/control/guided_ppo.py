@@ -29,7 +29,7 @@ from ftc.common.constants import NUM_TANKS, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.agent import Agent, StepContext, Transition
 from ftc.control.checkpoint import check_finite_state
-from ftc.control.deferred import PENDING_KEY, DeferredAgent
+from ftc.control.deferred import DeferredAgent
 from ftc.control.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
 from ftc.control.planners import Evaluator, HoldPlanner
 from ftc.control.ppo_agent import ControllerConfig
@@ -304,8 +304,6 @@ class GuidedPPOAgent(ModelHooks):
         self.load_model_state(state)
         memory = np.asarray(state["teacher_memory"], dtype=np.float64)
         self.memory = memory.reshape(-1, NUM_TANKS)
-        if state.get(PENDING_KEY) is not None:  # saved while the interval's fit ran: again
-            self._late.append((state[PENDING_KEY], self._end_interval(state[PENDING_KEY])))
 
 
 class PlanCache:

@@ -254,12 +254,20 @@ class IntervalRunner:
         self._merge_late_metrics()
         row["wall_time"] = time.perf_counter() - start
         self.interval += 1
+        if self.agent.learning:  # real time: the fit runs on; saved once it is done,
+            self.agent.on_learned = lambda _: self._save()  # before the next interval's steps
+        else:
+            self._save()
+        self.telemetry.end_interval(row)
+        self._say(progress_line(row, self.cfg.intervals, self.agent.progress_keys))
+
+    def _save(self) -> None:
+        """The finished intervals' checkpoint and metrics.csv (and the policy pushed)."""
+        self._merge_late_metrics()
         self.checkpoint()
         self.write_metrics()
         if getattr(self.cfg, "push_policy", None):  # the controller's option
             push_policy(self.agent.exported_policy(), self.cfg.push_url, self.cfg.push_policy)
-        self.telemetry.end_interval(row)
-        self._say(progress_line(row, self.cfg.intervals, self.agent.progress_keys))
 
     def _merge_late_metrics(self) -> None:
         for interval, metrics in self.agent.late_metrics():
