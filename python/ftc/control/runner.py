@@ -161,6 +161,7 @@ class IntervalRunner:
         self.rows: list[dict[str, Any]] = []
         self.info: dict[str, Any] = {}
         self.interval = 0
+        self.saved = 0  # intervals in the last checkpoint (a real-time fit may still run)
         self.telemetry: Telemetry = NULL_TELEMETRY  # --tensorboard: opened by run()
         self.columns = metric_columns(agent.extra_columns)
         self.loop: LockstepLoop | RealtimeLoop = LockstepLoop(None, agent, NULL_TELEMETRY)
@@ -209,7 +210,7 @@ class IntervalRunner:
                 self._run_intervals(plant, start, stop_after)
             except PlantGoneError as e:
                 raise PlantLostError(f"plant gone at {self.loop.where}: {e}; results of the "
-                                     f"{self.interval} finished intervals are in {self.out}, "
+                                     f"{self.saved} finished intervals are in {self.out}, "
                                      "--resume continues from them") from None
             finally:
                 self.agent.close()
@@ -295,12 +296,14 @@ class IntervalRunner:
             "interval": self.interval, "rows": self.rows, "info": self.info,
             "torch_rng": torch.get_rng_state(), "config": checkpoint.config_stamp(self.configs),
             "agent": self.agent.state_dict()})
+        self.saved = self.interval
         replacement(self.out).commit()
 
     def restore(self) -> None:
         path = self.out / "checkpoint.pt"
         state = checkpoint.load(path, self.configs, self.cfg.intervals)
         self.interval, self.rows, self.info = state["interval"], state["rows"], state["info"]
+        self.saved = self.interval
         torch.set_rng_state(state["torch_rng"])
         try:
             self.agent.load_state_dict(state["agent"])
