@@ -172,3 +172,19 @@ def test_the_state_saved_after_a_background_fit_is_the_lockstep_checkpoint():
     np.testing.assert_array_equal(saved["teacher_memory"], expected["teacher_memory"])
     background.close()
     lockstep.close()
+
+
+def test_an_offline_phase_queued_in_real_time_survives_a_checkpoint():
+    """Algorithm 1 on a real-time plant queues an interval's offline phase behind
+    the one still running; a checkpoint keeps it, a resumed agent starts it."""
+    from ftc.control.controller_cli import make_agent, parse_args
+
+    cfg, ppo = parse_args(["--method", "ppo-offline", "--link", "core", "--out", "unused"])
+    agent = make_agent(cfg, ppo)
+    agent.queued = 4
+    resumed = make_agent(cfg, ppo)
+    resumed.load_state_dict(agent.state_dict())
+    assert resumed.queued == 4
+    agent.queued = None
+    resumed.load_state_dict(agent.state_dict())
+    assert resumed.queued is None

@@ -334,7 +334,9 @@ class PPOAgent(Agent):
                 # a background offline phase in flight: its data, to start it again on resume
                 "pending": None if self.pending_data is None else {
                     "interval": self.pending_data[0],
-                    "data": checkpoint.transitions_state(self.pending_data[1])}}
+                    "data": checkpoint.transitions_state(self.pending_data[1])},
+                # real time: the phase waiting for that one (its data is the window's)
+                "queued": self.queued}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         missing = sorted({"ppo", "model", "model_fits", "window", "pending"} - set(state))
@@ -352,3 +354,4 @@ class PPOAgent(Agent):
             p = state["pending"]
             self._submit(self._offline_inputs(p["interval"],
                                               checkpoint.transitions_from_state(p["data"])))
+        self.queued = state.get("queued")  # started once the one above has swapped in
