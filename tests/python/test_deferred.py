@@ -3,7 +3,8 @@ frozen policy acts and the agent's calls queue; when it is done its metrics
 arrive late, the runner's hook saves the state (before the queued calls), and
 the calls are replayed in order; ppo-robust's state saved so equals the one a
 lockstep run checkpoints; without background learning the job runs at once;
-a job's error reaches the loop."""
+a job's error reaches the loop. Also Algorithm 1's own way off the loop: an
+offline phase queued in real time survives a checkpoint."""
 
 from __future__ import annotations
 
