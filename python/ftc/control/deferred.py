@@ -29,7 +29,6 @@ import numpy as np
 import torch
 
 from ftc.control.agent import Agent, StepContext, Transition
-from ftc.control.ppo_online import level_tensor
 from ftc.plant.link import PlantObservation
 
 
@@ -99,8 +98,8 @@ class DeferredAgent(Agent):
         self._poll()
         if self._job is None:
             return self._act(obs, ctx)
-        actions, _, _ = self._frozen.act(level_tensor(obs), self._acting_generator,
-                                         ctx.evaluation)
+        x = torch.as_tensor(obs.level, dtype=torch.float32).unsqueeze(0)
+        actions, _, _ = self._frozen.act(x, self._acting_generator, ctx.evaluation)
         return actions[0].numpy().astype(np.int8)
 
     def observe(self, t: Transition) -> None:

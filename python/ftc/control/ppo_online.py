@@ -31,7 +31,7 @@ ONLINE_METRICS = ("entropy", "open_fraction", "approx_kl", "clipfrac", "explaine
                   "value_loss")
 
 
-def level_tensor(o: PlantObservation) -> torch.Tensor:
+def _obs(o: PlantObservation) -> torch.Tensor:
     return torch.as_tensor(o.level, dtype=torch.float32).unsqueeze(0)
 
 
@@ -73,7 +73,7 @@ class OnlinePPO:
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         """Valves (6,) int8: sampled, or greedy in the evaluation episode."""
-        x = level_tensor(obs)
+        x = _obs(obs)
         a, lp, v = self.ppo.act(x, deterministic=ctx.evaluation)
         self._sample = None if ctx.evaluation else (x, a, lp, v)
         self._where = f"interval {ctx.interval}, step {ctx.step + 1}"
@@ -85,16 +85,16 @@ class OnlinePPO:
         x, a, lp, v = self._sample_of(t)
         self.collector.add(x, a, lp, v, torch.tensor([t.reward]),
                            torch.tensor([t.next_obs.terminal]), torch.tensor([t.truncated]),
-                           level_tensor(t.next_obs))
+                           _obs(t.next_obs))
         taken = self._take_update(wait=False) if self._pending is not None else None
         if not self.collector.full:
             return taken
         if self.background:
             if self._pending is not None:  # an update slower than a whole rollout
                 taken = self._take_update(wait=True)
-            self._start_update(level_tensor(t.following))
+            self._start_update(_obs(t.following))
             return taken
-        self.stats.append(self.collector.update(level_tensor(t.following)))
+        self.stats.append(self.collector.update(_obs(t.following)))
         check_update(self.ppo.policy, self.stats[-1], f"the PPO update at {self._where}")
         return self.stats[-1]
 
@@ -107,7 +107,7 @@ class OnlinePPO:
             if (np.array_equal(x[0].numpy(), np.asarray(t.obs.level, dtype=np.float32))
                     and np.array_equal(a[0].numpy(), t.valves)):
                 return self._sample
-        x = level_tensor(t.obs)
+        x = _obs(t.obs)
         a = torch.as_tensor(np.asarray(t.valves), dtype=torch.float32).unsqueeze(0)
         with torch.no_grad():
             lp, _entropy, v = self.ppo.policy.evaluate_actions(x, a)

@@ -89,8 +89,8 @@ class RealtimeLoop:
         sent = time.monotonic_ns()
         self.latencies_ns.append(sent - self.link.arrival_ns.get(self.msg.seq, sent))
         self.commands[seq] = u.copy()
-        if len(self.commands) > KEPT_COMMANDS:  # seqs rise: the first is the oldest
-            del self.commands[next(iter(self.commands))]
+        if len(self.commands) > KEPT_COMMANDS:
+            del self.commands[min(self.commands)]
         self.awaited = seq
 
     def _open(self, command: int, ctx: StepContext, operating_step: int = 0,

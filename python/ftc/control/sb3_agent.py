@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from ftc.control.agent import Agent, StepContext, Transition
-from ftc.control.ppo_online import level_tensor
 from ftc.plant.link import PlantObservation
 
 
@@ -51,11 +50,14 @@ class SB3Agent(Agent):
     def start_episode(self, obs: PlantObservation) -> None:
         self._episode_start = True
 
+    def _obs(self, obs: PlantObservation) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(obs.level, np.float32)[None])
+
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         if ctx.evaluation:
             return np.asarray(self.model.predict(np.asarray(obs.level, np.float32),
                                                  deterministic=True)[0], np.int8)
-        x = level_tensor(obs)
+        x = self._obs(obs)
         with torch.no_grad():
             actions, values, log_probs = self.model.policy(x)
         self._sample = (x.numpy(), actions.numpy(), values, log_probs)
@@ -63,7 +65,7 @@ class SB3Agent(Agent):
 
     def _value(self, obs: PlantObservation) -> torch.Tensor:
         with torch.no_grad():
-            return self.model.policy.predict_values(level_tensor(obs))
+            return self.model.policy.predict_values(self._obs(obs))
 
     def observe(self, t: Transition) -> None:
         x, a, values, log_probs = self._sample
