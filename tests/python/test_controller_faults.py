@@ -154,14 +154,22 @@ def test_plant_killed_mid_interval_exits_3_keeps_results_and_resumes(tmp_path, s
     assert _comparable(out / "metrics.csv") == _comparable(tmp_path / "ref" / "metrics.csv")
 
 
-def _start_then_wait_for_an_interval(out: Path, scenario: str) -> tuple[subprocess.Popen, int]:
+def _start_then_wait_for_an_interval(out: Path, scenario: str, ignoring: tuple[int, ...] = ()
+                                     ) -> tuple[subprocess.Popen, int]:
+    """``ignoring``: signals the controller starts with ignored, as a background
+    job of a non-interactive shell starts with SIGINT ignored."""
     # 512 steps per interval: interval 1 is running when the signal lands; 6 intervals,
     # so that a test process descheduled on a loaded machine still signals a live run
     args = [*SHORT, "--steps-per-interval", "512", "--update-every", "128", "--intervals", "6",
             "--scenario", scenario]
+
+    def ignore() -> None:
+        for s in ignoring:
+            signal.signal(s, signal.SIG_IGN)
+
     proc = subprocess.Popen([PY, "-m", "ftc.controller", *args, "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
-                            cwd=REPO)
+                            cwd=REPO, preexec_fn=ignore)
     _wait_for(lambda: _rows(out) == 1 and (out / "plant.pid").is_file(), "interval 0 to finish",
               proc=proc)
     return proc, int((out / "plant.pid").read_text())
@@ -172,9 +180,13 @@ def test_a_stop_signal_shuts_the_plant_down_keeps_results_and_resumes(tmp_path, 
     """SIGTERM (what a supervisor sends), SIGINT (Ctrl-C) and SIGHUP (a closed
     terminal) go through the run's clean-up: before, SIGTERM left the plant
     running for ever and plant.pid behind, and a signal landing in LCM's wait
-    skipped the plant's shut-down."""
+    skipped the plant's shut-down. The controller starts with the signal
+    ignored, as it is in a background job of a non-interactive shell (a CI
+    runner): Python then installs no KeyboardInterrupt handler of its own, and
+    before, SIGINT let the run finish and exit 0."""
     out = tmp_path / "run"
-    proc, plant = _start_then_wait_for_an_interval(out, str(scenarios / "single.toml"))
+    proc, plant = _start_then_wait_for_an_interval(out, str(scenarios / "single.toml"),
+                                                   ignoring=(sig,))
     try:
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=60)

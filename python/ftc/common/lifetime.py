@@ -35,7 +35,7 @@ def die_with_parent(then: Callable[[], None] | None = None) -> Callable[[], None
 
 
 class Stopped(BaseException):
-    """A stop signal (SIGTERM, SIGHUP) raised in the main thread, so every
+    """A stop signal (SIGINT, SIGTERM, SIGHUP) raised in the main thread, so every
     ``finally`` runs: the plant is shut down, an atomic write cut short removes
     its temporary file. A BaseException, as KeyboardInterrupt is, so no
     ``except Exception`` on the way swallows it."""
@@ -45,7 +45,11 @@ class Stopped(BaseException):
         self.signum = signum
 
 
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+# SIGINT is here too, not left to Python's KeyboardInterrupt: a process started
+# with SIGINT ignored (a background job of a non-interactive shell, as a CI
+# runner may start the tests) keeps it ignored, and Python installs no handler,
+# so a Ctrl-C or `kill -INT` would let the run go on to its end and exit 0.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def _stop(signum: int, frame: object) -> None:
@@ -56,7 +60,7 @@ def _stop(signum: int, frame: object) -> None:
 
 @contextlib.contextmanager
 def stop_signals() -> Iterator[None]:
-    """SIGTERM and SIGHUP raise :class:`Stopped` in the block (main thread only;
+    """SIGINT, SIGTERM and SIGHUP raise :class:`Stopped` in the block (main thread only;
     elsewhere a no-op); the previous handlers are restored after it."""
     handlers = {}
     if threading.current_thread() is threading.main_thread():
