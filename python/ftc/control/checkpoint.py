@@ -53,7 +53,8 @@ def read(path: Path) -> dict[str, Any]:
     raises CheckpointError saying why not."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint (the run stopped before its first "
-                              "interval finished; start it again without --resume)")
+                              "interval finished: nothing to resume; start it again with "
+                              "--overwrite in place of --resume)")
     try:
         state = torch.load(path, weights_only=True)
     except Exception as e:  # noqa: BLE001 - any failure to read means corrupt

@@ -22,8 +22,9 @@ MAX_STEPS_PER_INTERVAL = 10_000_000
 class RunConfig:
     """Options of every interval run (the controller's and the MPC's)."""
 
-    scenario: str | None = field(default="scenarios/single.toml", metadata={"help": (
-        "fault scenario TOML given to the plant (empty string: nominal plant)")})
+    scenario: str | None = field(default="single", metadata={"help": (
+        "fault scenario given to the plant: a packaged one's name (single, "
+        "multiple, nominal, abrupt) or a TOML file (empty string: nominal plant)")})
     seed: int = field(default=0, metadata={"check": at_least(0, 2**31 - 1), "help": (
         "seeds the policy, the world model, model rollouts and the random baseline")})
     out: str = field(default="runs/controller", metadata={"help": "output directory"})
