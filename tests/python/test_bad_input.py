@@ -9,8 +9,11 @@ a bound printed in %g. Runs are in process on the C++ core (--link core),
 from __future__ import annotations
 
 import csv
+import os
 import shutil
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +24,7 @@ from ftc.control import plugin_cli
 from ftc.control.cli import run_or_report
 from ftc.control.runner import replacement
 
+REPO = Path(__file__).resolve().parents[2]
 SHORT = ["--link", "core", "--intervals", "2", "--steps-per-interval", "16", "--quiet"]
 
 # A plug-in whose act answers well until (interval, step) = AT, then with BAD[kind].
@@ -136,6 +140,44 @@ def test_a_run_killed_before_its_first_interval_gets_advice_that_goes_on(
         assert "nothing to resume; start it again with --overwrite" in err, err
         assert _plugin([*args, "--out", str(out), "--overwrite"], capsys)[0] == 0
         assert (out / "done.json").is_file() and not (out / ".replaced").exists()
+
+
+def test_a_real_sigkill_of_an_overwrite_before_its_first_interval_then_the_advice(
+        plugin_module, tmp_path, capsys):
+    """The state above made by a real SIGKILL: an --overwrite of a finished run,
+    killed while its first (long) interval runs; --resume refuses, and the
+    --overwrite it advises runs."""
+    module = plugin_module((-1, -1))
+    out = tmp_path / "run"
+    args = ["--agent", f"{module}:good", "--link", "core", "--quiet"]
+    assert _plugin([*args, "--intervals", "1", "--steps-per-interval", "16", "--out", str(out)],
+                   capsys)[0] == 0
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(tmp_path), str(REPO / "python"), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen([sys.executable, "-m", "ftc.plugin", *args, "--intervals", "1",
+                             "--steps-per-interval", "10000000", "--out", str(out),
+                             "--overwrite"], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not ((out / ".replaced").is_dir() and (out / "config.json").is_file()):
+            assert proc.poll() is None and time.monotonic() < deadline, "never started"
+            time.sleep(0.05)
+        time.sleep(0.5)  # in its first interval
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not (out / "checkpoint.pt").exists() and (out / ".replaced").is_dir()
+    assert plugin_cli.main(["--resume", str(out), "--quiet"]) == EXIT_USAGE
+    assert "start it again with --overwrite" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        plugin_cli.main([*args, "--intervals", "1", "--steps-per-interval", "16", "--out",
+                         str(out)])
+    err = capsys.readouterr().err
+    assert "--overwrite starts it again" in err and "--resume" not in err, err
+    assert _plugin([*args, "--intervals", "1", "--steps-per-interval", "16", "--out", str(out),
+                    "--overwrite"], capsys)[0] == 0
+    assert (out / "done.json").is_file() and not (out / ".replaced").exists()
 
 
 def test_a_stop_inside_interval_0_does_not_offer_to_resume_an_empty_directory(tmp_path, capsys):
