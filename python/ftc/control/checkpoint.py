@@ -23,7 +23,7 @@ import torch
 from ftc.common.atomic import atomic_torch_save
 from ftc.common.errors import CheckpointError, NonFiniteError
 from ftc.control import registry
-from ftc.control.config import EXTENSIBLE_FIELDS, RUN_LOCAL_FIELDS
+from ftc.control.config import EXTENSIBLE_FIELDS, run_local_fields
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
@@ -37,8 +37,9 @@ def config_stamp(configs: dict[str, Any]) -> dict[str, dict[str, Any]]:
     raise (its intervals), as plain JSON values."""
     stamp = {}
     for part, cfg in configs.items():
+        local = run_local_fields(cfg)
         values = {k: v for k, v in dataclasses.asdict(cfg).items()
-                  if k not in RUN_LOCAL_FIELDS and k not in EXTENSIBLE_FIELDS}
+                  if k not in local and k not in EXTENSIBLE_FIELDS}
         stamp[part] = json.loads(json.dumps(values, default=str))
     return stamp
 

@@ -20,7 +20,7 @@ from ftc.common.paths import scenario_file
 from ftc.common.replacing import STASH
 from ftc.common.run_lock import InUse, check_free
 from ftc.control import registry
-from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RUN_LOCAL_FIELDS, RunConfig
+from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RunConfig, run_local_fields
 from ftc.control.runner import held_advice, replacement
 
 # RunConfig's fields before and after the tool's own in --help
@@ -160,10 +160,11 @@ def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
                      "directory (give only --resume)")
     for part, (cfg, prefix) in given.items():
         run = stored[part]
+        local = run_local_fields(run)
         for f in fields(run):
             value, theirs = getattr(cfg, f.name), getattr(run, f.name)
             dest = prefix.replace("-", "_") + f.name
-            if f.name in RUN_LOCAL_FIELDS:
+            if f.name in local:
                 setattr(run, f.name, value)
             elif dest not in named or value == theirs or _same_file(f.name, value, theirs):
                 continue

@@ -84,7 +84,8 @@ class MPCConfig(RunConfig):
         "rounding differs (docs/benchmarks.md)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
         "model-mpc: nominal random-valve episodes for world-model pretraining (paper: 50)")})
-    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
+    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={
+        "run_local": True, "help": (
         "model-mpc: directory of pretrained world models keyed by a hash of everything "
         "pretraining depends on (episodes, seed, model config, code); a hit skips the "
         "pretraining with the same weights ('' disables)")})
