@@ -1,7 +1,7 @@
 """The commands of the documentation, as the tests run them.
 
-Every fenced ``bash`` block of README.md and docs/*.md is preceded by a mark
-saying how it is kept honest:
+Every fenced ``bash`` and ``python`` block of README.md and docs/*.md is
+preceded by a mark saying how it is kept honest:
 
     <!-- commands: run -->            tests/python/test_doc_commands.py runs each
                                       command in the checkout, as written
@@ -13,8 +13,9 @@ saying how it is kept honest:
                                       tiers, or it needs a second terminal); the
                                       named test runs a shorter equivalent
 
-A command is a line of the block, with ``\\``-continued lines joined; comment
-lines and blank lines are none.
+A command is a line of a ``bash`` block, with ``\\``-continued lines joined
+(comment lines and blank lines are none), or a whole ``python`` block, run
+as ``.venv/bin/python -`` with the block on its standard input.
 """
 
 from __future__ import annotations
@@ -26,18 +27,24 @@ REPO = Path(__file__).resolve().parents[2]
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 KINDS = ("run", "install", "illustration")
 
-_BLOCK = re.compile(r"(?:^<!-- commands: (?P<mark>[^>]*?) -->\n)?^```bash\n(?P<body>.*?)^```",
-                    re.S | re.M)
+_BLOCK = re.compile(r"(?:^<!-- commands: (?P<mark>[^>]*?) -->\n)?^```(?P<lang>bash|python)\n"
+                    r"(?P<body>.*?)^```", re.S | re.M)
 _TESTED_BY = re.compile(r"^illustration; tested by (?P<test>tests/python/\S+\.py::\w+)$")
 
 
 def blocks(text: str) -> list[tuple[str | None, str]]:
-    """(mark or None, body) of every ``bash`` block of Markdown ``text``."""
-    return [(m.group("mark"), m.group("body")) for m in _BLOCK.finditer(text)]
+    """(mark or None, body as bash) of every ``bash`` and ``python`` block of
+    Markdown ``text`` (a python block as the command that runs it)."""
+    return [(m.group("mark"), m.group("body") if m.group("lang") == "bash" else
+             f".venv/bin/python - <<'PYTHON'\n{m.group('body')}PYTHON\n")
+            for m in _BLOCK.finditer(text)]
 
 
 def commands(body: str) -> list[str]:
-    """The commands of a block: continued lines joined, comments and blanks dropped."""
+    """The commands of a block: continued lines joined, comments and blanks
+    dropped; a python block's (a here-document) is one."""
+    if body.startswith(".venv/bin/python - <<'PYTHON'\n"):
+        return [body]
     joined = re.sub(r"\s*\\\n\s*", " ", body)
     return [line.strip() for line in joined.splitlines()
             if line.strip() and not line.strip().startswith("#")]

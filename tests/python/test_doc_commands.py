@@ -35,6 +35,9 @@ def test_the_marks_are_read_and_a_wrong_one_is_found():
         and mark_problem("illustration; tested by tests/python/test_docs.py::no_such_test")
     assert mark_problem("illustration; tested by tests/python/test_docs.py::"
                         "test_history_is_found") is None
+    (mark, body), = blocks("<!-- commands: run -->\n```python\nprint('a \\\\ b')\n```\n")
+    assert mark == "run" and commands(body) == [
+        ".venv/bin/python - <<'PYTHON'\nprint('a \\\\ b')\nPYTHON\n"]
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=_rel)
