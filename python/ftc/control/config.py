@@ -4,7 +4,9 @@ controller's and the MPC's configs extend :class:`RunConfig`."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 from ftc.common.cli import Check, at_least, positive
 from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX
@@ -22,8 +24,9 @@ MAX_STEPS_PER_INTERVAL = 10_000_000
 class RunConfig:
     """Options of every interval run (the controller's and the MPC's)."""
 
-    scenario: str | None = field(default="scenarios/single.toml", metadata={"help": (
-        "fault scenario TOML given to the plant (empty string: nominal plant)")})
+    scenario: str | None = field(default="single", metadata={"help": (
+        "fault scenario given to the plant: a packaged one's name (single, "
+        "multiple, nominal, abrupt) or a TOML file (empty string: nominal plant)")})
     seed: int = field(default=0, metadata={"check": at_least(0, 2**31 - 1), "help": (
         "seeds the policy, the world model, model rollouts and the random baseline")})
     out: str = field(default="runs/controller", metadata={"help": "output directory"})
@@ -114,13 +117,20 @@ class RunConfig:
                           give_up_timeout=self.link_give_up_timeout, backoff=self.link_backoff)
 
 
-# Fields that do not change a run's results: a checkpoint written under other
-# values of these may be resumed (everything else must match), and a resumed
-# run takes them from its own command line.
+# RunConfig's fields that do not change a run's results: a checkpoint written
+# under other values of these may be resumed (everything else must match), and
+# a resumed run takes them from its own command line. A subclass or another
+# config part marks its own such fields with metadata {"run_local": True}.
 RUN_LOCAL_FIELDS = ("out", "resume", "overwrite", "lcm_url", "prefix", "attach", "allow_network",
-                    "realtime", "watchdog", "push_policy", "push_url",
-                    "quiet", "link_retry_timeout", "link_backoff", "link_give_up_timeout",
-                    "pretrain_cache", "tensorboard")
+                    "realtime", "watchdog", "quiet", "link_retry_timeout", "link_backoff",
+                    "link_give_up_timeout", "tensorboard")
+
+
+def run_local_fields(cfg: Any) -> frozenset[str]:
+    """The fields of config dataclass ``cfg`` that do not change results
+    (:data:`RUN_LOCAL_FIELDS` and those whose metadata says ``run_local``)."""
+    return frozenset(f.name for f in dataclasses.fields(cfg)
+                     if f.name in RUN_LOCAL_FIELDS or f.metadata.get("run_local"))
 # Fields a resumed run may raise: more intervals extend it.
 EXTENSIBLE_FIELDS = ("intervals",)
 # The files that make a run directory hold a run (what --overwrite replaces).

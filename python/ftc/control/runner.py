@@ -29,6 +29,7 @@ interval and --resume continues from it.
 from __future__ import annotations
 
 import contextlib
+import csv
 import dataclasses
 import json
 import sys
@@ -99,8 +100,7 @@ def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
         if fresh:
             held = run_files_held(out)
             if held and not cfg.overwrite:
-                raise UsageError(f"{out} already holds a run ({held}): --resume {out} "
-                                 "continues it, --overwrite replaces it")
+                raise UsageError(held_advice(out, held))
             replacement(out).stash_old()
         try:
             yield
@@ -115,6 +115,37 @@ def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
             raise
     finally:
         lock.release()
+
+
+def held_advice(out: Path, held: str) -> str:
+    """Why a new run (no --overwrite, no --resume) refuses ``out``, which holds
+    ``held``, and the command that goes on: a run that never finished an
+    interval (one killed there, an --overwrite among them) has nothing to
+    resume, so --overwrite starts it again."""
+    if _checkpointed(out):
+        return f"{out} already holds a run ({held}): --resume {out} continues it, " \
+               "--overwrite replaces it"
+    return (f"{out} holds a run that stopped before its first interval finished ({held}): "
+            "nothing to resume; --overwrite starts it again")
+
+
+def settle_metrics(path: Path, rows: list[dict[str, Any]], columns: list[str],
+                   tool: str) -> None:
+    """A finished run's metrics.csv made its checkpoint's ``rows`` again where
+    they disagree (a stray or a missing row), saying so: the checkpoint is
+    what the run did. The file's own header is kept (a real-time run's columns)."""
+    try:
+        with open(path, newline="") as f:
+            table = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        table = []
+    header = table[0] if table and table[0][:1] == ["interval"] else columns
+    if [r[:1] for r in table[1:]] == [[str(row["interval"])] for row in rows]:
+        return
+    atomic_write_csv(path, header, [[format_cell(row.get(c)) for c in header] for row in rows],
+                     lineterminator="\n")
+    print(f"{tool}: {path} did not match the run's checkpoint ({max(len(table) - 1, 0)} rows "
+          f"for {len(rows)} intervals): rewritten from the checkpoint", flush=True)
 
 
 def run_files_held(out: Path) -> str | None:
@@ -185,6 +216,7 @@ class IntervalRunner:
             if cfg.resume:
                 self.restore()
                 if self.interval >= cfg.intervals:
+                    settle_metrics(self.out / "metrics.csv", self.rows, self.columns, self.tool)
                     print(f"{self.tool}: {self.out} has finished its {self.interval} intervals; "
                           f"nothing to do (--intervals N above {self.interval} extends it)",
                           flush=True)

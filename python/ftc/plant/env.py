@@ -27,16 +27,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ftc import PACKAGE_DIR, REPO_ROOT
 from ftc.common.constants import NUM_TANKS
+from ftc.common.paths import scenario_file
 from ftc.plant.lcm_link import launch
 from ftc.plant.link import CorePlant, PlantLink, PlantObservation
 from ftc.plant.render import draw_plant
 from ftc.plant.reward import reward_terms
+from ftc.plant.valves import checked_valves
 
-# the checkout's scenarios/, or the copy installed with the package
-SCENARIO_DIR = next((d for d in (REPO_ROOT / "scenarios", PACKAGE_DIR / "scenarios")
-                     if d.is_dir()), REPO_ROOT / "scenarios")
 LINKS = ("lcm", "core")
 MAX_SEED = 2**64  # the plant's --seed and the core's seed are uint64
 
@@ -55,14 +53,11 @@ def resolve_scenario(scenario: str | os.PathLike | None) -> str | None:
         raise TypeError(f"FuelTransferEnv: scenario must be a path, a scenario name or None, "
                         f"got {type(scenario).__name__}")
     text = os.fspath(scenario)
-    if isinstance(scenario, str) and os.sep not in text and not text.endswith(".toml"):
-        path = SCENARIO_DIR / f"{text}.toml"
-        if not path.is_file():
-            known = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
-            raise ValueError(f"FuelTransferEnv: unknown scenario name {text!r} (not a file "
-                             f"in {SCENARIO_DIR}; known: {', '.join(known)}); "
-                             "or give the path of a .toml file")
-        return str(path)
+    if isinstance(scenario, str):
+        try:
+            text = scenario_file(text)
+        except ValueError as e:
+            raise ValueError(f"FuelTransferEnv: {e}; or give the path of a .toml file") from None
     path = Path(text)
     if not path.is_file():
         raise FileNotFoundError(f"FuelTransferEnv: scenario file not found: {text} "
@@ -170,7 +165,7 @@ class FuelTransferEnv(gym.Env):
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._link is None:
             raise gym.error.ResetNeeded("FuelTransferEnv: call reset() before step()")
-        u = np.asarray(action, dtype=np.int8)
+        u = checked_valves(action, "FuelTransferEnv.step")
         o = self._link.step(u)
         self._last = (o, u.copy())
         info = self._info(o, u)
