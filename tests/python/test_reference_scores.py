@@ -120,3 +120,21 @@ def test_a_file_that_does_not_apply_is_refused_in_one_line(tmp_path, capsys, cha
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not out.exists()
+
+
+def test_the_install_writes_the_digest_the_checkout_computes(tmp_path):
+    # an installed package has no C++ sources: its install (CMakeLists.txt, SKBUILD)
+    # runs cpp/cmake/native_sources.cmake, which must agree with Python's digest,
+    # on the checkout and on a copy with one byte changed
+    root = _copy_plant(tmp_path)
+    header = root / "cpp" / "plant" / "core" / "plant.h"
+    body = bytearray(header.read_bytes())
+    body[100] ^= 1
+    header.write_bytes(bytes(body))
+    for checkout in (REPO, root):
+        out = tmp_path / f"{checkout.name}.sha256"
+        subprocess.run(["cmake", f"-DFTC_SOURCE_DIR={checkout}", f"-DFTC_DIGEST_OUT={out}",
+                        "-P", str(REPO / "cpp" / "cmake" / "native_sources.cmake")], check=True)
+        assert out.read_text().strip() == reference_scores.native_source_digest(checkout)
+    assert (tmp_path / "checkout.sha256").read_text() != \
+        (tmp_path / f"{REPO.name}.sha256").read_text()
