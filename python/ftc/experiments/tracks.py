@@ -5,8 +5,9 @@ The axis is read from the scenario as the plant parses it, the first that holds:
 
 * ``sensor noise``: the published levels carry noise (``[noise] std > 0``);
 * ``continuous wear``: the components age continuously, not once per interval;
+* ``abrupt fault``: an event changes a degradation factor mid-run (whatever
+  else happens with it);
 * ``stuck valve``: an event sticks a valve;
-* ``abrupt fault``: an event changes a degradation factor mid-run;
 * ``dead pump``: a tank's pump reaches zero capacity within the run (its factor
   D_T at most the last interval's age: p(a) = p0 max(0, 1 - a / D_T));
 * ``incipient degradation``: none of those, the paper's gradual wear.
@@ -53,10 +54,10 @@ def axis(path: Path, intervals: int) -> str:
         return "sensor noise"
     if sc.mode == "continuous":
         return "continuous wear"
-    if any("stuck_valve" in e for e in events):
-        return "stuck valve"
     if any("factor" in e for e in events):
         return "abrupt fault"
+    if any("stuck_valve" in e for e in events):
+        return "stuck valve"
     if any(math.isfinite(f) and f <= intervals - 1 for f in sc.tank_factor):
         return "dead pump"
     return "incipient degradation"
