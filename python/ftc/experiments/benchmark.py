@@ -25,7 +25,9 @@ Run directory (--out):
   results.csv, results.json  every finished run's per-interval metrics, with the
                         reference's and closed's reward per step and the normalized score
   fractions.csv         reward per step as a fraction of the oracle's, per cell
-  figures/benchmark_score.png, report.md, report.html
+  aggregates.csv, tracks.csv  the per-run score's IQM, mean, median and optimality gap
+                        with 95% intervals, overall and per track (score_tables)
+  figures/benchmark_score.png, figures/benchmark_profile.png, report.md, report.html
 """
 
 from __future__ import annotations

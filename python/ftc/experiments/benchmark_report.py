@@ -21,7 +21,10 @@ reward per step experienced in that interval, r:
   fraction. Computed here, once, into fractions.csv.
 
 The figure and report.md / report.html read results.csv and fractions.csv;
-the report counts the cells without a score or a fraction.
+the report counts the cells without a score or a fraction. The report leads with
+the per-run score's aggregates and their intervals (score_tables: a run is
+normalized over its intervals, which no single cell can carry), the per-cell
+tables follow.
 """
 
 from __future__ import annotations

@@ -27,9 +27,15 @@ independent); for every method that several directories hold (the first
 directory's entry against the others) and, with ``--against ENTRY``, every
 entry against that one.
 
-Writes into --out: compare.md and compare.html (the tables and the figure),
+Aggregates and chances: each entry's IQM, mean, median and optimality gap of the
+per-run score with 95% stratified-bootstrap intervals (aggregates.csv), and the
+probability of improvement P(X > Y) with its interval between every pair of
+entries (improvement.csv; ftc.experiments.improvement), printed for the pairs above.
+
+Writes into --out: compare.md and compare.html (the tables and the figures),
 results.csv (the merged cells, with each entry's name), entries.csv (the summary
-per entry), paired.csv, figures/benchmark_score.png. Exit 0; 2 bad input.
+per entry), paired.csv, aggregates.csv, improvement.csv, figures/benchmark_score.png,
+figures/benchmark_profile.png. Exit 0; 2 bad input.
 """
 
 from __future__ import annotations
