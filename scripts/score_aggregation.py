@@ -116,10 +116,9 @@ def table(measured: dict[str, dict], methods: list[str]) -> list[dict]:
         row = {"method": m}
         for a in AGGREGATES:
             key = measured[m][f"{a} worst drop"]
-            row[a] = f"{measured[m][a]:.3f}"
-            row[f"{a} rank"] = str(ranks[a][m])
-            row[f"{a} max move"] = f"{measured[m][f'{a} max move']:.3f}"
-            row[f"{a} moved by"] = "" if key is None else f"{key[0]} s{key[1]} i{key[2]}"
+            row[f"{a} (rank)"] = f"{measured[m][a]:.3f} ({ranks[a][m]})"
+            row[f"{a}: largest move"] = f"{measured[m][f'{a} max move']:.3f}" + (
+                "" if key is None else f" ({key[0]} s{key[1]} i{key[2]})")
         out.append(row)
     return out
 
@@ -174,12 +173,13 @@ def main(argv: list[str] | None = None) -> int:
         head.write(f"# date: {info.get('created', '?')[:10]}\n")
     write_result_file(args.out, head.getvalue(), table(measured, methods))
     if args.worst_out:
-        write_result_file(args.worst_out, head.getvalue().replace(
-            "aggregated five ways", f"of {args.worst} per cell (mean over seeds) and per run"),
-            worst_table(rows_all := br.normalized_scores(
-                [{**r, "reward_per_step": br._num(r["reward_per_step"])} for r in raw],
-                args.reference), args.worst, methods, intervals))
-        del rows_all
+        every = br.normalized_scores([{**r, "reward_per_step": br._num(r["reward_per_step"])}
+                                      for r in raw], args.reference)
+        what = (f"# what: {args.worst}, {len(seeds)} seeds, normalized score against "
+                f"{args.reference} and closed per cell (interval 1-{intervals - 1}, mean over "
+                "seeds) and per run (intervals 1 on summed, mean over seeds)\n")
+        write_result_file(args.worst_out, what + head.getvalue().split("\n", 1)[1],
+                          worst_table(every, args.worst, methods, intervals))
     print(f"score_aggregation: {len(methods)} methods, {len(rows)} cells -> {args.out}")
     return 0
 

@@ -165,6 +165,10 @@ def from_benchmark(run_dir: Path, out: Path) -> dict:
         text = (run_dir / "scenarios" / f"{stem}.toml").read_text()
         sc["sha256"] = hashlib.sha256(text.encode()).hexdigest()
         for m in METHODS:
+            missing = [s for s in config["seeds"] if str(s) not in sc["rewards"][m]]
+            if missing:
+                raise ReferenceScoresError(f"{run_dir}: no {m} run in {stem}, seed "
+                                           f"{missing[0]}")
             for seed, per in list(sc["rewards"][m].items()):
                 if sorted(per) != list(range(int(config["intervals"]))):
                     raise ReferenceScoresError(f"{run_dir}: {m} in {stem}, seed {seed}, has "
