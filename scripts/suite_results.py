@@ -114,9 +114,7 @@ def interval_files(rows: list[dict], reference: str, labels: dict[str, str],
                                    for r in rows], reference)
     text = lambda r, n: stats.Estimate(r[n], r[f"{n} low"], r[f"{n} high"]).text()  # noqa
     if args.scores:
-        table = [{"method": r["method"], "label": f"`{r['method']}` "
-                  f"({labels.get(r['method'], r['method'])})",
-                  **{n: text(r, n) for n in stats.AGGREGATES},
+        table = [{"method": r["method"], **{n: text(r, n) for n in stats.AGGREGATES},
                   "runs": str(r["runs"]), "scenarios": str(r["scenarios"])}
                  for r in score_tables.aggregate_rows(scored, methods)]
         write_result_file(args.scores, provenance.replace(
