@@ -147,38 +147,49 @@ def rows(data: Mapping, scenarios: tuple[str, ...], seeds: tuple[int, ...]) -> l
     return out
 
 
-def from_benchmark(run_dir: Path, out: Path) -> dict:
-    """Write the reference-scores file of a finished benchmark directory that ran
-    ``reference`` and ``closed`` (its results.csv, scenario files and config); the
-    code key is this checkout's, so write it with the code that ran them."""
-    run_dir = Path(run_dir)
-    config = json.loads((run_dir / "benchmark.json").read_text())["config"]
+def from_benchmarks(run_dirs: Sequence[Path], out: Path) -> dict:
+    """Write the reference-scores file of finished benchmark directories that ran
+    ``reference`` and ``closed`` (their results.csv, scenario files and configs; a
+    scenario's rewards may come from several, its file must be the same in each);
+    only scenarios with every seed of both methods are written. The code key is
+    this checkout's, so write it with the code that ran them."""
     scenarios: dict = {}
-    with open(run_dir / "results.csv", newline="") as f:
-        for r in csv.DictReader(f):
-            if r["method"] not in METHODS:
-                continue
-            sc = scenarios.setdefault(r["scenario"], {"rewards": {m: {} for m in METHODS}})
-            sc["rewards"][r["method"]].setdefault(r["seed"], {})[int(r["interval"])] = \
-                float(r["reward_per_step"])
+    protocol, seeds = None, None
+    for run_dir in map(Path, run_dirs):
+        config = json.loads((run_dir / "benchmark.json").read_text())["config"]
+        mine = {k: config[k] for k in PROTOCOL}
+        if protocol not in (None, mine):
+            raise ReferenceScoresError(f"{run_dir}: protocol {mine}, not {protocol}")
+        protocol, seeds = mine, config["seeds"]
+        with open(run_dir / "results.csv", newline="") as f:
+            for r in csv.DictReader(f):
+                if r["method"] not in METHODS:
+                    continue
+                text = (run_dir / "scenarios" / f"{r['scenario']}.toml").read_text()
+                sha = hashlib.sha256(text.encode()).hexdigest()
+                sc = scenarios.setdefault(r["scenario"], {"sha256": sha, "rewards": {
+                    m: {} for m in METHODS}})
+                if sc["sha256"] != sha:
+                    raise ReferenceScoresError(f"{run_dir}: scenario {r['scenario']}'s file "
+                                               "differs from another directory's")
+                sc["rewards"][r["method"]].setdefault(r["seed"], {})[int(r["interval"])] = \
+                    float(r["reward_per_step"])
+    complete = {}
     for stem, sc in scenarios.items():
-        text = (run_dir / "scenarios" / f"{stem}.toml").read_text()
-        sc["sha256"] = hashlib.sha256(text.encode()).hexdigest()
+        if any(str(s) not in sc["rewards"][m] for m in METHODS for s in seeds):
+            continue
         for m in METHODS:
-            missing = [s for s in config["seeds"] if str(s) not in sc["rewards"][m]]
-            if missing:
-                raise ReferenceScoresError(f"{run_dir}: no {m} run in {stem}, seed "
-                                           f"{missing[0]}")
             for seed, per in list(sc["rewards"][m].items()):
-                if sorted(per) != list(range(int(config["intervals"]))):
-                    raise ReferenceScoresError(f"{run_dir}: {m} in {stem}, seed {seed}, has "
-                                               "not every interval")
+                if sorted(per) != list(range(int(protocol["intervals"]))):
+                    raise ReferenceScoresError(f"{m} in {stem}, seed {seed}, has not every "
+                                               "interval")
                 sc["rewards"][m][seed] = [per[k] for k in sorted(per)]
+        complete[stem] = sc
+    if not complete:
+        raise ReferenceScoresError("no scenario has every seed of both methods")
     data = {"what": "reward per step of the reference and of all valves closed, per "
                     "scenario, seed (key) and interval (list position)",
-            "code": code_key(),
-            "protocol": {k: config[k] for k in PROTOCOL},
-            "scenarios": dict(sorted(scenarios.items()))}
+            "code": code_key(), "protocol": protocol, "scenarios": dict(sorted(complete.items()))}
     atomic_write_json(Path(out), data)
     return data
 
