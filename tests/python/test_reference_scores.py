@@ -138,3 +138,19 @@ def test_the_install_writes_the_digest_the_checkout_computes(tmp_path):
         assert out.read_text().strip() == reference_scores.native_source_digest(checkout)
     assert (tmp_path / "checkout.sha256").read_text() != \
         (tmp_path / f"{REPO.name}.sha256").read_text()
+
+
+def test_the_shipped_file_covers_the_default_suite_and_its_scenario_files():
+    from ftc.experiments.suite import default_suite
+
+    data = reference_scores.load(reference_scores.resolve(reference_scores.SHIPPED))
+    assert data["protocol"] == {"intervals": 10, "steps_per_interval": 512, "link": "core"}
+    for sc in default_suite():
+        entry = data["scenarios"][sc.name]
+        assert entry["sha256"] == hashlib.sha256(sc.toml(512).encode()).hexdigest()
+        for m in reference_scores.METHODS:
+            assert sorted(entry["rewards"][m]) == ["0", "1", "2"]
+            assert all(len(v) == 10 for v in entry["rewards"][m].values())
+        # the reference never earns less than closed over intervals 1-9
+        ref, closed = entry["rewards"]["reference"]["0"], entry["rewards"]["closed"]["0"]
+        assert sum(ref[1:]) > sum(closed[1:])

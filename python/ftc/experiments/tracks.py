@@ -16,7 +16,8 @@ The difficulty is measured: the share of the reference's reward over intervals
 1 on that all valves closed gives up, 1 - sum(closed) / sum(reference) (mean
 over seeds). Doing nothing costs little in an easy scenario and much in a hard
 one; the cut points (:class:`DifficultyConfig`) are the default suite's terciles
-of that share, measured on the shipped reference scores (docs/benchmarks.md).
+of that share (0.282 and 0.388), measured on the shipped reference scores
+(scenarios/reference/suite.json), rounded.
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ class DifficultyConfig:
     hard_from: at or above this share, hard
     """
 
-    medium_from: float = 0.10
-    hard_from: float = 0.17
+    medium_from: float = 0.28
+    hard_from: float = 0.39
 
 
 def axis(path: Path, intervals: int) -> str:
