@@ -103,17 +103,24 @@ def _methods(name: str, meta: dict[str, str], rows: list[dict[str, str]]) -> str
     from ftc.control import registry  # the one list of methods
 
     scores = {r["method"]: r for r in rows}
+    # the per-run score's IQM with its 95% interval, where NAME_scores.csv has it
+    # (scripts/suite_results.py --scores)
+    extra = RESULTS / f"{name}_scores.csv"
+    iqm = {r["method"]: r["IQM"] for r in read_results(extra)[1]} if extra.is_file() else {}
     methods = sorted((m for m in registry.METHODS.values() if m.compared and m.benchmark),
                      key=lambda m: registry.KNOWS.index(m.knows))  # stable: registry order
     lines = [f"{KINDS['methods'].capitalize()} `docs/results/{name}.csv` "
-             f"({meta.get('what', '')}, {meta.get('date', '?')}):", "",
-             "| method | what it is | knows | normalized score | fraction of oracle-mpc | "
-             "run it alone |", "|---|---|---|---|---|---|"]
+             f"({meta.get('what', '')}, {meta.get('date', '?')})"
+             + (f" and `docs/results/{extra.name}` (the per-run score's interquartile mean "
+                "over runs, its 95% stratified-bootstrap interval; empty: not measured yet)"
+                if iqm else "") + ":", "",
+             "| method | what it is | knows | score, IQM [95% CI] | per-cell mean score | "
+             "fraction of oracle-mpc | run it alone |", "|---|---|---|---|---|---|---|"]
     for m in methods:
         r = scores.get(m.name, {})
         command = " ".join([".venv/bin/python -m", m.tool, "--method", m.name,
                             *m.experiment_args, "--out", f"runs/{m.name}"])
-        lines.append(f"| `{m.name}` | {m.label} | {m.knows} | "
+        lines.append(f"| `{m.name}` | {m.label} | {m.knows} | {iqm.get(m.name, '')} | "
                      f"{r.get('normalized score', '')} | {r.get('fraction of the oracle', '')} | "
                      f"`{command}` |")
     return "\n".join(lines) + "\n"

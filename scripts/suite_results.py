@@ -102,6 +102,40 @@ def summary_rows(rows: list[dict], reference: str, labels: dict[str, str],
     return out
 
 
+def interval_files(rows: list[dict], reference: str, labels: dict[str, str],
+                   methods: list[str], intervals: int, args: argparse.Namespace,
+                   provenance: str) -> None:
+    """--scores and --tracks: the aggregates of the per-run score with their
+    intervals, and the IQM per track, of the merged cells."""
+    from ftc.experiments import score_tables, stats, tracks
+
+    scored = br.normalized_scores([{**r, "reward_per_step": br._num(r["reward_per_step"]),
+                                    "seed": int(r["seed"]), "interval": int(r["interval"])}
+                                   for r in rows], reference)
+    text = lambda r, n: stats.Estimate(r[n], r[f"{n} low"], r[f"{n} high"]).text()  # noqa
+    if args.scores:
+        table = [{"method": r["method"], **{n: text(r, n) for n in stats.AGGREGATES},
+                  "runs": str(r["runs"]), "scenarios": str(r["scenarios"])}
+                 for r in score_tables.aggregate_rows(scored, methods)]
+        write_result_file(args.scores, provenance.replace(
+            "normalized score against", "per-run normalized score (95% stratified-bootstrap "
+            "intervals) against"), table)
+        print(f"suite_results: {len(table)} methods -> {args.scores}")
+    if args.tracks:
+        stems = sorted({r["scenario"] for r in scored})
+        scenario_dir = args.dirs[0] / "scenarios"
+        members = tracks.members(tracks.label(scenario_dir, stems, scored, intervals))
+        found = score_tables.track_rows(scored, methods, members)
+        cells = {(r["track"], r["method"]): text(r, "IQM") for r in found}
+        table = [{"method": m, **{f"{t} ({len(s)})": cells.get((t, m), "")
+                                  for t, s in members.items()}}
+                 for m in methods if any(r["method"] == m for r in found)]
+        write_result_file(args.tracks, provenance.replace(
+            "normalized score against", "IQM of the per-run normalized score per track "
+            "(95% intervals) against"), table)
+        print(f"suite_results: {len(members)} tracks -> {args.tracks}")
+
+
 def _figure(rows: list[dict], reference: str, labels: dict[str, str], methods: list[str],
             intervals: int, path: Path) -> None:
     """The benchmark report's figure (benchmark_report.draw_figure) of the merged
@@ -131,6 +165,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="the result file to write (e.g. docs/results/suite.csv)")
     p.add_argument("--reference", help="the method whose normalized score is 1 (default: "
                                        "the first directory's --reference)")
+    p.add_argument("--scores", type=Path, help="also write each method's aggregates with "
+                   "their 95%% intervals (ftc.experiments.score_tables) into this result file "
+                   "(e.g. docs/results/suite_scores.csv)")
+    p.add_argument("--tracks", type=Path, help="also write each method's IQM per challenge "
+                   "track into this result file (e.g. docs/results/suite_tracks.csv)")
     p.add_argument("--figure", type=Path, help="also draw the benchmark's score figure of "
                    "the merged cells into this PNG (e.g. docs/figures/benchmark_score.png)")
     args = p.parse_args(argv)
@@ -161,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
         text.write(f"# date: {info.get('created', '?')[:10]}\n")
         text.write(f"# wall time: {info.get('wall_time_s', 0):.0f} s\n")
     write_result_file(args.out, text.getvalue(), table)
+    if args.scores or args.tracks:
+        interval_files(rows, reference, labels, methods, intervals, args, text.getvalue())
     print(f"suite_results: {len(table)} methods, {len(rows)} cells -> {args.out}")
     if args.figure:
         _figure(rows, reference, labels, methods, intervals, args.figure)

@@ -117,3 +117,34 @@ def test_directories_of_one_name_are_told_apart_by_their_paths(tmp_path):
     b = write_benchmark(tmp_path / "y" / "bench", runs)
     names = [n for n, _, _ in compare.entries([a, b], [compare.load(a)[1], compare.load(b)[1]])]
     assert f"closed@{a}" in names and f"closed@{b}" in names
+
+
+def test_compare_prints_the_probability_of_improvement_with_its_interval(tmp_path, capsys):
+    # score = mean over intervals 1-3 of r - 2 (REFERENCE - CLOSED = 1 there).
+    # Scenario s1: B's balance runs 0.8, 0.9, A's 0.1, 0.2: B beats A in every pair.
+    # Scenario s2: A's runs 0.5, 0.7, B's 0.6, 0.6: B wins 2 of 4 pairs -> 0.5.
+    # P(B > A) = (1 + 0.5) / 2 = 0.75. Resampled, s1 stays 1 and s2 is 1 (A drew
+    # 0.5, 0.5: 1 in 4), 0.5 (2 in 4) or 0 (0.7, 0.7: 1 in 4): the interval is [0.5, 1].
+    def run(score):
+        return [2.0] + [2.0 + score] * 3
+
+    def both(scores_s1, scores_s2):
+        return {**_runs({0: run(scores_s1[0]), 1: run(scores_s1[1])}, "s1"),
+                **_runs({0: run(scores_s2[0]), 1: run(scores_s2[1])}, "s2")}
+
+    fixed = {"reference": both((1.0, 1.0), (1.0, 1.0)), "closed": both((0.0, 0.0), (0.0, 0.0))}
+    a = write_benchmark(tmp_path / "A", {**fixed, "balance": both((0.1, 0.2), (0.5, 0.7))})
+    b = write_benchmark(tmp_path / "B", {**fixed, "balance": both((0.8, 0.9), (0.6, 0.6))})
+    out = tmp_path / "cmp"
+    assert compare.main([str(a), str(b), "--out", str(out)]) == 0
+    printed = [line for line in capsys.readouterr().out.splitlines() if "P(" in line]
+    assert printed == ["ftc.experiments compare: P(balance@B > balance@A) = 0.750 "
+                       "[0.500, 1.000] over 2 scenarios"]
+    found = {(r["entry"], r["against"]): r for r in _rows(out / "improvement.csv")}
+    assert float(found[("balance@A", "balance@B")]["probability"]) == pytest.approx(0.25)
+    # every pair of entries but the reference and closed: A's and B's balance
+    assert set(found) == {("balance@A", "balance@B"), ("balance@B", "balance@A")}
+    aggregates = {r["method"]: r for r in _rows(out / "aggregates.csv")}
+    # IQM of B's 4 runs 0.6, 0.6, 0.8, 0.9: trim one each side -> (0.6 + 0.8) / 2
+    assert float(aggregates["balance@B"]["IQM"]) == pytest.approx(0.7)
+    assert "Probability of improvement" in (out / "compare.md").read_text()

@@ -25,7 +25,9 @@ Run directory (--out):
   results.csv, results.json  every finished run's per-interval metrics, with the
                         reference's and closed's reward per step and the normalized score
   fractions.csv         reward per step as a fraction of the oracle's, per cell
-  figures/benchmark_score.png, report.md, report.html
+  aggregates.csv, tracks.csv  the per-run score's IQM, mean, median and optimality gap
+                        with 95% intervals, overall and per track (score_tables)
+  figures/benchmark_score.png, figures/benchmark_profile.png, report.md, report.html
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError, StorageError
 from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
-from ftc.experiments import benchmark_report, run_cache
+from ftc.experiments import benchmark_report, reference_scores, run_cache
 from ftc.experiments.method_args import PARSERS, method_args, untaken
 from ftc.experiments.methods import METHODS, resolve_methods
 from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
@@ -91,6 +93,7 @@ class BenchmarkConfig:
     run_timeout: seconds after which a run is killed and counted failed (0: never)
     nice: niceness added to each controller
     reference: the method whose normalized score is 1 (closed's is 0), in every cell
+    reference_scores: '' (the reference and closed run) or the file their rewards come from
     """
 
     scenarios: tuple[str, ...]
@@ -103,6 +106,7 @@ class BenchmarkConfig:
     run_timeout: float = 0.0
     nice: int = 5
     reference: str = REFERENCE
+    reference_scores: str = ""
 
     def run_config(self) -> ExperimentConfig:
         """What runs.execute_run reads of a run's settings."""
@@ -155,6 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"the method whose normalized score is 1 (default: {REFERENCE}); a "
                              "cheaper one makes a quick run. The fraction of the oracle is "
                              f"taken of {ORACLE} whenever it runs")
+    reference_scores.add_option(parser)
     parser.add_argument("--seeds", type=checked(int, SEED), nargs="+", default=None,
                         help="controller seeds; every scenario and method runs each "
                              "(default: 0 1 2)")
@@ -264,9 +269,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                          f"of scenario {stem} used; rename the file or choose another --out")
     methods = args.methods or (() if stored is not None else default_methods(base.reference))
     seeds = args.seeds or (() if stored is not None else (0, 1, 2))
+    base = reference_scores.from_args(parser, args, base, texts, seeds)
     config = dataclasses.replace(
         base, scenarios=tuple(dict.fromkeys((*base.scenarios, *texts))),
-        methods=tuple(dict.fromkeys((*base.methods, *methods, base.reference, CLOSED))),
+        methods=tuple(m for m in dict.fromkeys((*base.methods, *methods, base.reference, CLOSED))
+                      if not base.reference_scores or m not in (base.reference, CLOSED)),
         seeds=tuple(dict.fromkeys((*base.seeds, *(int(s) for s in seeds)))))
     problem = _run_options_problem(config, out)
     if problem:  # e.g. --steps-per-interval not a multiple of PPO's --update-every
@@ -333,6 +340,7 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
 
     for stem, (_, text) in texts.items():
         atomic_write_text(out / "scenarios" / f"{stem}.toml", text)
+    config = reference_scores.copy_into(out, config)
     meta_path = out / "benchmark.json"
     previous = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     scenarios = dict(previous.get("scenarios", {}))
@@ -343,7 +351,7 @@ def prepare_directory(out: Path, config: BenchmarkConfig,
                            "source": texts[stem][0] if stem in texts
                            else scenarios.get(stem, {}).get("source", "?")}
     atomic_write_json(meta_path, {
-        **provenance(config, config.methods, previous),
+        **provenance(config, (*config.methods, *reference_scores.given(config)), previous),
         "scenarios": scenarios,
         **{k: previous[k] for k in ("wall_time_s", "jobs", "executor") if k in previous},
     })
@@ -462,6 +470,7 @@ def collect_benchmark(out: Path) -> None:
                     row = {"scenario": stem, "method": method, "seed": seed, **m}
                     columns += [k for k in row if k not in columns]
                     rows.append(row)
+    rows += reference_scores.cells_of(out, config)  # with --reference-scores
     rows = benchmark_report.normalized_scores(rows, config.reference)
     atomic_write_csv(out / "results.csv", columns,
                      [["" if r.get(c) is None else r.get(c) for c in columns] for r in rows])

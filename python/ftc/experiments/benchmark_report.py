@@ -21,7 +21,10 @@ reward per step experienced in that interval, r:
   fraction. Computed here, once, into fractions.csv.
 
 The figure and report.md / report.html read results.csv and fractions.csv;
-the report counts the cells without a score or a fraction.
+the report counts the cells without a score or a fraction. The report leads with
+the per-run score's aggregates and their intervals (score_tables: a run is
+normalized over its intervals, which no single cell can carry), the per-cell
+tables follow.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import numpy as np
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_text
 from ftc.control.registry import canonical
-from ftc.experiments import figures
+from ftc.experiments import figures, score_tables
 from ftc.experiments.report import Block, to_html, to_markdown
 
 # the fraction's denominator (and the score's 1 in benchmarks recorded without a reference)
@@ -362,8 +365,10 @@ def build_blocks(run_dir: Path) -> list[Block]:
                                  "complete them with `--resume`."))
     fraction_summaries = summarise(fractions, methods)
     score_summaries = summarise(scores, methods, "normalized_score")
+    blocks += score_tables.score_blocks(run_dir, scores, methods, labels,
+                                        run_dir / "scenarios", n_int, (reference, CLOSED))
     blocks += [
-        Block("h2", "Normalized score"),
+        Block("h2", "Normalized score per cell"),
         Block("p", "In every scenario, seed and interval, a method's *normalized score* is "
                    "(r - closed) / (reference - closed), where r is its mean reward per step "
                    "experienced in that interval (`reward_per_step`, exploration included), "

@@ -27,9 +27,15 @@ independent); for every method that several directories hold (the first
 directory's entry against the others) and, with ``--against ENTRY``, every
 entry against that one.
 
-Writes into --out: compare.md and compare.html (the tables and the figure),
+Aggregates and chances: each entry's IQM, mean, median and optimality gap of the
+per-run score with 95% stratified-bootstrap intervals (aggregates.csv), and the
+probability of improvement P(X > Y) with its interval between every pair of
+entries (improvement.csv; ftc.experiments.improvement), printed for the pairs above.
+
+Writes into --out: compare.md and compare.html (the tables and the figures),
 results.csv (the merged cells, with each entry's name), entries.csv (the summary
-per entry), paired.csv, figures/benchmark_score.png. Exit 0; 2 bad input.
+per entry), paired.csv, aggregates.csv, improvement.csv, figures/benchmark_score.png,
+figures/benchmark_profile.png. Exit 0; 2 bad input.
 """
 
 from __future__ import annotations
@@ -49,6 +55,7 @@ from ftc.common.atomic import atomic_write_csv, atomic_write_text
 from ftc.common.cli import OneLineParser, out_dir_problem
 from ftc.control.registry import canonical
 from ftc.experiments import benchmark_report as br
+from ftc.experiments import improvement, score_tables
 from ftc.experiments.report import Block, to_html, to_markdown
 
 TOOL = "ftc.experiments compare"
@@ -150,10 +157,10 @@ def scored_rows(rows_by_dir: Sequence[list[dict]], names: list[tuple[str, int, s
             if r["method"] != method:
                 continue
             key = (r["scenario"], r["seed"], r["interval"])
-            o = find(oracle, i, key)
-            out.append({**r, "method": name,
-                        "normalized_score": br.normalized_score(
-                            r["reward_per_step"], find(ref, i, key), find(closed, i, key)),
+            o, b, c = find(oracle, i, key), find(ref, i, key), find(closed, i, key)
+            out.append({**r, "method": name, "reference_reward_per_step": b,
+                        "closed_reward_per_step": c,
+                        "normalized_score": br.normalized_score(r["reward_per_step"], b, c),
                         "fraction": (r["reward_per_step"] / o if o and o > 0
                                      and r["reward_per_step"] is not None else None)})
     return out
@@ -229,8 +236,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CompareError as e:
         args.parser.error(str(e))
     rows = scored_rows(rows_by_dir, names, reference)
-    write_report(Path(args.out), rows, names, reference, _pairs(names, args.against),
-                 int(configs[0]["intervals"]), args.dirs)
+    pairs = _pairs(names, args.against)
+    found = write_report(Path(args.out), rows, names, reference, pairs,
+                         int(configs[0]["intervals"]), args.dirs)
+    for line in improvement.lines(found, pairs):
+        print(f"{TOOL}: {line}")
     print(f"{TOOL}: {len(names)} entries from {len(args.dirs)} directories -> "
           f"{Path(args.out) / 'compare.md'}")
     return 0
@@ -238,7 +248,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def write_report(out: Path, rows: list[dict], names: list[tuple[str, int, str]],
                  reference: str, pairs: list[tuple[str, str]], intervals: int,
-                 dirs: Sequence[Path]) -> None:
+                 dirs: Sequence[Path]) -> list[dict]:
+    """compare.md / .html and the CSV files; returns the probabilities of improvement
+    (:func:`ftc.experiments.improvement.every_pair`)."""
     out.mkdir(parents=True, exist_ok=True)
     order = [n for n, _, _ in names]
     labels = {n: f"{m}, {dirs[i]}" for n, i, m in names}
@@ -267,7 +279,11 @@ def write_report(out: Path, rows: list[dict], names: list[tuple[str, int, str]],
     blocks = [Block("h1", "Benchmark comparison"),
               Block("p", f"{len(order)} entries from {', '.join(map(str, dirs))}; normalized "
                          f"score against {reference} and closed, fraction of {br.ORACLE}.")]
-    blocks += br.score_blocks(scores, fractions, labels, intervals)
+    hidden = [n for n, _, m in names if m in (reference, br.CLOSED)]
+    blocks += score_tables.score_blocks(out, rows, order, labels, None, intervals, hidden)
+    chances = improvement.every_pair(rows, [n for n in order if n not in hidden])
+    blocks += improvement.blocks(out, chances)
+    blocks += [Block("h2", "Per cell")] + br.score_blocks(scores, fractions, labels, intervals)
     if found:
         blocks += [Block("h2", "Paired differences"),
                    Block("p", "Normalized score of the entry minus the other's, on the cells "
@@ -282,6 +298,7 @@ def write_report(out: Path, rows: list[dict], names: list[tuple[str, int, str]],
                             path=str(figure.relative_to(out))))
     atomic_write_text(out / "compare.md", to_markdown(blocks))
     atomic_write_text(out / "compare.html", to_html(blocks, out))
+    return chances
 
 
 if __name__ == "__main__":

@@ -1,0 +1,15 @@
+# The digest of the plant's C++ sources, as ftc.experiments.reference_scores
+# computes it in a checkout (native_source_digest): SHA-256 of one line
+# "relative/path sha256" per file under cpp/plant, sorted by path. An installed
+# package has no sources, so its install writes the digest beside the package
+# (ftc/native_sources.sha256); shipped reference scores are keyed by it.
+#   cmake -DFTC_SOURCE_DIR=<checkout> -DFTC_DIGEST_OUT=<file> -P native_sources.cmake
+file(GLOB_RECURSE _files RELATIVE "${FTC_SOURCE_DIR}/cpp/plant" "${FTC_SOURCE_DIR}/cpp/plant/*")
+list(SORT _files)
+set(_lines "")
+foreach(_f IN LISTS _files)
+  file(SHA256 "${FTC_SOURCE_DIR}/cpp/plant/${_f}" _h)
+  string(APPEND _lines "${_f} ${_h}\n")
+endforeach()
+string(SHA256 _digest "${_lines}")
+file(WRITE "${FTC_DIGEST_OUT}" "${_digest}\n")
