@@ -6,6 +6,13 @@
 //   steps N deadline_misses M latency_p50_us A latency_p99_us B latency_max_us C
 // A deadline miss is a plant step taken without the command answering the
 // state before it (the next state's command_seq is older than that command).
+//
+// The node opens a control session of its own (OPEN with a random 64-bit id,
+// re-sent until the plant answers in it) and acts only on states of that
+// session whose seq is newer than the last, but not absurdly so (kMaxSeqJump):
+// one fake state cannot poison newest-wins or silence the node. Every buffer
+// is checked before decoding (plant/lcm/wire.h); refused messages are counted
+// by cause, logged rate-limited, and summed up on stderr at exit.
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
@@ -17,17 +24,27 @@
 #include <iostream>
 #include <memory>
 #include <optional>
+#include <random>
 #include <vector>
 
+#include "ftc/plant_control_t.hpp"
 #include "ftc/plant_state_t.hpp"
 #include "ftc/policy_t.hpp"
 #include "ftc/valve_command_t.hpp"
+#include "plant/lcm/wire.h"
 #include "policy/policy.h"
 
 namespace {
 
 using Clock = std::chrono::steady_clock;
 constexpr std::int64_t kLoggedMisses = 10;  // the first misses are logged, then only counted
+// A state more than this ahead of the last one acted on is refused: the plant
+// publishes one per tick and LCM queues them, so a real gap is never this big.
+constexpr std::int64_t kMaxSeqJump = 1 << 16;
+// The OPEN is re-sent this often until answered, and again when no state of
+// the session came for kSessionLost (a restarted plant follows no session).
+constexpr auto kOpenRetry = std::chrono::milliseconds(250);
+constexpr auto kSessionLost = std::chrono::seconds(2);
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
@@ -37,18 +54,33 @@ std::int64_t WallMicros() {
       .count();
 }
 
+std::int64_t RandomSession() {
+  std::random_device rd;  // the kernel's entropy
+  std::int64_t id = 0;
+  while (id == 0)
+    id = static_cast<std::int64_t>((static_cast<std::uint64_t>(rd()) << 32) ^ rd());
+  return id;
+}
+
 class Node {
  public:
   Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy)
-      : lcm_(lcm), command_channel_(prefix + "COMMAND"), policy_(std::move(policy)) {
+      : lcm_(lcm),
+        command_channel_(prefix + "COMMAND"),
+        control_channel_(prefix + "CONTROL"),
+        policy_(std::move(policy)) {
     auto* state = lcm_->subscribe(prefix + "STATE", &Node::OnState, this);
-    state->setQueueCapacity(1000);
-    lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this);
+    state->setQueueCapacity(1000);  // ~250 kB of states
+    // a valid push is at most 1 MB (policy_t::MAX_PARAMS); LCM drops what
+    // arrives beyond 8 queued ones before the node sees it (bounded memory)
+    lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this)->setQueueCapacity(8);
   }
 
   // Waits up to timeout_ms for messages, takes every queued one, then acts on
   // the newest state if there is a new one. Returns false on an LCM error.
   bool Spin(int timeout_ms) {
+    const auto now = Clock::now();
+    if (!open_ || now - heard_ > kSessionLost) Open(now);
     if (lcm_->handleTimeout(timeout_ms) < 0) return false;
     while (lcm_->handleTimeout(0) > 0) {
     }
@@ -60,10 +92,66 @@ class Node {
   std::int64_t misses() const { return misses_; }
   std::int64_t watchdog_states() const { return watchdog_states_; }
   std::vector<double>& latencies_us() { return latencies_us_; }
+  std::string refused() const {
+    return "bad decode " + std::to_string(bad_decode_) + ", other session " +
+           std::to_string(other_session_) + ", stale " + std::to_string(stale_) +
+           ", seq jump " + std::to_string(jumps_);
+  }
+  std::int64_t refused_total() const { return bad_decode_ + other_session_ + stale_ + jumps_; }
 
  private:
-  void OnState(const lcm::ReceiveBuffer*, const std::string&, const ftc::plant_state_t* s) {
-    if (s->seq <= last_state_seq_ || s->num_tanks != ftc::policy::kTanks) return;
+  void Open(Clock::time_point now) {
+    if (open_) {  // the plant stopped answering in our session: open it again
+      open_ = false;
+      std::cerr << "policy_node: no state of session " << session_ << " for "
+                << std::chrono::duration_cast<std::chrono::seconds>(kSessionLost).count()
+                << " s; opening it again\n";
+    }
+    if (open_seq_ != 0 && now - opened_at_ < kOpenRetry) return;
+    if (open_seq_ == 0 || now - opened_at_ > kSessionLost) open_seq_ = ++seq_;
+    ftc::plant_control_t msg{};
+    msg.utime = WallMicros();
+    msg.session = session_;
+    msg.seq = open_seq_;
+    msg.command = ftc::plant_control_t::OPEN;
+    lcm_->publish(control_channel_, &msg);
+    opened_at_ = now;
+  }
+
+  void OnState(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftc::plant_state_t m{};
+    std::string why;
+    if (!ftc::wire::Decode(rbuf->data, rbuf->data_size, &m, &why)) {
+      ++bad_decode_;
+      log_.Refused("undecodable state on " + channel + ": " + why);
+      return;
+    }
+    const ftc::plant_state_t* s = &m;
+    if (s->session != session_) {
+      ++other_session_;
+      log_.Refused("ignored state " + std::to_string(s->seq) + " of session " +
+                   std::to_string(s->session) + " (ours: " + std::to_string(session_) + ")");
+      return;
+    }
+    if (!open_) {
+      if (s->command_seq != open_seq_) return;  // an answer to an earlier OPEN of ours
+      open_ = true;  // the answer to our OPEN: newest-wins starts from it
+      last_state_seq_ = s->seq - 1;
+      std::cerr << "policy_node: session " << session_ << " open\n";
+    }
+    if (s->seq <= last_state_seq_ || s->seq - last_state_seq_ > kMaxSeqJump) {
+      ++(s->seq <= last_state_seq_ ? stale_ : jumps_);
+      log_.Refused("ignored state " + std::to_string(s->seq) + ": the last was " +
+                   std::to_string(last_state_seq_));
+      return;
+    }
+    if (s->num_tanks != ftc::policy::kTanks) {
+      ++bad_decode_;
+      log_.Refused("ignored state " + std::to_string(s->seq) + ": num_tanks " +
+                   std::to_string(s->num_tanks));
+      return;
+    }
+    heard_ = Clock::now();
     if (last_sent_seq_ && s->command_seq < *last_sent_seq_) {
       if (++misses_ <= kLoggedMisses)
         std::cerr << "policy_node: deadline miss: the plant took step " << s->step
@@ -76,8 +164,16 @@ class Node {
     received_ = Clock::now();
   }
 
-  void OnPolicy(const lcm::ReceiveBuffer*, const std::string&, const ftc::policy_t* m) {
+  void OnPolicy(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftc::policy_t msg{};
     std::string why;
+    if (!ftc::wire::Decode(rbuf->data, rbuf->data_size, &msg, &why)) {
+      ++bad_decode_;
+      log_.Refused("rejected an undecodable push on " + channel + " (" +
+                   std::to_string(rbuf->data_size) + " bytes): " + why);
+      return;
+    }
+    const ftc::policy_t* m = &msg;
     std::vector<int> widths(m->widths.begin(), m->widths.end());
     std::vector<float> params(m->params.begin(), m->params.end());
     if (m->version <= policy_->version()) {
@@ -103,6 +199,7 @@ class Node {
     const auto u = policy_->Act(level);
     ftc::valve_command_t cmd{};
     cmd.utime = WallMicros();
+    cmd.session = session_;
     cmd.seq = ++seq_;
     cmd.state_seq = pending_->seq;
     cmd.num_valves = ftc::policy::kTanks;
@@ -116,16 +213,20 @@ class Node {
   }
 
   lcm::LCM* lcm_;
-  std::string command_channel_;
+  std::string command_channel_, control_channel_;
   std::unique_ptr<ftc::policy::Policy> policy_;
   std::optional<ftc::plant_state_t> pending_;
   Clock::time_point received_;
+  const std::int64_t session_ = RandomSession();
+  bool open_ = false;
+  std::int64_t open_seq_ = 0;  // seq of the OPEN being sent
+  Clock::time_point opened_at_, heard_;
   std::int64_t last_state_seq_ = 0;
   std::optional<std::int64_t> last_sent_seq_;
-  // Commands start above any seq a lockstep client of the same plant used: the
-  // wall clock in microseconds (the plant ignores a seq below its last one).
-  std::int64_t seq_ = WallMicros();
+  std::int64_t seq_ = 0;  // counts within the session
   std::int64_t steps_ = 0, misses_ = 0, watchdog_states_ = 0;
+  std::int64_t bad_decode_ = 0, other_session_ = 0, stale_ = 0, jumps_ = 0;
+  ftc::wire::RateLimitedLog log_{"policy_node"};
   std::vector<double> latencies_us_;
 };
 
@@ -197,6 +298,8 @@ int main(int argc, char** argv) {
               static_cast<long long>(node.steps()), static_cast<long long>(node.misses()),
               Percentile(lat, 0.50), Percentile(lat, 0.99),
               lat.empty() ? 0.0 : *std::max_element(lat.begin(), lat.end()));
+  if (node.refused_total())
+    std::cerr << "policy_node: refused messages: " << node.refused() << "\n";
   if (node.watchdog_states())
     std::cerr << "policy_node: " << node.watchdog_states()
               << " states with the plant's watchdog tripped\n";

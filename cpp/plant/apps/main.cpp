@@ -207,6 +207,11 @@ int main(int argc, char** argv) {
       ->transform(CLI::CheckedTransformer(safe, CLI::ignore_case).description("{hold,closed}"))
       ->transform(NameOf(safe))
       ->default_str("closed");
+  app.add_option("--session-timeout", options.node.session_timeout_s,
+                 "Seconds without a message of the followed control session after which "
+                 "another may open it (START/OPEN)")
+      ->check(Number("POSITIVE", 0.0, true, kMaxWatchdogS))
+      ->capture_default_str();
   app.add_option("--steps-per-interval", options.steps_per_interval,
                  "Override the scenario's control steps per degradation interval")
       ->check(Number("POSITIVE", 0.0, true, 2147483647.0));

@@ -43,6 +43,7 @@ void PlantNode::PublishState(std::int64_t command_seq) {
   auto msg = ToStateMessage(plant_->last(), ++state_seq_, command_seq, plant_->operating_steps(),
                             counters_);
   msg.watchdog_tripped = watchdog_tripped_;
+  msg.session = session_;
   if (options_.mode == RunMode::kRealtime) {
     msg.rate_hz = options_.rate_hz;
     msg.missed_ticks = missed_ticks_;
@@ -122,17 +123,23 @@ bool PlantNode::Admit(std::int64_t seq) {
 
 void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
   valve_command_t cmd{};
-  if (!DecodeMessage(rbuf->data, static_cast<int>(rbuf->data_size), &cmd)) {
-    ReportDecodeError(channel, rbuf->data_size);
+  std::string why;
+  if (!wire::Decode(rbuf->data, rbuf->data_size, &cmd, &why)) {
+    ReportDecodeError(channel, rbuf->data_size, why);
     return;
   }
+  if (session_ == 0 || cmd.session != session_) {
+    RefuseSession("command", cmd.session, cmd.seq);
+    return;
+  }
+  session_heard_ = now_();
   if (!Admit(cmd.seq)) return;
   Valves u;
   std::string reason;
   if (!ValvesFromCommand(cmd, &u, &reason)) {
     ++counters_.rejected_commands;
-    std::cerr << "plant: rejected command seq " << cmd.seq << " on " << channel << ": " << reason
-              << "\n";
+    refusals_.Refused("rejected command seq " + std::to_string(cmd.seq) + " on " + channel +
+                      ": " + reason);
     return;
   }
   answered_seq_ = cmd.seq;
@@ -148,16 +155,42 @@ void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& cha
 
 void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
   plant_control_t msg{};  // zeroed: GCC cannot see that decode fills it
-  if (!DecodeMessage(rbuf->data, static_cast<int>(rbuf->data_size), &msg)) {
-    ReportDecodeError(channel, rbuf->data_size);
+  std::string why;
+  if (!wire::Decode(rbuf->data, rbuf->data_size, &msg, &why)) {
+    ReportDecodeError(channel, rbuf->data_size, why);
     return;
   }
+  HandleControl(msg, channel);
+}
+
+bool PlantNode::SessionIdle() const {
+  return session_ == 0 || !session_heard_ ||
+         now_() - *session_heard_ > std::chrono::duration<double>(options_.session_timeout_s);
+}
+
+void PlantNode::HandleControl(const plant_control_t& msg, const std::string& channel) {
   if (msg.command == plant_control_t::HELLO) {
-    // A handshake is answered whatever its seq (so a new client can attach)
-    // and changes nothing, so a repeated HELLO is harmless.
+    // A handshake is answered whatever its session and seq (so a new client
+    // can attach) and changes nothing, so a repeated HELLO is harmless.
     PublishState(msg.seq);
     return;
   }
+  const bool opens = msg.command == plant_control_t::START || msg.command == plant_control_t::OPEN;
+  if (session_ == 0 || msg.session != session_) {
+    if (opens && msg.session != 0 && SessionIdle()) {
+      session_ = msg.session;  // a new session: its seq counts from here
+      answered_seq_ = 0;
+      fresh_command_ = false;
+      if (options_.verbose)
+        std::cerr << "plant: following session " << session_ << " (" << channel << ")\n";
+    } else if (!(msg.command == plant_control_t::SHUTDOWN && session_ == 0 && msg.session == 0)) {
+      // (a SHUTDOWN without a session is obeyed only while nobody is in control)
+      RefuseSession(std::string("control ") + std::to_string(static_cast<int>(msg.command)),
+                    msg.session, msg.seq);
+      return;
+    }
+  }
+  session_heard_ = now_();
   if (!Admit(msg.seq)) {
     // A control message sent again (its answer was lost): in real-time mode
     // too it gets one, the current state (lockstep's Admit re-sent it already).
@@ -174,11 +207,17 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
     case plant_control_t::SHUTDOWN:
       shutdown_ = true;
       break;
+    case plant_control_t::OPEN:
+    case plant_control_t::CLOSE:
+      break;
     case plant_control_t::START:
-      if (msg.operating_step < 0) {
+      // the command line's --start-step bound: the step counter and the age
+      // computed from it stay far from overflow
+      if (msg.operating_step < 0 || msg.operating_step > plant_control_t::MAX_OPERATING_STEP) {
         ++counters_.rejected_commands;
-        std::cerr << "plant: rejected START seq " << msg.seq << ": operating_step "
-                  << msg.operating_step << " is negative\n";
+        refusals_.Refused("rejected START seq " + std::to_string(msg.seq) + ": operating_step " +
+                          std::to_string(msg.operating_step) + " is outside 0.." +
+                          std::to_string(plant_control_t::MAX_OPERATING_STEP));
         return;
       }
       plant_->SetOperatingSteps(msg.operating_step);
@@ -186,20 +225,34 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
       break;
     default:
       ++counters_.rejected_commands;
-      std::cerr << "plant: rejected control seq " << msg.seq << ": unknown command "
-                << static_cast<int>(msg.command) << "\n";
+      refusals_.Refused("rejected control seq " + std::to_string(msg.seq) + ": unknown command " +
+                        std::to_string(static_cast<int>(msg.command)));
       return;
   }
   answered_seq_ = msg.seq;
   fresh_command_ = false;  // a new episode: its first step needs a command answering it
   PublishState();
+  if (msg.command == plant_control_t::CLOSE) {
+    session_ = 0;
+    session_heard_.reset();
+  }
 }
 
-void PlantNode::ReportDecodeError(const std::string& channel, std::uint32_t size) {
+void PlantNode::RefuseSession(const std::string& what, std::int64_t session, std::int64_t seq) {
+  ++counters_.other_session;
+  refusals_.Refused("refused " + what + " seq " + std::to_string(seq) + " of session " +
+                    std::to_string(session) + ": following " +
+                    (session_ == 0 ? std::string("no session (open one with START or OPEN)")
+                                   : "session " + std::to_string(session_)) +
+                    "; counted (" + std::to_string(counters_.other_session) + " so far)");
+}
+
+void PlantNode::ReportDecodeError(const std::string& channel, std::uint32_t size,
+                                  const std::string& why) {
   ++counters_.decode_errors;
-  std::cerr << "plant: undecodable message on " << channel << " (" << size
-            << " bytes): wrong type or corrupt; counted (" << counters_.decode_errors
-            << " so far)\n";
+  refusals_.Refused("undecodable message on " + channel + " (" + std::to_string(size) +
+                    " bytes): " + why + "; counted (" + std::to_string(counters_.decode_errors) +
+                    " so far)");
 }
 
 }  // namespace ftc

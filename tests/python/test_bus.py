@@ -1,0 +1,237 @@
+"""The bus against a hostile or careless neighbour (issue: no message from a
+neighbour can crash a node, corrupt a run or take the valves), with the real
+plant, policy node and lcm_echo processes on a private loopback port:
+
+* malformed messages (hostile array lengths, truncations, random bytes) are
+  counted and survived, and a process's memory stays bounded;
+* sessions: commands, START, RESET and SHUTDOWN of another session change
+  nothing (a lockstep run stays identical to an undisturbed one) and are
+  counted by the plant; forged states cannot stop or poison a receiver.
+"""
+
+from __future__ import annotations
+
+import random
+import re
+import struct
+import subprocess
+import time
+from pathlib import Path
+
+import lcm
+import numpy as np
+import pytest
+
+from ftc.common.build_info import plant_binary, policy_node_binary
+from ftc.plant import launch, private_lcm_url, private_prefix
+from ftc.plant.realtime_link import RealtimeLink
+from ftc.plant.wire import check_state
+from ftc.plant_control_t import plant_control_t
+from ftc.plant_state_t import plant_state_t
+from ftc.policy_t import policy_t
+from ftc.tools import policy_weights as pw
+from ftc.valve_command_t import valve_command_t
+
+REPO = Path(__file__).resolve().parents[2]
+# Peak resident memory a node may reach under the hostile messages below
+# (measured ~10 MB for the policy node; a 250M-param push used to take 982 MB).
+NODE_RSS_BOUND_MB = 64
+
+
+def _state(session: int = 0, seq: int = 1, tanks: int = 6) -> bytes:
+    s = plant_state_t()
+    s.session, s.seq, s.num_tanks, s.num_engines = session, seq, tanks, 2
+    s.level, s.true_level = [0.5] * tanks, [0.5] * tanks
+    s.valve, s.deficit = [1] * tanks, [0.0, 0.0]
+    return s.encode()
+
+
+def _policy_header(num_widths: int, num_params: int | None, size: int) -> bytes:
+    """A policy_t of `size` bytes declaring these counts (the rest zeros)."""
+    data = policy_t._get_packed_fingerprint() + struct.pack(">qqi", 0, 2, num_widths)
+    if num_params is not None:
+        data += struct.pack(">i", num_params)
+    return (data + bytes(size))[:size]
+
+
+def hostile_messages() -> dict[str, list[bytes]]:
+    """Channel suffix -> the issue's crashing messages and more garbage."""
+    negative_tanks = bytearray(_state())
+    negative_tanks[8 + 8 * 4 + 4 + 4 + 8 + 8] = 0xFF  # num_tanks = -1
+    rng = random.Random(7)
+    garbage = [bytes(rng.randrange(256) for _ in range(rng.randrange(0, 120)))
+               for _ in range(20)]
+    good_state = _state()
+    return {
+        "STATE": [bytes(negative_tanks), good_state[:-3], good_state + b"\0", *garbage],
+        # (no more than the node queues, 8: LCM drops a burst beyond that)
+        "POLICY": [_policy_header(-1, None, 64),                # std::length_error
+                   _policy_header(0x20000001, None, 36),        # int overflow, SIGSEGV
+                   _policy_header(0, 250_000_000, 40),          # 1 GB allocation
+                   *garbage[:5]],
+    }
+
+
+def _peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmHWM")
+
+
+def test_python_state_check_refuses_what_would_crash_a_decoder():
+    assert check_state(_state()) is None
+    bad = bytearray(_state())
+    bad[8 + 8 * 4 + 4 + 4 + 8 + 8] = 0xFF
+    assert "num_tanks -1" in check_state(bytes(bad))
+    assert "fingerprint" in check_state(_policy_header(0, 0, 40))
+    assert "bytes where" in check_state(_state()[:-1])
+    assert check_state(b"") is not None
+
+
+def test_the_policy_node_survives_hostile_messages_with_bounded_memory(tmp_path, scenarios):
+    url, prefix = private_lcm_url(), private_prefix()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, [6, 6], np.zeros(42, np.float32), version=1)
+    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                              "--mode", "realtime", "--rate", "50", "--lcm-url", url,
+                              "--prefix", prefix], stderr=subprocess.DEVNULL)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix, "--steps", "120"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    lc = lcm.LCM(url)
+    commands: list = []
+    lc.subscribe(prefix + "COMMAND",
+                 lambda _c, d: commands.append(valve_command_t.decode(d)))
+    try:
+        deadline = time.monotonic() + 20
+        while len(commands) < 10:
+            assert time.monotonic() < deadline, "no commands from the node"
+            lc.handle_timeout(50)
+        session = commands[-1].session
+        sent = hostile_messages()
+        for suffix, messages in sent.items():
+            for data in messages:
+                lc.publish(prefix + suffix, data)
+        # forged states in the node's own session: far ahead (would stop it for
+        # good) and far behind (would look like a restart)
+        lc.publish(prefix + "STATE", _state(session, 2**62))
+        lc.publish(prefix + "STATE", _state(session, 1))
+        lc.publish(prefix + "STATE", _state(session + 1, 10**9))  # another session
+        time.sleep(0.3)
+        assert node.poll() is None, node.communicate()
+        peak = _peak_rss_mb(node.pid)
+        out, err = node.communicate(timeout=30)
+    finally:
+        node.kill()
+        plant.kill()
+        plant.wait()
+    assert node.returncode == 0, err
+    assert re.match(r"^steps 120 deadline_misses \d+ ", out.strip()), out
+    bad = sum(len(v) for v in sent.values())
+    counts = re.search(r"refused messages: bad decode (\d+), other session (\d+), stale (\d+), "
+                       r"seq jump (\d+)", err)
+    assert counts, err
+    # every hostile buffer counted; the forged states too (the other session's
+    # count also holds the plant's states before the node's session opened)
+    assert int(counts.group(1)) == bad
+    assert int(counts.group(2)) >= 1 and int(counts.group(3)) >= 1
+    assert int(counts.group(4)) == 1
+    assert peak < NODE_RSS_BOUND_MB, f"peak RSS {peak:.0f} MB"
+
+
+def test_lcm_echo_survives_a_negative_valve_count():
+    from ftc.common.build_info import echo_binary
+
+    url, prefix = private_lcm_url(), private_prefix()
+    echo = subprocess.Popen([str(echo_binary()), "--lcm-url", url, "--prefix", prefix],
+                            stderr=subprocess.PIPE, text=True)
+    lc = lcm.LCM(url)
+    answers: list = []
+    lc.subscribe(prefix + "STATE", lambda _c, d: answers.append(plant_state_t.decode(d)))
+    try:
+        cmd = valve_command_t()
+        cmd.seq, cmd.num_valves, cmd.valve = 5, 6, [0] * 6
+        bad = bytearray(cmd.encode())
+        bad[8 + 8 * 4] = 0xFF  # num_valves = -1: lcm_echo aborted (exit 134)
+        deadline = time.monotonic() + 10
+        while not answers:  # until the echo is up and answers the valid command
+            assert time.monotonic() < deadline and echo.poll() is None
+            lc.publish(prefix + "COMMAND", bytes(bad))
+            lc.publish(prefix + "COMMAND", cmd.encode())
+            lc.handle_timeout(100)
+        assert answers[0].command_seq == 5 and echo.poll() is None
+    finally:
+        echo.terminate()
+        _, err = echo.communicate(timeout=5)
+    assert echo.returncode == 0
+    assert "num_valves is -1" in err
+
+
+def _foreign(lc, prefix: str, plant) -> int:
+    """A neighbour's traffic in another session: commands with the seq a
+    clock-based controller would use, START at INT64_MAX, RESET, SHUTDOWN,
+    CLOSE. Returns the number of messages sent."""
+    n = 0
+    for k in range(3):
+        cmd = valve_command_t()
+        cmd.session, cmd.seq = plant.session ^ 1, time.time_ns() // 1000 + k
+        cmd.num_valves, cmd.valve = 6, [1, 0, 1, 0, 1, 0]
+        lc.publish(plant.prefix + "COMMAND", cmd.encode())
+        n += 1
+    for command, step in ((plant_control_t.START, 2**63 - 1), (plant_control_t.RESET, 0),
+                          (plant_control_t.SHUTDOWN, 0), (plant_control_t.CLOSE, 0),
+                          (plant_control_t.OPEN, 0)):
+        for session in (0, 12345):
+            msg = plant_control_t()
+            msg.session, msg.seq, msg.command, msg.operating_step = session, 10**15, command, step
+            lc.publish(plant.prefix + "CONTROL", msg.encode())
+            n += 1
+    return n
+
+
+def _run(scenarios, disturb: bool) -> tuple[list, int]:
+    with launch(scenarios / "single.toml", 3, extra_args=["--steps-per-interval", "40"]) as plant:
+        lc = lcm.LCM(plant.url)
+        obs, sent = [plant.reset()], 0
+        rng = np.random.default_rng(0)
+        for t in range(30):
+            if disturb and t % 10 == 5:
+                sent += _foreign(lc, plant.prefix, plant)
+            obs.append(plant.step(rng.integers(0, 2, 6)))
+        plant.hello()
+        refused = int(plant.last_state.other_session)
+        assert plant.process.poll() is None  # no SHUTDOWN obeyed
+    assert refused == sent
+    return obs, sent
+
+
+def test_foreign_sessions_change_nothing_in_a_lockstep_run(scenarios):
+    undisturbed, _ = _run(scenarios, False)
+    disturbed, sent = _run(scenarios, True)
+    assert sent == 3 * 13
+    for a, b in zip(undisturbed, disturbed, strict=True):
+        assert np.array_equal(a.true_level, b.true_level) and a.step == b.step
+        assert a.operating_steps == b.operating_steps
+
+
+def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
+    link = launch(None, 0, extra_args=["--mode", "realtime", "--rate", "50"],
+                  link_class=RealtimeLink)
+    try:
+        link.control(link.START, 0)
+        lc = lcm.LCM(link.url)
+        states = link.next_states()
+        last = states[-1].seq
+        for seq in (2**62, 1, last):  # far ahead, behind, a repeat
+            lc.publish(link.prefix + "STATE", _state(link.session, seq))
+        lc.publish(link.prefix + "STATE", _state(0, last + 1))  # another session
+        lc.publish(link.prefix + "STATE", b"\x00" * 40)
+        got = []
+        while len(got) < 10:
+            got += link.next_states()
+        seqs = [s.seq for s in got]
+        assert seqs == list(range(last + 1, last + 1 + len(seqs)))  # the plant's, in order
+        assert link.refused == {"bad decode": 1, "other session": 1, "stale": 2, "seq jump": 1}
+    finally:
+        link.close()
