@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "ftc/plant_control_t.hpp"
+#include "ftc/policy_ack_t.hpp"
 #include "ftc/plant_state_t.hpp"
 #include "ftc/policy_t.hpp"
 #include "ftc/valve_command_t.hpp"
@@ -68,6 +69,7 @@ class Node {
       : lcm_(lcm),
         command_channel_(prefix + "COMMAND"),
         control_channel_(prefix + "CONTROL"),
+        ack_channel_(prefix + "POLICY_ACK"),
         policy_(std::move(policy)) {
     auto* state = lcm_->subscribe(prefix + "STATE", &Node::OnState, this);
     state->setQueueCapacity(1000);  // ~250 kB of states
@@ -169,8 +171,9 @@ class Node {
     std::string why;
     if (!ftc::wire::Decode(rbuf->data, rbuf->data_size, &msg, &why)) {
       ++bad_decode_;
-      log_.Refused("rejected an undecodable push on " + channel + " (" +
-                   std::to_string(rbuf->data_size) + " bytes): " + why);
+      why = "undecodable push (" + std::to_string(rbuf->data_size) + " bytes): " + why;
+      log_.Refused("rejected an " + why + " on " + channel);
+      Ack(0, 0, why);
       return;
     }
     const ftc::policy_t* m = &msg;
@@ -187,10 +190,26 @@ class Node {
     if (!next) {
       std::cerr << "policy_node: rejected policy version " << m->version << ": " << why
                 << "; keeping version " << policy_->version() << "\n";
+      Ack(m->version, m->utime, why);
       return;
     }
     policy_ = std::move(next);  // between two states: the next one is acted on by it
     std::cerr << "policy_node: policy version " << policy_->version() << " in use\n";
+    Ack(m->version, m->utime, "");
+  }
+
+  // Answers a push: accepted when `why` is empty.
+  void Ack(std::int64_t version, std::int64_t push_utime, std::string why) {
+    ftc::policy_ack_t ack{};
+    ack.utime = WallMicros();
+    ack.version = version;
+    ack.push_utime = push_utime;
+    ack.accepted = why.empty();
+    ack.running_version = policy_->version();
+    if (why.size() > static_cast<std::size_t>(ftc::policy_ack_t::MAX_REASON))
+      why.resize(static_cast<std::size_t>(ftc::policy_ack_t::MAX_REASON));
+    ack.reason = why;
+    lcm_->publish(ack_channel_, &ack);
   }
 
   void Act() {
@@ -213,7 +232,7 @@ class Node {
   }
 
   lcm::LCM* lcm_;
-  std::string command_channel_, control_channel_;
+  std::string command_channel_, control_channel_, ack_channel_;
   std::unique_ptr<ftc::policy::Policy> policy_;
   std::optional<ftc::plant_state_t> pending_;
   Clock::time_point received_;

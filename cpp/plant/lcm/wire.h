@@ -24,6 +24,7 @@
 #include <string>
 
 #include "ftc/plant_control_t.hpp"
+#include "ftc/policy_ack_t.hpp"
 #include "ftc/plant_state_t.hpp"
 #include "ftc/policy_t.hpp"
 #include "ftc/valve_command_t.hpp"
@@ -142,6 +143,16 @@ inline std::string Check(Reader* r, const policy_t*) {
   if (why.empty()) why = Array(r, "num_widths", 4, policy_t::MAX_WIDTHS, 4, &widths);
   if (why.empty()) why = Array(r, "num_params", 4, policy_t::MAX_PARAMS, 4, &params);
   if (why.empty()) why = Fixed(r, 8, "checksum");
+  return why.empty() ? End(*r) : why;
+}
+
+inline std::string Check(Reader* r, const policy_ack_t*) {
+  std::int64_t length = 0;
+  std::string why = CheckFingerprint<policy_ack_t>(r);
+  if (why.empty()) why = Fixed(r, 8 * 3 + 1 + 8, "utime..running_version");
+  // a string: int32 length counting its NUL, then the bytes
+  if (why.empty()) why = Array(r, "reason length", 4, policy_ack_t::MAX_REASON + 1, 1, &length);
+  if (why.empty() && length < 1) why = "reason length 0 (no NUL)";
   return why.empty() ? End(*r) : why;
 }
 

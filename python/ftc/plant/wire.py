@@ -49,3 +49,21 @@ def decode_state(data: bytes):
         return plant_state_t.decode(data), None
     except (ValueError, struct.error) as e:  # not expected after the check
         return None, f"the decoder refused it: {e}"
+
+
+def decode_ack(data: bytes):
+    """(policy_ack_t, None) or (None, the reason it was refused): the fixed
+    fields, then the reason string (int32 length with its NUL, at most
+    MAX_REASON bytes), nothing after it."""
+    from ftc.policy_ack_t import policy_ack_t
+
+    head = 8 + 8 * 3 + 1 + 8
+    if len(data) < head + 4 or data[:8] != policy_ack_t._get_packed_fingerprint():
+        return None, "not a policy_ack_t (fingerprint or size)"
+    (length,) = struct.unpack_from(">i", data, head)
+    if not 1 <= length <= policy_ack_t.MAX_REASON + 1 or len(data) != head + 4 + length:
+        return None, f"reason length {length} in {len(data)} bytes"
+    try:
+        return policy_ack_t.decode(data), None
+    except (ValueError, struct.error, UnicodeDecodeError) as e:
+        return None, f"the decoder refused it: {e}"
