@@ -40,6 +40,7 @@ import numpy as np
 from ftc.common.atomic import atomic_write_text
 from ftc.common.errors import UsageError
 from ftc.plant.lcm_link import check_loopback_url
+from ftc.plant.wire import decode_ack
 
 FORMAT = "ftc-policy 1"
 FNV_OFFSET, FNV_PRIME, MASK = 1469598103934665603, 1099511628211, (1 << 64) - 1
@@ -169,7 +170,6 @@ def push(lcm_url: str, prefix: str, message, timeout: float = 2.0) -> PushOutcom
     utime; other answers and undecodable buffers are ignored)."""
     import lcm
 
-    from ftc.plant.wire import decode_ack
 
     check_loopback_url(lcm_url)
     lc = lcm.LCM(lcm_url)

@@ -30,6 +30,7 @@ from ftc.common.atomic import atomic_write_csv
 from ftc.common.constants import NUM_ENGINES, NUM_TANKS
 from ftc.plant import trajectory as schema
 from ftc.plant.reward import reward
+from ftc.plant.wire import decode_state
 
 STATE_SUFFIX = "STATE"
 class LogError(RuntimeError):
@@ -173,7 +174,6 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
     """
     import lcm  # native: liblcm's Python binding
 
-    from ftc.plant.wire import decode_state
 
     path = Path(path)
     if not path.is_file():
