@@ -235,3 +235,69 @@ def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
         assert link.refused == {"bad decode": 1, "other session": 1, "stale": 2, "seq jump": 1}
     finally:
         link.close()
+
+
+@pytest.mark.slow
+def test_a_realtime_run_counts_foreign_traffic_by_cause_and_warns(tmp_path, scenarios):
+    """A real-time run under a neighbour's commands (another session) and forged
+    states: it completes; metrics.csv's refused counts are what was sent; the
+    plant's own count cross-checks the commands; the run ends with a warning."""
+    import csv
+    import os
+    import sys
+    import threading
+
+    url, prefix = private_lcm_url(), private_prefix()
+    plant = subprocess.Popen([str(plant_binary()), "--lcm-url", url, "--prefix", prefix,
+                              "--scenario", str(scenarios / "single.toml"),
+                              "--steps-per-interval", "128", "--mode", "realtime", "--rate", "20"],
+                             stderr=subprocess.DEVNULL)
+    out = tmp_path / "rt"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "ftc.controller", "--attach", "--method", "closed", "--lcm-url",
+         url, "--prefix", prefix, "--intervals", "1", "--steps-per-interval", "128", "--out",
+         str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO / "python"), "OMP_NUM_THREADS": "1"})
+    lc = lcm.LCM(url)
+    states: list = []
+    lc.subscribe(prefix + "STATE", lambda _c, d: states.append(plant_state_t.decode(d)))
+    sent = {"bad decode": 0, "stale": 0, "seq jump": 0, "other session": 0, "commands": 0}
+    try:
+        deadline = time.monotonic() + 60
+        # the run's own session (the controller probes the plant with a link of its
+        # own first): its commands are answered (command_seq above HELLO, OPEN, CLOSE)
+        while not any(s.session != 0 and s.command_seq > 10 and not s.watchdog_tripped
+                      for s in states):
+            assert time.monotonic() < deadline and run.poll() is None, run.communicate()
+            lc.handle_timeout(50)
+        session = states[-1].session
+        for k in range(5):
+            cmd = valve_command_t()
+            cmd.session, cmd.seq = session ^ 1, time.time_ns() // 1000
+            cmd.num_valves, cmd.valve = 6, [1] * 6
+            lc.publish(prefix + "COMMAND", cmd.encode())
+            sent["commands"] += 1
+            lc.publish(prefix + "STATE", _state(session, 2**62))
+            sent["seq jump"] += 1
+            lc.publish(prefix + "STATE", _state(session, 1))
+            sent["stale"] += 1
+            lc.publish(prefix + "STATE", _state(session ^ 1, 10**9))
+            sent["other session"] += 1
+            lc.publish(prefix + "STATE", b"\x01" * 50)
+            sent["bad decode"] += 1
+            time.sleep(0.2)
+        stdout, stderr = run.communicate(timeout=120)
+    finally:
+        run.kill()
+        plant.kill()
+        plant.wait()
+    assert run.returncode == 0, stderr
+    with open(out / "metrics.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    for cause in ("bad decode", "stale", "seq jump", "other session"):
+        assert int(row["refused_" + cause.replace(" ", "_")]) == sent[cause], (
+            cause, {k: v for k, v in row.items() if "refused" in k or "foreign" in k}, stderr)
+    assert int(row["plant_other_session"]) == sent["commands"]  # the plant's own count
+    assert row["foreign_commands"] == "0"
+    warning = [line for line in stderr.splitlines() if "warning: foreign traffic" in line]
+    assert len(warning) == 1 and "the plant refused 5 commands of other sessions" in warning[0]

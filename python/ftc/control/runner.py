@@ -236,6 +236,8 @@ class IntervalRunner:
             self._merge_late_metrics()
             self.checkpoint()
             self.write_metrics()
+            if isinstance(self.loop, RealtimeLoop) and (note := self.loop.foreign_note()):
+                print(f"{self.tool}: warning: {note}", file=sys.stderr, flush=True)
 
     def _one_interval(self, plant: PlantLink, start: float) -> None:
         k = self.interval
