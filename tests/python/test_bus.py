@@ -232,7 +232,8 @@ def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
             got += link.next_states()
         seqs = [s.seq for s in got]
         assert seqs == list(range(last + 1, last + 1 + len(seqs)))  # the plant's, in order
-        assert link.refused == {"bad decode": 1, "other session": 1, "stale": 2, "seq jump": 1}
+        assert link.refused == {"bad decode": 1, "other session": 1, "stale": 2, "seq jump": 1,
+                                "bad signature": 0, "replay": 0, "old timestamp": 0}
     finally:
         link.close()
 
@@ -301,3 +302,98 @@ def test_a_realtime_run_counts_foreign_traffic_by_cause_and_warns(tmp_path, scen
     assert row["foreign_commands"] == "0"
     warning = [line for line in stderr.splitlines() if "warning: foreign traffic" in line]
     assert len(warning) == 1 and "the plant refused 5 commands of other sessions" in warning[0]
+
+
+# ---------------------------------------------------------------------------
+# Authentication: a process without the key changes nothing
+# ---------------------------------------------------------------------------
+
+def test_python_signing_matches_rfc_4231_and_refuses_tamper_replay_and_stale(tmp_path):
+    import hashlib
+    import hmac
+
+    from ftc.plant.signing import Auth, load_key
+
+    # RFC 4231 test case 2 through the MAC the bus uses (hmac + sha256)
+    assert hmac.new(b"Jefe", b"what do ya want for nothing?", hashlib.sha256).hexdigest() == \
+        "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
+    key, now = bytes(range(32)), 1_760_000_000_000_000
+    sender, receiver = Auth(key), Auth(key)
+    msg = sender.sign("X_COMMAND", b"payload", now)
+    assert receiver.verify("X_COMMAND", msg, now) == (b"payload", "")
+    assert receiver.verify("X_COMMAND", msg, now) == (None, "replay")
+    for i in range(len(msg)):
+        bad = bytearray(msg)
+        bad[i] ^= 1
+        assert Auth(key).verify("X_COMMAND", bytes(bad), now)[1] == "bad signature"
+    assert Auth(key).verify("X_CONTROL", msg, now)[1] == "bad signature"
+    assert Auth(key).verify("X_COMMAND", b"payload", now)[1] == "bad signature"
+    late = sender.sign("X_COMMAND", b"payload", now)
+    assert Auth(key).verify("X_COMMAND", late, now + 31_000_000)[1] == "old timestamp"
+    path = tmp_path / "key"
+    path.write_text(key.hex())
+    path.chmod(0o640)
+    with pytest.raises(ValueError, match="readable or writable by others"):
+        load_key(path)
+    path.chmod(0o600)
+    assert load_key(path) == key
+
+
+def _signed_run(scenarios, attack: bool) -> tuple[list, dict]:
+    """30 lockstep steps on a plant with a per-run key; with ``attack``, a
+    process without the key that knows the session and the next seq sends
+    commands, START, RESET, SHUTDOWN, CLOSE, forged states, tampered and
+    replayed copies of the controller's own signed commands."""
+    sent = {"unsigned": 0, "tampered": 0, "replayed": 0, "forged states": 0}
+    with launch(scenarios / "single.toml", 3, extra_args=["--steps-per-interval", "40"],
+                sign=True) as plant:
+        assert "FTC_BUS_KEY" not in " ".join(plant.process.args)  # not on the command line
+        lc = lcm.LCM(plant.url)
+        captured: list[bytes] = []
+        lc.subscribe(plant.prefix + "COMMAND", lambda _c, d: captured.append(d))
+        obs = [plant.reset()]
+        rng = np.random.default_rng(0)
+        for t in range(30):
+            if attack and t % 10 == 5:
+                while lc.handle_timeout(0) > 0:
+                    pass
+                cmd = valve_command_t()
+                cmd.session, cmd.seq = plant.session, plant._seq + 1  # exactly the next one
+                cmd.num_valves, cmd.valve = 6, [1, 1, 1, 0, 0, 0]
+                lc.publish(plant.prefix + "COMMAND", cmd.encode())
+                sent["unsigned"] += 1
+                for command in (plant_control_t.START, plant_control_t.RESET,
+                                plant_control_t.SHUTDOWN, plant_control_t.CLOSE):
+                    msg = plant_control_t()
+                    msg.session, msg.seq, msg.command = plant.session, plant._seq + 1, command
+                    lc.publish(plant.prefix + "CONTROL", msg.encode())
+                    sent["unsigned"] += 1
+                for old in captured[-3:]:  # the controller's own, signed: replayed
+                    lc.publish(plant.prefix + "COMMAND", old)
+                    sent["replayed"] += 1
+                tampered = bytearray(captured[-1])
+                tampered[-30] ^= 1  # a valve
+                lc.publish(plant.prefix + "COMMAND", bytes(tampered))
+                sent["tampered"] += 1
+                lc.publish(plant.prefix + "STATE", _state(plant.session, plant.last_state.seq + 1))
+                sent["forged states"] += 1
+            obs.append(plant.step(rng.integers(0, 2, 6)))
+        plant.hello()
+        counts = {"plant bad signature": int(plant.last_state.bad_signature),
+                  "plant replayed": int(plant.last_state.replayed),
+                  "link bad signature": plant.refused["bad signature"]}
+        assert plant.process.poll() is None
+    return obs, {**sent, **counts}
+
+
+def test_with_a_key_a_process_without_it_changes_nothing(scenarios):
+    undisturbed, quiet = _signed_run(scenarios, False)
+    disturbed, counts = _signed_run(scenarios, True)
+    assert quiet["plant bad signature"] == quiet["plant replayed"] == 0
+    for a, b in zip(undisturbed, disturbed, strict=True):  # lockstep: identical
+        assert np.array_equal(a.true_level, b.true_level) and a.step == b.step
+        assert np.array_equal(a.valves, b.valves)
+    # the refused counts equal what was sent
+    assert counts["plant bad signature"] == counts["unsigned"] + counts["tampered"] == 3 * 6
+    assert counts["plant replayed"] == counts["replayed"] == 3 * 3
+    assert counts["link bad signature"] == counts["forged states"] == 3

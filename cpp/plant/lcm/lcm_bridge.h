@@ -28,6 +28,9 @@ struct LinkCounters {
   std::int64_t rejected_commands = 0;
   std::int64_t decode_errors = 0;
   std::int64_t other_session = 0;  // commands and control messages of a session not followed
+  std::int64_t bad_signature = 0;  // with a key: bad or missing MAC
+  std::int64_t replayed = 0;       // with a key: timestamp not above the link's last
+  std::int64_t stale_signed = 0;   // with a key: timestamp older than the window
 };
 
 std::int64_t NowMicros();

@@ -30,6 +30,10 @@ PlantNode::PlantNode(lcm::LCM* lcm, Plant* plant, const NodeOptions& options, No
   command_sub_ = lcm_->subscribe(channels_.command, &PlantNode::OnCommand, this);
   control_sub_ = lcm_->subscribe(channels_.control, &PlantNode::OnControl, this);
   for (auto* sub : {command_sub_, control_sub_}) sub->setQueueCapacity(kQueueCapacity);
+  if (!options_.key.empty()) {
+    verifier_.emplace(options_.key);
+    signer_.emplace(options_.key, /*link_id=*/0);
+  }
 }
 
 PlantNode::~PlantNode() {
@@ -49,7 +53,28 @@ void PlantNode::PublishState(std::int64_t command_seq) {
     msg.missed_ticks = missed_ticks_;
     msg.watchdog_trips = watchdog_trips_;
   }
-  lcm_->publish(channels_.state, &msg);
+  if (!signer_) {
+    lcm_->publish(channels_.state, &msg);
+    return;
+  }
+  std::vector<unsigned char> buf(static_cast<std::size_t>(msg.getEncodedSize()));
+  msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+  const auto signed_msg = signer_->Sign(channels_.state, buf.data(), buf.size(), NowMicros());
+  lcm_->publish(channels_.state, signed_msg.data(), static_cast<unsigned>(signed_msg.size()));
+}
+
+bool PlantNode::Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel,
+                          std::size_t* size) {
+  *size = rbuf->data_size;
+  if (!verifier_) return true;
+  const auto verdict = verifier_->Verify(channel, rbuf->data, rbuf->data_size, NowMicros(), size);
+  if (verdict == signing::Verdict::kOk) return true;
+  ++(verdict == signing::Verdict::kBadSignature ? counters_.bad_signature
+     : verdict == signing::Verdict::kReplay     ? counters_.replayed
+                                                 : counters_.stale_signed);
+  refusals_.Refused("refused a message on " + channel + " (" +
+                    std::to_string(rbuf->data_size) + " bytes): " + signing::Describe(verdict));
+  return false;
 }
 
 void PlantNode::Tick(Clock::time_point now) {
@@ -124,7 +149,9 @@ bool PlantNode::Admit(std::int64_t seq) {
 void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
   valve_command_t cmd{};
   std::string why;
-  if (!wire::Decode(rbuf->data, rbuf->data_size, &cmd, &why)) {
+  std::size_t size = 0;
+  if (!Authentic(rbuf, channel, &size)) return;
+  if (!wire::Decode(rbuf->data, size, &cmd, &why)) {
     ReportDecodeError(channel, rbuf->data_size, why);
     return;
   }
@@ -156,7 +183,9 @@ void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& cha
 void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
   plant_control_t msg{};  // zeroed: GCC cannot see that decode fills it
   std::string why;
-  if (!wire::Decode(rbuf->data, rbuf->data_size, &msg, &why)) {
+  std::size_t size = 0;
+  if (!Authentic(rbuf, channel, &size)) return;
+  if (!wire::Decode(rbuf->data, size, &msg, &why)) {
     ReportDecodeError(channel, rbuf->data_size, why);
     return;
   }

@@ -16,6 +16,8 @@
 // session_timeout_s (its controller is gone); CLOSE ends one. Sequence numbers
 // count within a session. Every received buffer is checked before decoding
 // (plant/lcm/wire.h); refusals are counted and logged rate-limited, never fatal.
+// With a key (options.key), every received message must carry a valid MAC
+// with a rising timestamp (plant/lcm/signing.h) and every state is signed.
 // Real-time mode: the plant steps at rate_hz with zero-order hold on the last
 // valid command; a watchdog puts the valves into the safe state when no valid
 // command arrives for watchdog_s seconds. The tick after an episode's last
@@ -38,6 +40,7 @@
 
 #include "plant/core/plant.h"
 #include "plant/lcm/lcm_bridge.h"
+#include "plant/lcm/signing.h"
 #include "plant/lcm/wire.h"
 
 namespace ftc {
@@ -55,6 +58,7 @@ struct NodeOptions {
   // s without a message of the followed session after which another session
   // may open (a controller killed without CLOSE leaves its session behind)
   double session_timeout_s = 2.0;
+  signing::Key key;  // empty: messages are neither signed nor checked
 };
 
 class PlantNode final {
@@ -97,6 +101,9 @@ class PlantNode final {
   bool SessionIdle() const;
   void RefuseSession(const std::string& what, std::int64_t session, std::int64_t seq);
   void ReportDecodeError(const std::string& channel, std::uint32_t size, const std::string& why);
+  // With a key: verifies the trailer and sets *size to the payload's; false
+  // (counted) if refused. Without: true.
+  bool Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel, std::size_t* size);
 
   lcm::LCM* lcm_;
   Plant* plant_;
@@ -108,6 +115,8 @@ class PlantNode final {
   lcm::Subscription* control_sub_ = nullptr;
   LinkCounters counters_;
   wire::RateLimitedLog refusals_{"plant"};
+  std::optional<signing::Verifier> verifier_;
+  std::optional<signing::Signer> signer_;
   std::int64_t session_ = 0;  // the session followed; 0: none
   std::optional<Clock::time_point> session_heard_;  // its last message
   std::int64_t state_seq_ = 0;

@@ -131,8 +131,8 @@ inline std::string Check(Reader* r, const plant_state_t*) {
     if (!r->Skip(arrays)) why = "num_tanks " + std::to_string(tanks) + ", num_engines " +
                                 std::to_string(engines) + ": arrays longer than the message";
   }
-  // 4 booleans, 5 link counters, rate_hz, missed_ticks, watchdog_trips
-  if (why.empty()) why = Fixed(r, 4 + 8 * 5 + 8 + 8 + 8, "flags..watchdog_trips");
+  // 4 booleans, 8 link counters, rate_hz, missed_ticks, watchdog_trips
+  if (why.empty()) why = Fixed(r, 4 + 8 * 8 + 8 + 8 + 8, "flags..watchdog_trips");
   return why.empty() ? End(*r) : why;
 }
 

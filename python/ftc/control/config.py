@@ -156,9 +156,10 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
         if cfg.realtime is not None:
             extra += ["--mode", "realtime", "--rate", repr(cfg.realtime),
                       "--watchdog", repr(cfg.watchdog)]
+        # a fresh key per run: a process without it changes nothing (docs/deploy.md)
         return launch(scenario, cfg.seed, lcm_url=cfg.lcm_url, prefix=cfg.prefix,
                       extra_args=extra, config=cfg.link_config(),
-                      link_class=RealtimeLink if cfg.realtime is not None else None)
+                      link_class=RealtimeLink if cfg.realtime is not None else None, sign=True)
     except PlantGoneError as e:
         raise PlantLostError(f"plant gone before the first step: {e}") from None
     except PlantError as e:  # refused to start; its exit code 2 means bad input

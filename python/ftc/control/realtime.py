@@ -29,7 +29,8 @@ Deadlines are measured per interval (metrics.csv, TensorBoard):
 and so is foreign traffic (a neighbour's messages on the run's channels):
 
     refused_*           states the link refused, by cause: bad_decode, other_session,
-                        stale (no newer than the last), seq_jump (implausibly far ahead)
+                        stale (no newer than the last), seq_jump (implausibly far ahead),
+                        and with a key bad_signature, replay, old_timestamp
     plant_other_session the plant's count of commands of other sessions it refused
     foreign_commands    plant steps taken on a command of this session the run never
                         sent (someone holding the session id commands the plant)
@@ -51,7 +52,9 @@ from ftc.control.telemetry import Telemetry
 from ftc.plant.realtime_link import RealtimeLink, observation
 from ftc.plant.reward import reward
 
-REFUSALS = ("bad decode", "other session", "stale", "seq jump")  # RealtimeLink.refused's keys
+# RealtimeLink.refused's keys
+REFUSALS = ("bad decode", "other session", "stale", "seq jump", "bad signature", "replay",
+            "old timestamp")
 REALTIME_COLUMNS = ("deadline_misses", "latency_p50_ms", "latency_p99_ms", "latency_max_ms",
                     "watchdog_trips", "plant_missed_ticks", "lost_states",
                     *(f"refused_{r.replace(' ', '_')}" for r in REFUSALS),

@@ -27,6 +27,7 @@ from ftc.common.build_info import plant_binary
 from ftc.common.lifetime import die_with_parent
 from ftc.plant.link import (ForeignTrafficError, PlantError, PlantGoneError, PlantObservation,
                              valves_array)
+from ftc.plant.signing import KEY_VARIABLE, Auth, new_key
 from ftc.plant.wire import decode_state
 
 
@@ -100,6 +101,20 @@ def new_session() -> int:
             return session
 
 
+def exit_message(process, stderr_path: str | None) -> str | None:
+    """How a plant process this link started ended (its stderr's tail), or None."""
+    if process is None or process.poll() is None:
+        return None
+    tail = ""
+    if stderr_path:
+        try:
+            with open(stderr_path, errors="replace") as f:
+                tail = f.read()[-2000:].strip()
+        except OSError:
+            pass
+    return f"plant process exited with code {process.returncode}" + (f": {tail}" if tail else "")
+
+
 def foreign_note(refused: dict[str, int], seen, last) -> str:
     """What a link saw besides its plant's answers: ``refused`` counts by
     cause, ``seen`` the newest state of another session, ``last`` the newest
@@ -130,7 +145,7 @@ class LcmPlant:
 
     def __init__(self, lcm_url: str, prefix: str, *, config: LinkConfig = LinkConfig(),
                  process: "subprocess.Popen | None" = None, stderr_path: str | None = None,
-                 allow_network: bool = False) -> None:
+                 allow_network: bool = False, key: bytes | None = None) -> None:
         import lcm
 
         from ftc.plant_control_t import plant_control_t
@@ -148,7 +163,9 @@ class LcmPlant:
         self.last_state = None
         self.session = new_session()
         # states refused by cause; `seen` is the newest of another session
-        self.refused = {"bad decode": 0, "other session": 0, "stale": 0, "seq jump": 0}
+        self.refused = {"bad decode": 0, "other session": 0, "stale": 0, "seq jump": 0,
+                        "bad signature": 0, "replay": 0, "old timestamp": 0}
+        self._auth = Auth(key) if key else None  # sign and check every message
         self.seen = None
         self._opened = False
         self._sub = self._lc.subscribe(prefix + "STATE", self._on_state)
@@ -159,7 +176,15 @@ class LcmPlant:
         self._opened = True
 
     # -- transport ---------------------------------------------------------
+    def _publish(self, channel: str, data: bytes) -> None:
+        self._lc.publish(channel, self._auth.sign(channel, data) if self._auth else data)
+
     def _on_state(self, channel: str, data: bytes) -> None:
+        if self._auth is not None:
+            data, cause = self._auth.verify(channel, data)
+            if data is None:
+                self.refused[cause] += 1
+                return
         msg, _ = decode_state(data)
         if msg is None:  # wrong type, truncated, hostile lengths: counted, not fatal
             self.decode_errors += 1
@@ -179,21 +204,11 @@ class LcmPlant:
         return self._seq
 
     def _plant_exit_message(self) -> str | None:
-        if self._process is None or self._process.poll() is None:
-            return None
-        tail = ""
-        if self._stderr_path:
-            try:
-                with open(self._stderr_path, errors="replace") as f:
-                    tail = f.read()[-2000:].strip()
-            except OSError:
-                pass
-        return (f"plant process exited with code {self._process.returncode}"
-                + (f": {tail}" if tail else ""))
+        return exit_message(self._process, self._stderr_path)
 
     def _request(self, channel: str, msg, seq: int, timeout: float, what: str):
         data = msg.encode()
-        self._lc.publish(channel, data)
+        self._publish(channel, data)
         start = time.monotonic()
         last_send = start
         interval = self.config.retry_timeout  # grows by config.backoff per re-send
@@ -230,7 +245,7 @@ class LcmPlant:
                     raise PlantGoneError(f"plant gone while waiting for {what} (seq {seq}): {exited}")
                 self.retries += 1
                 resent += 1
-                self._lc.publish(channel, data)
+                self._publish(channel, data)
                 last_send = time.monotonic()
                 interval *= self.config.backoff
 
@@ -331,7 +346,7 @@ def _from_message(msg) -> PlantObservation:
 def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = None,
            prefix: str | None = None, extra_args: Sequence[str] = (),
            config: LinkConfig = LinkConfig(), die_with_caller: bool | None = None,
-           link_class: type | None = None) -> LcmPlant:
+           link_class: type | None = None, sign: bool = False) -> LcmPlant:
     """Start ``build/plant`` on a private LCM port and prefix; the link owns it.
 
     die_with_caller: the plant gets SIGKILL when the calling thread ends (so a
@@ -342,6 +357,10 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
 
     link_class: the link to make (default LcmPlant, the lockstep link; a plant
         launched with ``--mode realtime`` takes ftc.plant.realtime_link.RealtimeLink).
+
+    sign: give the plant a fresh key of its own (in its environment, never on
+        its command line) and sign and check every message with it: a process
+        without the key can then change nothing.
 
     Raises PlantError with the plant's own message if it refuses to start
     (e.g. a malformed scenario file).
@@ -356,12 +375,14 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
     if die_with_caller is None:
         die_with_caller = threading.current_thread() is threading.main_thread()
     preexec = die_with_parent() if die_with_caller else None
+    key = new_key() if sign else None
+    env = {**os.environ, KEY_VARIABLE: key.hex()} if key else None
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=stderr, preexec_fn=preexec)
+                            stderr=stderr, preexec_fn=preexec, env=env)
     stderr.close()
     try:
         return (link_class or LcmPlant)(url, prefix, config=config, process=proc,
-                                        stderr_path=stderr.name)
+                                        stderr_path=stderr.name, key=key)
     except PlantGoneError as e:
         if proc.poll() is None:
             proc.kill()

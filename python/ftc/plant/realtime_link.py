@@ -45,11 +45,11 @@ class RealtimeLink(LcmPlant):
 
     def __init__(self, lcm_url: str, prefix: str, *, config: LinkConfig = LinkConfig(),
                  process=None, stderr_path: str | None = None,
-                 allow_network: bool = False) -> None:
+                 allow_network: bool = False, key: bytes | None = None) -> None:
         self.arrival_ns: dict[int, int] = {}  # state seq -> time.monotonic_ns() on arrival
         self._last_seq = 0  # newest state handed out
         super().__init__(lcm_url, prefix, config=config, process=process,
-                         stderr_path=stderr_path, allow_network=allow_network)
+                         stderr_path=stderr_path, allow_network=allow_network, key=key)
         self._sub.set_queue_capacity(QUEUE_CAPACITY)
         rate = float(self.last_state.rate_hz)
         if rate <= 0:
@@ -132,7 +132,7 @@ class RealtimeLink(LcmPlant):
         msg.state_seq = int(state_seq)
         msg.num_valves = NUM_TANKS
         msg.valve = [int(v) for v in valves_array(valves)]
-        self._lc.publish(self.prefix + "COMMAND", msg.encode())
+        self._publish(self.prefix + "COMMAND", msg.encode())
         return msg.seq
 
     def step(self, valves):  # the lockstep protocol does not apply

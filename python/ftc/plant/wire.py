@@ -12,8 +12,8 @@ import struct
 # utime, session, seq, command_seq (int64), episode, step (int32), age
 # (double), operating_steps (int64): the fields before num_tanks
 _STATE_HEAD = 8 * 4 + 4 + 4 + 8 + 8
-# 4 booleans, 5 link counters, rate_hz, missed_ticks, watchdog_trips
-_STATE_TAIL = 4 + 8 * 5 + 8 + 8 + 8
+# 4 booleans, 8 link counters, rate_hz, missed_ticks, watchdog_trips
+_STATE_TAIL = 4 + 8 * 8 + 8 + 8 + 8
 
 
 def check_state(data: bytes) -> str | None:
