@@ -12,7 +12,9 @@
 // session whose seq is newer than the last, but not absurdly so (kMaxSeqJump):
 // one fake state cannot poison newest-wins or silence the node. Every buffer
 // is checked before decoding (plant/lcm/wire.h); refused messages are counted
-// by cause, logged rate-limited, and summed up on stderr at exit.
+// by cause, logged rate-limited, and summed up on stderr at exit. With
+// --key-file every message it takes must carry a valid MAC with a rising
+// timestamp (plant/lcm/signing.h), and every message it sends is signed.
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
@@ -32,6 +34,7 @@
 #include "ftc/plant_state_t.hpp"
 #include "ftc/policy_t.hpp"
 #include "ftc/valve_command_t.hpp"
+#include "plant/lcm/signing.h"
 #include "plant/lcm/wire.h"
 #include "policy/policy.h"
 
@@ -65,7 +68,8 @@ std::int64_t RandomSession() {
 
 class Node {
  public:
-  Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy)
+  Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy,
+       const ftc::signing::Key& key)
       : lcm_(lcm),
         command_channel_(prefix + "COMMAND"),
         control_channel_(prefix + "CONTROL"),
@@ -76,6 +80,10 @@ class Node {
     // a valid push is at most 1 MB (policy_t::MAX_PARAMS); LCM drops what
     // arrives beyond 8 queued ones before the node sees it (bounded memory)
     lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this)->setQueueCapacity(8);
+    if (!key.empty()) {
+      verifier_.emplace(key);
+      signer_.emplace(key, static_cast<std::uint8_t>(1 + session_ % 255));
+    }
   }
 
   // Waits up to timeout_ms for messages, takes every queued one, then acts on
@@ -97,11 +105,41 @@ class Node {
   std::string refused() const {
     return "bad decode " + std::to_string(bad_decode_) + ", other session " +
            std::to_string(other_session_) + ", stale " + std::to_string(stale_) +
-           ", seq jump " + std::to_string(jumps_);
+           ", seq jump " + std::to_string(jumps_) + ", bad signature " +
+           std::to_string(bad_signature_) + ", replay " + std::to_string(replay_) +
+           ", stale timestamp " + std::to_string(stale_signed_);
   }
-  std::int64_t refused_total() const { return bad_decode_ + other_session_ + stale_ + jumps_; }
+  std::int64_t refused_total() const {
+    return bad_decode_ + other_session_ + stale_ + jumps_ + bad_signature_ + replay_ +
+           stale_signed_;
+  }
 
  private:
+  template <typename T>
+  void Publish(const std::string& channel, const T& msg) {
+    if (!signer_) {
+      lcm_->publish(channel, &msg);
+      return;
+    }
+    std::vector<unsigned char> buf(static_cast<std::size_t>(msg.getEncodedSize()));
+    msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    const auto out = signer_->Sign(channel, buf.data(), buf.size(), WallMicros());
+    lcm_->publish(channel, out.data(), static_cast<unsigned>(out.size()));
+  }
+
+  // With a key: checks the trailer, *size the payload's; false (counted) if refused.
+  bool Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel, std::size_t* size) {
+    *size = rbuf->data_size;
+    if (!verifier_) return true;
+    const auto v = verifier_->Verify(channel, rbuf->data, rbuf->data_size, WallMicros(), size);
+    if (v == ftc::signing::Verdict::kOk) return true;
+    ++(v == ftc::signing::Verdict::kBadSignature ? bad_signature_
+       : v == ftc::signing::Verdict::kReplay     ? replay_
+                                                  : stale_signed_);
+    log_.Refused("refused a message on " + channel + ": " + ftc::signing::Describe(v));
+    return false;
+  }
+
   void Open(Clock::time_point now) {
     if (open_) {  // the plant stopped answering in our session: open it again
       open_ = false;
@@ -116,14 +154,16 @@ class Node {
     msg.session = session_;
     msg.seq = open_seq_;
     msg.command = ftc::plant_control_t::OPEN;
-    lcm_->publish(control_channel_, &msg);
+    Publish(control_channel_, msg);
     opened_at_ = now;
   }
 
   void OnState(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     ftc::plant_state_t m{};
     std::string why;
-    if (!ftc::wire::Decode(rbuf->data, rbuf->data_size, &m, &why)) {
+    std::size_t size = 0;
+    if (!Authentic(rbuf, channel, &size)) return;
+    if (!ftc::wire::Decode(rbuf->data, size, &m, &why)) {
       ++bad_decode_;
       log_.Refused("undecodable state on " + channel + ": " + why);
       return;
@@ -169,7 +209,12 @@ class Node {
   void OnPolicy(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     ftc::policy_t msg{};
     std::string why;
-    if (!ftc::wire::Decode(rbuf->data, rbuf->data_size, &msg, &why)) {
+    std::size_t size = 0;
+    if (!Authentic(rbuf, channel, &size)) {
+      Ack(0, 0, "bad signature, replayed or stale");
+      return;
+    }
+    if (!ftc::wire::Decode(rbuf->data, size, &msg, &why)) {
       ++bad_decode_;
       why = "undecodable push (" + std::to_string(rbuf->data_size) + " bytes): " + why;
       log_.Refused("rejected an " + why + " on " + channel);
@@ -209,7 +254,7 @@ class Node {
     if (why.size() > static_cast<std::size_t>(ftc::policy_ack_t::MAX_REASON))
       why.resize(static_cast<std::size_t>(ftc::policy_ack_t::MAX_REASON));
     ack.reason = why;
-    lcm_->publish(ack_channel_, &ack);
+    Publish(ack_channel_, ack);
   }
 
   void Act() {
@@ -223,7 +268,7 @@ class Node {
     cmd.state_seq = pending_->seq;
     cmd.num_valves = ftc::policy::kTanks;
     cmd.valve.assign(u.begin(), u.end());
-    lcm_->publish(command_channel_, &cmd);
+    Publish(command_channel_, cmd);
     latencies_us_.push_back(
         std::chrono::duration<double, std::micro>(Clock::now() - received_).count());
     last_sent_seq_ = cmd.seq;
@@ -245,6 +290,9 @@ class Node {
   std::int64_t seq_ = 0;  // counts within the session
   std::int64_t steps_ = 0, misses_ = 0, watchdog_states_ = 0;
   std::int64_t bad_decode_ = 0, other_session_ = 0, stale_ = 0, jumps_ = 0;
+  std::int64_t bad_signature_ = 0, replay_ = 0, stale_signed_ = 0;
+  std::optional<ftc::signing::Verifier> verifier_;
+  std::optional<ftc::signing::Signer> signer_;
   ftc::wire::RateLimitedLog log_{"policy_node"};
   std::vector<double> latencies_us_;
 };
@@ -259,7 +307,7 @@ double Percentile(std::vector<double> v, double q) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string policy_path, url, prefix = "FTC_", latency_log;
+  std::string policy_path, url, prefix = "FTC_", latency_log, key_file;
   std::int64_t max_steps = 0;
   CLI::App app{"The embedded controller: flies an exported policy (ftc.export --weights) on a "
                "plant in real-time mode over LCM; takes pushed policy_t weights between steps"};
@@ -271,6 +319,8 @@ int main(int argc, char** argv) {
   app.add_option("--latency-log", latency_log,
                  "write each step's latency (state received to command sent, microseconds), "
                  "one per line, to this file at exit");
+  app.add_option("--key-file", key_file,
+                 "sign and check every message with the key in this file (hex, mode 600)");
   app.add_option("--steps", max_steps, "stop after acting on this many states (0: until a signal)")
       ->check(CLI::NonNegativeNumber);
   try {
@@ -281,6 +331,14 @@ int main(int argc, char** argv) {
   if (url.find("ttl=0") == std::string::npos) {
     std::cerr << "policy_node: --lcm-url " << url << " lacks ttl=0 (loopback only)\n";
     return 2;
+  }
+  ftc::signing::Key key;
+  if (!key_file.empty()) {
+    const std::string why = ftc::signing::LoadKey(key_file, &key);
+    if (!why.empty()) {
+      std::cerr << "policy_node: --key-file " << why << "\n";
+      return 2;
+    }
   }
   std::string error;
   auto policy = ftc::policy::Policy::FromFile(policy_path, &error);
@@ -295,7 +353,7 @@ int main(int argc, char** argv) {
   }
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
-  Node node(&lcm, prefix, std::move(policy));
+  Node node(&lcm, prefix, std::move(policy), key);
   while (!g_stop && (max_steps == 0 || node.steps() < max_steps)) {
     if (!node.Spin(100) && !g_stop) {
       std::cerr << "policy_node: LCM failed while waiting for the plant\n";

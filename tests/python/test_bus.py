@@ -397,3 +397,59 @@ def test_with_a_key_a_process_without_it_changes_nothing(scenarios):
     assert counts["plant bad signature"] == counts["unsigned"] + counts["tampered"] == 3 * 6
     assert counts["plant replayed"] == counts["replayed"] == 3 * 3
     assert counts["link bad signature"] == counts["forged states"] == 3
+
+
+def test_with_a_key_the_policy_node_flies_only_signed_states_and_pushes(tmp_path, scenarios):
+    import sys
+
+    from ftc.plant.signing import new_key
+
+    url, prefix = private_lcm_url(), private_prefix()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(new_key().hex())
+    key_file.chmod(0o600)
+    weights = tmp_path / "p.txt"
+    pw.write_weights(weights, [6, 6], np.zeros(42, np.float32), version=1)
+    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                              "--mode", "realtime", "--rate", "50", "--lcm-url", url,
+                              "--prefix", prefix, "--key-file", str(key_file)],
+                             stderr=subprocess.DEVNULL)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
+                             url, "--prefix", prefix, "--steps", "150", "--key-file",
+                             str(key_file)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    lc = lcm.LCM(url)
+    commands: list = []
+    lc.subscribe(prefix + "COMMAND", lambda _c, d: commands.append(d))
+    try:
+        deadline = time.monotonic() + 20
+        while len(commands) < 20:
+            assert time.monotonic() < deadline and node.poll() is None, "the node does not fly"
+            lc.handle_timeout(50)
+        # a neighbour without the key: a well-formed push with a correct checksum
+        # and version 2**62 (it was flown, then blocked every later push), forged
+        # states, and the node's own signed commands replayed to the plant
+        forged = pw.policy_message([6, 6], np.ones(42, np.float32), version=2**62)
+        refused = pw.push(url, prefix, forged, timeout=1.0)
+        for seq in (2**62, 10**6):
+            lc.publish(prefix + "STATE", _state(0, seq))
+        for data in commands[:5]:
+            lc.publish(prefix + "COMMAND", data)
+        signed = subprocess.run(
+            [sys.executable, "-m", "ftc.tools.policy_weights", "push", str(weights), "--version",
+             "2", "--lcm-url", url, "--prefix", prefix, "--key-file", str(key_file)],
+            cwd=REPO, capture_output=True, text=True, timeout=60)
+        out, err = node.communicate(timeout=30)
+    finally:
+        node.kill()
+        plant.kill()
+        plant.wait()
+    # refused unread: its signed answer names no version (the neighbour cannot
+    # even tell); the node kept flying version 1, then took the signed push
+    assert refused.accepted is None
+    assert f"{prefix}POLICY: bad or missing signature" in err
+    assert signed.returncode == 0, signed.stderr
+    assert node.returncode == 0 and re.match(r"^steps 150 ", out.strip()), err
+    assert "policy version 2 in use" in err and f"version {2**62}" not in err
+    counts = re.search(r"bad signature (\d+), replay (\d+)", err)
+    assert counts and int(counts.group(1)) == 3, err  # the push and the two states

@@ -40,6 +40,7 @@ import numpy as np
 from ftc.common.atomic import atomic_write_text
 from ftc.common.errors import UsageError
 from ftc.plant.lcm_link import check_loopback_url
+from ftc.plant.signing import Auth
 from ftc.plant.wire import decode_ack
 
 FORMAT = "ftc-policy 1"
@@ -164,10 +165,12 @@ class PushOutcome:
                                               else f"rejected: {self.reason}"))
 
 
-def push(lcm_url: str, prefix: str, message, timeout: float = 2.0) -> PushOutcome:
+def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
+         key: bytes | None = None) -> PushOutcome:
     """Publish ``message`` once on ``<prefix>POLICY`` and wait up to ``timeout``
     s for the node's answer on ``<prefix>POLICY_ACK`` (matched by version and
-    utime; other answers and undecodable buffers are ignored)."""
+    utime; other answers and undecodable buffers are ignored). With ``key``
+    the push is signed and only a signed answer counts (ftc.plant.signing)."""
     import lcm
 
 
@@ -175,14 +178,19 @@ def push(lcm_url: str, prefix: str, message, timeout: float = 2.0) -> PushOutcom
     lc = lcm.LCM(lcm_url)
     answers: list = []
 
-    def on_ack(_channel: str, data: bytes) -> None:
+    auth = Auth(key) if key else None
+
+    def on_ack(channel: str, data: bytes) -> None:
+        if auth is not None and (data := auth.verify(channel, data)[0]) is None:
+            return
         ack, _ = decode_ack(data)
         if ack is not None and (ack.version, ack.push_utime) == (message.version, message.utime):
             answers.append(ack)
 
     sub = lc.subscribe(prefix + "POLICY_ACK", on_ack)
     try:
-        lc.publish(prefix + "POLICY", message.encode())
+        data = message.encode()
+        lc.publish(prefix + "POLICY", auth.sign(prefix + "POLICY", data) if auth else data)
         deadline = time.monotonic() + timeout
         while not answers and time.monotonic() < deadline:
             lc.handle_timeout(max(1, int(1000 * (deadline - time.monotonic()))))

@@ -16,6 +16,7 @@ from typing import Sequence
 
 from ftc.common.cli import OneLineParser, at_least, checked, positive
 from ftc.common.errors import EXIT_FAILURE, UsageError
+from ftc.plant.signing import load_key
 from ftc.control.policy_weights import (actions, actor_layers, checksum, format_weights,  # noqa: F401
                                         policy_message, push, read_weights, write_weights)
 
@@ -34,11 +35,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--prefix", default="FTC_", help="the node's channel prefix")
     p.add_argument("--timeout", type=checked(float, positive(3600.0)), default=2.0,
                    help="seconds to wait for the node's answer")
+    p.add_argument("--key-file", type=checked(Path, nonempty=True), default=None,
+                   help="sign the push with the node's key (hex, mode 600)")
     args = parser.parse_args(argv)
     try:
+        key = load_key(args.key_file) if args.key_file else None
         widths, params, version = read_weights(args.weights)
         outcome = push(args.lcm_url, args.prefix,
-                       policy_message(widths, params, args.version or version), args.timeout)
+                       policy_message(widths, params, args.version or version), args.timeout,
+                       key=key)
     except (UsageError, ValueError) as e:
         parser.error(str(e))
     if not outcome.accepted:
