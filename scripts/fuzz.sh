@@ -9,7 +9,7 @@
 #
 # Targets: fuzz_messages (the plant's command handling), fuzz_scenario, and one
 # per message decoder (fuzz_valve_command, fuzz_plant_control, fuzz_plant_state,
-# fuzz_policy: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h).
+# fuzz_policy, fuzz_policy_ack: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h).
 #
 # Builds into build-fuzz/ (-DFTC_FUZZ=ON), never part of the default build or
 # test command. Seeds: tests/fuzz/corpus/<target>/ (committed); the growing
@@ -22,7 +22,7 @@ seconds="${1:-60}"
 shift || true
 targets=("$@")
 [ ${#targets[@]} -eq 0 ] && targets=(fuzz_messages fuzz_scenario fuzz_valve_command \
-  fuzz_plant_control fuzz_plant_state fuzz_policy)
+  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack)
 limit=(-max_total_time="$seconds")
 [ -n "${FUZZ_RUNS:-}" ] && limit=(-runs="$FUZZ_RUNS")
 

@@ -234,6 +234,9 @@ TEST(Wire, ShortFuzzRunFindsNothing) {
   EXPECT_GT(ShortFuzz<plant_control_t>(Encode(m), 11, kRuns), 0u);
   EXPECT_GT(ShortFuzz<plant_state_t>(Encode(State(&rng)), 12, kRuns), 0u);
   EXPECT_GT(ShortFuzz<policy_t>(Encode(Policy(&rng, 3)), 13, kRuns), 0u);
+  policy_ack_t ack{};
+  ack.reason = "version 1 is not above the running 2";
+  EXPECT_GT(ShortFuzz<policy_ack_t>(Encode(ack), 14, kRuns), 0u);
 }
 
 TEST(Wire, RateLimitedLogPrintsABurstThenOneLineASecond) {
