@@ -453,3 +453,21 @@ def test_with_a_key_the_policy_node_flies_only_signed_states_and_pushes(tmp_path
     assert "policy version 2 in use" in err and f"version {2**62}" not in err
     counts = re.search(r"bad signature (\d+), replay (\d+)", err)
     assert counts and int(counts.group(1)) == 3, err  # the push and the two states
+
+
+def test_replay_reads_a_keyed_plants_signed_states(tmp_path):
+    from ftc.plant.log import read_log
+    from ftc.plant.signing import Auth
+
+    auth, path = Auth(bytes(32)), tmp_path / "signed.lcmlog"
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    for k in range(11):
+        s = plant_state_t()
+        s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
+        s.level = s.true_level = [1.0 - 0.01 * k] * 6
+        s.valve, s.deficit = [0] * 6, [0.0, 0.0]
+        log.write_event(1000 * k, "RUN_STATE", auth.sign("RUN_STATE", s.encode()))
+    log.write_event(20_000, "RUN_STATE", b"\x05" * 300)  # a neighbour's garbage
+    log.close()
+    traj = read_log(path)
+    assert len(traj) == 10 and traj.missing == 0 and traj.undecodable == 1

@@ -11,7 +11,8 @@ counted and dropped, keyed by (episode, step). A truncated or corrupt log is a
 well-framed event on the STATE channel that is not a plant state (another
 process's traffic on the bus, hostile lengths included) is checked before
 decoding (:mod:`ftc.plant.wire`), counted and skipped: ``undecodable`` and
-``first_undecodable`` say which.
+``first_undecodable`` say which. A signed state (a plant with a bus key) is
+read without its trailer (:mod:`ftc.plant.signing`; not verified: no key).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from ftc.common.atomic import atomic_write_csv
 from ftc.common.constants import NUM_ENGINES, NUM_TANKS
 from ftc.plant import trajectory as schema
 from ftc.plant.reward import reward
+from ftc.plant.signing import TRAILER_BYTES
 from ftc.plant.wire import decode_state
 
 STATE_SUFFIX = "STATE"
@@ -204,6 +206,10 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
             events += 1
             if event.channel.endswith(STATE_SUFFIX) and (channel is None or event.channel == channel):
                 msg, why = decode_state(event.data)
+                if msg is None and len(event.data) > TRAILER_BYTES:
+                    # a keyed plant's state carries a signature trailer: the log
+                    # is a record (the MAC was checked live, if at all)
+                    msg, _ = decode_state(event.data[:-TRAILER_BYTES])
                 if msg is None:
                     bad.setdefault(event.channel, []).append(
                         f"event {event.eventnum} at byte offset {offset}: {why}")
