@@ -471,3 +471,79 @@ def test_replay_reads_a_keyed_plants_signed_states(tmp_path):
     log.close()
     traj = read_log(path)
     assert len(traj) == 10 and traj.missing == 0 and traj.undecodable == 1
+
+
+@pytest.mark.slow
+def test_with_a_key_a_realtime_run_refuses_everything_a_neighbour_sends(tmp_path, scenarios):
+    """ftc.controller --attach --key-file on a real-time plant with the same key
+    (docs/deploy.md's setup): a neighbour without the key that reads the session
+    off the bus sends commands, START, SHUTDOWN and forged states in it; the
+    run completes, takes no step on a command it did not send, and the refused
+    counts (the plant's and the link's) equal what was sent."""
+    import csv
+    import os
+    import sys
+
+    from ftc.plant.signing import TRAILER_BYTES, new_key
+    from ftc.plant.wire import decode_state
+
+    url, prefix = private_lcm_url(), private_prefix()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(new_key().hex())
+    key_file.chmod(0o600)
+    plant = subprocess.Popen([str(plant_binary()), "--lcm-url", url, "--prefix", prefix,
+                              "--scenario", str(scenarios / "single.toml"), "--key-file",
+                              str(key_file), "--steps-per-interval", "128", "--mode", "realtime",
+                              "--rate", "20"], stderr=subprocess.DEVNULL)
+    out = tmp_path / "rt"
+    run = subprocess.Popen(
+        [sys.executable, "-m", "ftc.controller", "--attach", "--key-file", str(key_file),
+         "--method", "closed", "--lcm-url", url, "--prefix", prefix, "--intervals", "1",
+         "--steps-per-interval", "128", "--out", str(out)], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO / "python"), "OMP_NUM_THREADS": "1"})
+    lc = lcm.LCM(url)
+    states: list = []
+    def on_state(_c, data):  # the plant's, signed (the neighbour's own forgeries are not)
+        msg, _ = decode_state(data[:-TRAILER_BYTES])
+        if msg is not None:
+            states.append(msg)
+
+    lc.subscribe(prefix + "STATE", on_state)
+    commands = 0
+    try:
+        deadline = time.monotonic() + 60
+        while not any(s.session != 0 and s.command_seq > 10 and not s.watchdog_tripped
+                      for s in states):
+            assert time.monotonic() < deadline and run.poll() is None, run.communicate()
+            lc.handle_timeout(50)
+        session, seq = states[-1].session, states[-1].command_seq
+        for k in range(5):
+            cmd = valve_command_t()
+            cmd.session, cmd.seq, cmd.num_valves, cmd.valve = session, seq + 2 + k, 6, [1] * 6
+            lc.publish(prefix + "COMMAND", cmd.encode())
+            for command in (plant_control_t.START, plant_control_t.SHUTDOWN):
+                msg = plant_control_t()
+                msg.session, msg.seq, msg.command = session, seq + 100 + k, command
+                lc.publish(prefix + "CONTROL", msg.encode())
+            commands += 3
+            lc.publish(prefix + "STATE", _state(session, states[-1].seq + 1))
+            time.sleep(0.2)
+        stdout, stderr = run.communicate(timeout=120)
+        while lc.handle_timeout(0) > 0:  # the queue (LCM keeps 30) holds old states
+            pass
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            lc.handle_timeout(50)
+        last = states[-1]
+    finally:
+        run.kill()
+        plant.kill()
+        plant.wait()
+    assert run.returncode == 0, stderr
+    with open(out / "metrics.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["foreign_commands"] == "0"
+    assert int(row["refused_bad_signature"]) == 5  # the forged states
+    assert int(last.bad_signature) == commands  # the plant's own count
+    assert "the link refused states (5 bad signature)" in stderr

@@ -12,6 +12,7 @@ from ftc.common.errors import PlantLostError, RunError, UsageError
 from ftc.plant.lcm_link import LcmPlant, LinkConfig, check_loopback_url, launch
 from ftc.plant.link import CorePlant, PlantError, PlantGoneError, PlantLink
 from ftc.plant.realtime_link import RealtimeLink
+from ftc.plant.signing import load_key
 
 LINKS = ("lcm", "core")
 MAX_INTERVALS = 10_000
@@ -54,6 +55,10 @@ class RunConfig:
     allow_network: bool = field(default=False, metadata={"help": (
         "accept an --lcm-url whose traffic may leave this machine (ttl != 0, tcpq://); "
         "with --attach only, as launched plants are kept on loopback")})
+    key_file: str | None = field(default=None, metadata={"help": (
+        "with --attach: sign and check every message with the bus key in this file (hex, "
+        "mode 600; the plant's --key-file). A launched plant gets a fresh key per run "
+        "(docs/deploy.md)")})
     prefix: str | None = field(default=None, metadata={"help": (
         f"LCM channel prefix (None: a private one when launching; {DEFAULT_PREFIX} with "
         "--attach)")})
@@ -96,6 +101,8 @@ class RunConfig:
                              "and no --attach (an attached plant's own mode is used)")
         if self.prefix is not None and not self.prefix.strip():
             raise ValueError("--prefix must not be empty (None: a private one)")
+        if self.key_file is not None and not (self.attach and self.link == "lcm"):
+            raise ValueError("--key-file is for --attach (a launched plant gets a fresh key)")
         if not self.link_retry_timeout <= self.link_give_up_timeout:
             raise ValueError("--link-retry-timeout must be > 0 and <= --link-give-up-timeout")
         if self.lcm_url is not None and self.link == "lcm":
@@ -118,6 +125,7 @@ class RunConfig:
 # values of these may be resumed (everything else must match), and a resumed
 # run takes them from its own command line.
 RUN_LOCAL_FIELDS = ("out", "resume", "overwrite", "lcm_url", "prefix", "attach", "allow_network",
+                    "key_file",
                     "realtime", "watchdog", "push_policy", "push_url",
                     "quiet", "link_retry_timeout", "link_backoff", "link_give_up_timeout",
                     "pretrain_cache", "tensorboard")
@@ -139,11 +147,16 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
                              start_step=start_step)
         if cfg.attach:
             url, prefix = cfg.lcm_url or DEFAULT_LCM_URL, cfg.prefix or DEFAULT_PREFIX
-            link = LcmPlant(url, prefix, config=cfg.link_config(), allow_network=cfg.allow_network)
+            try:
+                key = load_key(cfg.key_file) if cfg.key_file else None
+            except ValueError as e:
+                raise UsageError(f"--key-file {e}") from None
+            link = LcmPlant(url, prefix, config=cfg.link_config(), allow_network=cfg.allow_network,
+                            key=key)
             if link.last_state.rate_hz > 0:  # real time: the run STARTs it at its own age
                 link.close()
                 return RealtimeLink(url, prefix, config=cfg.link_config(),
-                                    allow_network=cfg.allow_network)
+                                    allow_network=cfg.allow_network, key=key)
             at = link.hello().operating_steps
             if at != start_step:
                 link.close()
