@@ -241,7 +241,8 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--key-file", options.key_file,
                  "Sign and check every message with the key in this file (hex, mode 600); "
-                 "a launching controller passes one in FTC_BUS_KEY instead");
+                 "a launching controller passes one in FTC_BUS_KEY instead")
+      ->check(NonEmpty());
   app.add_option("--steps-per-interval", options.steps_per_interval,
                  "Override the scenario's control steps per degradation interval")
       ->check(Number("POSITIVE", 0.0, true, 2147483647.0));
