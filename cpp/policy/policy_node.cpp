@@ -171,7 +171,8 @@ class Node {
     const ftc::plant_state_t* s = &m;
     if (s->session != session_) {
       ++other_session_;
-      log_.Refused("ignored state " + std::to_string(s->seq) + " of session " +
+      if (open_)  // (before its OPEN is answered the plant follows another session: normal)
+        log_.Refused("ignored state " + std::to_string(s->seq) + " of session " +
                    std::to_string(s->session) + " (ours: " + std::to_string(session_) + ")");
       return;
     }
