@@ -34,7 +34,7 @@ from ftc.valve_command_t import valve_command_t
 
 REPO = Path(__file__).resolve().parents[2]
 # Peak resident memory a node may reach under the hostile messages below
-# (measured ~10 MB for the policy node; a 250M-param push used to take 982 MB).
+# (measured 6.9 MB for the policy node; a 250M-param push used to take 982 MB).
 NODE_RSS_BOUND_MB = 64
 
 
