@@ -49,7 +49,7 @@ from ftc.control.agent import Agent
 from ftc.control.config import RUN_FILES, RunConfig, open_plant
 from ftc.control.lockstep import LockstepLoop
 from ftc.control.metrics import format_cell, metric_columns, progress_line
-from ftc.control.policy_weights import push_policy
+from ftc.control.policy_weights import PUSH_COLUMNS, push_policy
 from ftc.control.realtime import REALTIME_COLUMNS, RealtimeLoop
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
@@ -268,6 +268,8 @@ class IntervalRunner:
             self._merge_late_metrics()
             self.checkpoint()
             self.write_metrics()
+            if isinstance(self.loop, RealtimeLoop) and (note := self.loop.foreign_note()):
+                print(f"{self.tool}: warning: {note}", file=sys.stderr, flush=True)
 
     def _one_interval(self, plant: PlantLink, start: float) -> None:
         k = self.interval
@@ -297,10 +299,18 @@ class IntervalRunner:
     def _save(self) -> None:
         """The finished intervals' checkpoint and metrics.csv (and the policy pushed)."""
         self._merge_late_metrics()
+        if getattr(self.cfg, "push_policy", None):  # the controller's option
+            pushed = push_policy(self.agent.exported_policy(), self.cfg.push_url,
+                                 self.cfg.push_policy)
+            self.rows[self.interval - 1].update(  # 1 accepted, 0 rejected, '' no answer
+                push_version=pushed.version, push_reason=pushed.reason,
+                push_accepted=None if pushed.accepted is None else int(pushed.accepted))
+            self.columns += [c for c in PUSH_COLUMNS if c not in self.columns]
+            if not pushed.accepted:
+                print(f"warning: policy push after interval {self.interval - 1} to "
+                      f"{self.cfg.push_policy}POLICY: {pushed.describe()}", file=sys.stderr)
         self.checkpoint()
         self.write_metrics()
-        if getattr(self.cfg, "push_policy", None):  # the controller's option
-            push_policy(self.agent.exported_policy(), self.cfg.push_url, self.cfg.push_policy)
 
     def _merge_late_metrics(self) -> None:
         for interval, metrics in self.agent.late_metrics():
