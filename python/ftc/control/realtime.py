@@ -23,7 +23,9 @@ Deadlines are measured per interval (metrics.csv, TensorBoard):
     deadline_misses     plant steps taken without a command answering the state before them
     latency_*_ms        from a state's arrival to its command's send (p50, p99, max)
     watchdog_trips      times the plant's watchdog put the valves in the safe state
-    plant_missed_ticks  the plant's own count of deadline_misses (a cross-check)
+    plant_missed_ticks  the plant's own count: steps with no command newer than the state
+                        before them (it counts between the run's phases too, and a late
+                        answer it applied is a miss above but not here)
     lost_states         states that never arrived (their steps are not learned from)
 
 and so is foreign traffic (a neighbour's messages on the run's channels):
