@@ -78,6 +78,13 @@ class ModeSolution {
 
   bool Watched(int slot) const { return watched_[slot] != 0.0; }
 
+  // Watches the functions positive in g (values at a time before any crossing):
+  // as CVODE reactivates a root function that was 0 (or below) at a restart
+  // once it has moved above 0, a later downward crossing of it ends the mode
+  // too (e.g. a sink that left a tied group at its start and catches up with
+  // the group within the step).
+  void Arm(const RootVector& g) { watched_ = (g.array() > 0.0).cast<double>(); }
+
   Vec6 Levels(double t) const {
     const NodeVector moved = spread_ * Psi(t);
     Vec6 x = x0_ + rate_ * t;
@@ -230,6 +237,12 @@ class ModeSolution {
     // As CVODE at a restart: a function not positive where the mode begins is
     // not watched (the level roots carry an offset so that an empty tank's is)
     watched_ = (g0_.array() > 0.0).cast<double>();
+    // A function exactly at 0 that rises at once (a member that leaves a tied
+    // group, its root x_lead - x_k at 0) is watched from the start: CVODE's first
+    // internal step, a fraction of the grid's, sees it above 0 and reactivates it,
+    // so its return to 0 (the member catching up with the group) is an event.
+    for (int m = 0; m < kNumRoots; ++m)
+      if (g0_[m] == 0.0 && linear_[m] + roots_.row(m).sum() > 0.0) watched_[m] = 1.0;
   }
 
  private:
@@ -289,11 +302,13 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
     bool found = false;
     for (int k = 1; k <= kGrid && !found; ++k) {
       const double t = remaining * k / kGrid;
-      if (solution.Crossed(t)) {
+      RootVector g;
+      if (solution.Crossed(t, &g)) {
         hi = t;
         found = true;
       } else {
         lo = t;
+        solution.Arm(g);
       }
     }
     if (!found) {
