@@ -80,7 +80,7 @@ class PoolLog(BaseCallback):
 
     def _on_step(self) -> bool:
         self.rewards.append(float(self.model.get_vec_normalize_env().get_original_reward().mean()))
-        return time.monotonic() < self.deadline
+        return time.monotonic() < self.deadline or not self.curve  # one rollout at least
 
     def _on_rollout_end(self) -> None:
         elapsed = time.monotonic() - self.start

@@ -143,7 +143,10 @@ void BindPool(py::module_& m) {
       .def_readonly("stuck_valve_probability", &D::stuck_valve_probability)
       .def_readonly("noise_probability", &D::noise_probability)
       .def_readonly("noise_std", &D::noise_std)
-      .def("check", [](const D& d, const ftc::FaultScenario& s) { Checked([&] { d.Check(s); return 0; }); },
+      .def("check",
+           [](const D& d, const ftc::FaultScenario& s) {
+             Checked([&] { d.Check(s); return 0; });
+           },
            py::arg("scenario"),
            "Raise ValueError (one line) unless the distribution can draw this scenario.")
       .def("draw", [](const D& d, int count, std::uint64_t seed) {

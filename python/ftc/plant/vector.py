@@ -118,7 +118,8 @@ def check_actions(actions: Any, num_envs: int) -> np.ndarray:
 
 
 def _seeds(seed: int | Sequence[int], num_envs: int) -> list[int]:
-    seeds = [int(seed) + i for i in range(num_envs)] if np.isscalar(seed) else [int(s) for s in seed]
+    seeds = ([int(seed) + i for i in range(num_envs)] if np.isscalar(seed)
+             else [int(s) for s in seed])
     if len(seeds) != num_envs or any(not 0 <= s < MAX_SEED for s in seeds):
         raise ValueError(f"FuelTransferVectorEnv: seed must be an int (env i gets seed + i) or "
                          f"{num_envs} ints, each in [0, 2**64), got {seed!r}")
