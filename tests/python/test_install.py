@@ -2,9 +2,10 @@
 virtual environment outside the checkout builds the C++ parts (the bindings,
 the plant and its tools, the message classes) into the package, and a user
 who never saw the checkout runs the registered Gymnasium environment on a real
-plant process, and the README's install commands (the benchmark, the
-controller with its default scenario, the MPC with a scenario's name: no
-file of the checkout needed) through the console scripts.
+plant process (and its batched pool through ``gym.make_vec``), and the README's
+install commands (the benchmark, the controller with its default scenario, the
+MPC with a scenario's name: no file of the checkout needed) through the console
+scripts.
 
 One test, minutes long: it builds the package (CMake, scikit-build-core) in
 build/pip/ of the checkout, incrementally after the first time."""
@@ -33,6 +34,12 @@ while not done:
     obs, reward, terminal, truncated, _ = env.step(env.action_space.sample())
     steps, done = steps + 1, terminal or truncated
 env.close()
+pool = gym.make_vec("ftc/FuelTransferCore-v0", num_envs=8, vectorization_mode="vector_entry_point",
+                    scenario="multiple")
+pool.reset(seed=0)
+for _ in range(100):
+    pool_obs = pool.step(pool.action_space.sample())[0]
+assert type(pool).__name__ == "FuelTransferVectorEnv" and pool_obs.shape == (8, 6)
 print(plant, steps, ftc.__file__)
 """
 
