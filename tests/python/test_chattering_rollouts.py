@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.identified_agent import IdentifiedAgent
-from ftc.control.mpc_agent import MPCAgent, MPCConfig
-from ftc.control.physics_evaluators import OracleEvaluator, ParamsEvaluator
-from ftc.control.planners import HoldPlanner, hold_candidates, valve_settings
-from ftc.control.ppo_robust_agent import RobustPPOAgent
+from ftc.control.agents.physics.identified_mpc import IdentifiedAgent
+from ftc.control.agents.physics.mpc import MPCAgent, MPCConfig
+from ftc.control.planning.physics.evaluators import OracleEvaluator, ParamsEvaluator
+from ftc.control.planning.planners import HoldPlanner, hold_candidates, valve_settings
+from ftc.control.agents.physics.ppo_robust import RobustPPOAgent
 
 SCENARIO = """
 name = "chatter"

@@ -17,8 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from ftc.control import controller_cli, mpc_cli
+from ftc.tools import controller as controller_cli
 
+
+from ftc.tools import mpc as mpc_cli
 BAD_VALUES = ["0", "-1", "nan", "inf", "1e18", "", "abc"]
 # (option, value) pairs that are valid input (each reviewed by hand)
 ACCEPTED = {

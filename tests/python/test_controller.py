@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ftc.control.controller_cli import Controller, main, parse_args, resume_config
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools.controller import Controller, main, parse_args, resume_config
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.learning.ppo import PPOConfig
 
 TIME_COLUMNS = {"online_seconds", "offline_seconds", "wall_time", "refit_seconds",

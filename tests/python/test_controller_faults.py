@@ -38,12 +38,12 @@ import torch
 
 from proc_state import ended
 
-import ftc.control.controller_cli as controller
-import ftc.control.runner as runner
+import ftc.tools.controller as controller
+import ftc.control.run.runner as runner
 from ftc.common.build_info import plant_binary
 from ftc.common.errors import NonFiniteError
-from ftc.control.controller_cli import Controller, resume_config
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools.controller import Controller, resume_config
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.plant import CorePlant, private_lcm_url, private_prefix
 from ftc.learning.ppo import PPOConfig
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from ftc.common.errors import CheckpointError
-from ftc.control.learned_agent import LearnedEvaluator, LearnedMPCAgent, planning_reward
-from ftc.control.mpc_cli import main
-from ftc.control.mpc_config import MPCConfig
-from ftc.control.planners import hold_candidates
+from ftc.control.agents.learned.learned_mpc import LearnedEvaluator, LearnedMPCAgent, planning_reward
+from ftc.tools.mpc import main
+from ftc.control.agents.mpc_config import MPCConfig
+from ftc.control.planning.planners import hold_candidates
 from ftc.learning.feature_model import FeatureModel
 from ftc.plant import CorePlant
 from ftc.plant.reward import reward

@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ftc.control import plugin_cli, plugins
+from ftc.tools import plugin as plugin_cli
+
+from ftc.control.agents import plugins
 from ftc.experiments import methods
 
 REPO = Path(__file__).resolve().parents[2]
@@ -147,7 +149,7 @@ def test_a_factory_gets_the_config_only_where_it_has_a_parameter_to_fill(tmp_pat
     cfg = plugins.PluginConfig(agent="x:y", scenario=None)
     module = tmp_path / "factories_for_test.py"
     module.write_text(
-        "from ftc.control.agent import Agent\n"
+        "from ftc.control.run.agent import Agent\n"
         "class A(Agent):\n"
         "    def __init__(self, margin=0.15):\n"
         "        self.margin = margin\n"

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control import mpc_cli, registry
-from ftc.control.physics_evaluators import OracleEvaluator
-from ftc.control.planners import (HoldPlanner, TwoStagePlanner, two_stage_candidates,
+from ftc.control import registry
+from ftc.tools import mpc as mpc_cli
+from ftc.control.planning.physics.evaluators import OracleEvaluator
+from ftc.control.planning.planners import (HoldPlanner, TwoStagePlanner, two_stage_candidates,
                                   valve_settings)
 from ftc.experiments import run_cache
 from ftc.experiments.run_cache import RunCache, RunKey
@@ -154,8 +155,8 @@ def test_the_cache_hits_on_the_same_bytes_and_misses_on_a_changed_byte(tmp_path)
 
 def test_the_code_digests_cover_the_planners_and_the_native_core():
     digests = run_cache.code_digests()
-    assert {"ftc/control/planners.py", "ftc/control/episode_planner.py",
-            "ftc/control/mpc_agent.py", "ftc/control/registry.py", "_core"} <= set(digests)
+    assert {"ftc/control/planning/planners.py", "ftc/control/planning/physics/episode_planner.py",
+            "ftc/control/agents/physics/mpc.py", "ftc/control/registry.py", "_core"} <= set(digests)
     assert all(len(v) == 64 for v in digests.values())
 
 
@@ -187,7 +188,7 @@ def test_the_benchmark_runs_the_reference_once_per_scenario_and_then_from_the_ca
     sources = meta["run_cache"]["sources"]
     assert sources["single/t00/reference/s0"]["from"] == "ran"
     assert sources["single/t00/reference/s1"]["from"] == "single/t00/reference/s0"
-    assert set(meta["run_cache"]["code"]) >= {"ftc/control/planners.py", "_core"}
+    assert set(meta["run_cache"]["code"]) >= {"ftc/control/planning/planners.py", "_core"}
     rows = _reference_rows(first)
     assert [s for s, _ in rows] == ["0", "1"] and rows[0][1] == rows[1][1]
     # the same bytes: nothing of the reference runs

@@ -12,12 +12,16 @@ import sys
 
 import pytest
 
-from ftc.control import controller_cli, mpc_cli, registry
-from ftc.control.agent import Agent
-from ftc.control.cli import read_run_configs
-from ftc.control.metrics import metric_columns
-from ftc.control.mpc_config import MPCConfig
-from ftc.control.ppo_robust_agent import RobustConfig
+from ftc.control import registry
+
+from ftc.tools import controller as controller_cli
+
+from ftc.tools import mpc as mpc_cli
+from ftc.control.run.agent import Agent
+from ftc.tools.run_cli import read_run_configs
+from ftc.control.run.metrics import metric_columns
+from ftc.control.agents.mpc_config import MPCConfig
+from ftc.control.agents.physics.ppo_robust import RobustConfig
 from ftc.experiments.methods import METHODS as EXPERIMENT_METHODS
 from ftc.learning.ppo import PPOConfig
 

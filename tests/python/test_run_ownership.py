@@ -28,9 +28,9 @@ import pytest
 import torch
 
 from ftc.common.atomic import atomic_torch_save, atomic_write_bytes, atomic_write_text
-from ftc.control import controller_cli
-from ftc.control.controller_cli import Controller
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools import controller as controller_cli
+from ftc.tools.controller import Controller
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.learning.ppo import PPOConfig
 
 REPO = Path(__file__).resolve().parents[2]

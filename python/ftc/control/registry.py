@@ -78,10 +78,10 @@ class Method:
         return tuple(self.agent_class().extra_columns)
 
 
-_CONTROLLER = "ftc.control.ppo_agent:ControllerConfig"
-_ROBUST = "ftc.control.guided_ppo:GuidedConfig"
-_MPC = "ftc.control.mpc_config:MPCConfig"
-_BASELINE = "ftc.control.baselines:BaselineAgent"
+_CONTROLLER = "ftc.control.agents.ppo:ControllerConfig"
+_ROBUST = "ftc.control.agents.learned.guided_ppo:GuidedConfig"
+_MPC = "ftc.control.agents.mpc_config:MPCConfig"
+_BASELINE = "ftc.control.agents.baselines:BaselineAgent"
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("closed", "all valves closed", "ftc.controller", ("--method", "closed"), _BASELINE,
@@ -91,9 +91,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("random", "each valve open with p = 1/2", "ftc.controller", ("--method", "random"),
            _BASELINE, _CONTROLLER, benchmark=False),
     Method("balance", "rule: balance the wings", "ftc.controller", ("--method", "balance"),
-           "ftc.control.balance:BalanceAgent", _CONTROLLER),
+           "ftc.control.agents.balance:BalanceAgent", _CONTROLLER),
     Method("ppo", "PPO (Algorithm 1, as its flags configure it)", "ftc.controller",
-           ("--method", "ppo"), "ftc.control.ppo_agent:PPOAgent", _CONTROLLER,
+           ("--method", "ppo"), "ftc.control.agents.ppo:PPOAgent", _CONTROLLER,
            knows="the learned model", learns=True, compared=False),
     Method("ppo-online", "PPO online", "ftc.controller", ("--method", "ppo", "--no-offline"),
            "", _CONTROLLER, knows="nothing", cost=3.0, learns=True),
@@ -104,33 +104,33 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            ("--method", "ppo", "--offline", "--pretrain"), "", _CONTROLLER,
            knows="the learned model", cost=8.0, learns=True),
     Method("ppo-robust", "PPO online + guided offline (robust)", "ftc.controller",
-           ("--method", "ppo-robust"), "ftc.control.ppo_robust_agent:RobustPPOAgent", _ROBUST,
+           ("--method", "ppo-robust"), "ftc.control.agents.physics.ppo_robust:RobustPPOAgent", _ROBUST,
            knows="the plant's equations",
            experiment_args=("--pretrain", "--offline-steps", "0", "--ppo-engine", "native"),
            cost=30.0, learns=True),
     Method("ppo-learned", "PPO online + guided offline on a model learned online",
            "ftc.controller", ("--method", "ppo-learned"),
-           "ftc.control.ppo_learned_agent:LearnedPPOAgent", _ROBUST, knows="the learned model",
+           "ftc.control.agents.learned.ppo_learned:LearnedPPOAgent", _ROBUST, knows="the learned model",
            # four refits an interval: the model learns a dying pump within the interval,
            # and the policy needs more than ppo-robust's two to follow it (docs/controller.md)
            experiment_args=("--pretrain", "--offline-steps", "0", "--ppo-engine", "native",
                             "--teacher-refits", "4"),
            cost=10.0, learns=True),
     Method("oracle-mpc", "MPC, faults known (oracle)", "ftc.mpc", ("--method", "oracle-mpc"),
-           "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the true faults", cost=1.5),
+           "ftc.control.agents.physics.mpc:MPCAgent", _MPC, knows="the true faults", cost=1.5),
     # whole episodes optimised on the true physics (episode_planner.py), never below
     # oracle-mpc's closed loop on the physics it plans with; its margin and cost: docs/benchmarks.md
     Method("reference", "episode optimisation on the true physics (reference)", "ftc.mpc",
            ("--method", "oracle-mpc", "--planner", "episode", "--rollout-closed-form"), "", _MPC,
            knows="the true faults", cost=20.0, cached=True),
     Method("model-mpc", "MPC on the learned model", "ftc.mpc", ("--method", "model-mpc"),
-           "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the learned model", cost=3.0,
+           "ftc.control.agents.physics.mpc:MPCAgent", _MPC, knows="the learned model", cost=3.0,
            learns=True),
     Method("learned-mpc", "MPC on a model learned online", "ftc.mpc", ("--method", "learned-mpc"),
-           "ftc.control.learned_agent:LearnedMPCAgent", _MPC, knows="the learned model", cost=2.0,
+           "ftc.control.agents.learned.learned_mpc:LearnedMPCAgent", _MPC, knows="the learned model", cost=2.0,
            learns=True),
     Method("identified-mpc", "MPC on identified physics", "ftc.mpc",
-           ("--method", "identified-mpc"), "ftc.control.identified_agent:IdentifiedAgent", _MPC,
+           ("--method", "identified-mpc"), "ftc.control.agents.physics.identified_mpc:IdentifiedAgent", _MPC,
            knows="the plant's equations", cost=2.0, learns=True),
 )}
 

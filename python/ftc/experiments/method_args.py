@@ -12,19 +12,41 @@ chosen method takes is refused before anything runs.
 
 from __future__ import annotations
 
+import argparse
 import functools
+import importlib
 from dataclasses import fields
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
-from ftc.common.cli import config_from_namespace
-from ftc.control import controller_cli, mpc_cli, plugin_cli, registry
-from ftc.control.mpc_config import MPCConfig
-from ftc.control.guided_ppo import GUIDED_FIELDS as ROBUST_FIELDS, GuidedConfig as RobustConfig
-from ftc.control.config import RunConfig
+from ftc.common.cli import add_dataclass_options, config_from_namespace
+from ftc.control import registry
+from ftc.control.agents.learned.guided_ppo import GUIDED_FIELDS as ROBUST_FIELDS, GuidedConfig as RobustConfig
+from ftc.control.agents.mpc_config import MPCConfig
+from ftc.control.agents.plugins import PluginConfig
+from ftc.control.run.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec
+from ftc.learning.ppo import PPOConfig
 
-# The command line each method's module is started with.
-PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli, "ftc.plugin": plugin_cli}
+# The config parts (class, option prefix) each method's module reads its command line into.
+PARTS = {"ftc.controller": ((RobustConfig, ""), (PPOConfig, "ppo-")), "ftc.mpc": ((MPCConfig, ""),),
+         "ftc.plugin": ((PluginConfig, ""),)}
+
+
+def tool_parser(module: str) -> Callable[[Sequence[str]], Any] | None:
+    """The ``parse_args`` of the tool a method's runs are started with
+    (``python -m MODULE``), loaded by that name as the runs are, to check their
+    command lines in process; None for a module of another kind."""
+    if module not in PARTS:
+        return None
+    return importlib.import_module(module).parse_args
+
+
+def _parser(module: str) -> argparse.ArgumentParser:
+    """The options of ``module``'s command line, from its config parts."""
+    parser = argparse.ArgumentParser(add_help=False)
+    for cls, prefix in PARTS[module]:
+        add_dataclass_options(parser, cls, prefix)
+    return parser
 
 
 def option_groups(extra: Sequence[str]) -> list[list[str]]:
@@ -42,7 +64,7 @@ def option_groups(extra: Sequence[str]) -> list[list[str]]:
 @functools.cache
 def _flags(module: str) -> tuple[frozenset[str], frozenset[str]]:
     """(every option of the module's command line, those of RunConfig's fields)."""
-    parser = PARSERS[module].build_parser()
+    parser = _parser(module)
     shared = {f.name for f in fields(RunConfig)}
     every, run = set(), set()
     for action in parser._actions:  # noqa: SLF001 - the parser's own options
@@ -54,7 +76,7 @@ def _flags(module: str) -> tuple[frozenset[str], frozenset[str]]:
 
 def takes(spec: MethodSpec, option: str) -> bool:
     """Whether the runs of ``spec`` get ``option`` (a flag, ``--x`` or ``--x=v``)."""
-    if spec.module not in PARSERS:  # a module of another kind: it gets everything
+    if spec.module not in PARTS:  # a module of another kind: it gets everything
         return True
     every, run = _flags(spec.module)
     flag = option.split("=", 1)[0]
@@ -77,12 +99,13 @@ def takes(spec: MethodSpec, option: str) -> bool:
 @functools.cache
 def _parsed(spec: MethodSpec):
     """The config a run of ``spec`` gets from its own arguments (what ignores what)."""
-    module = PARSERS[spec.module]
-    ns = vars(module.build_parser().parse_args(registry.expand_method(spec.args, spec.module)))
+    ns = vars(_parser(spec.module).parse_args(registry.expand_method(spec.args, spec.module)))
     if spec.module == "ftc.mpc":
         return config_from_namespace(MPCConfig, ns)
     # the controller's own options (its --ppo-* options configure PPOConfig)
-    return module.controller_config(vars(config_from_namespace(RobustConfig, ns)))
+    values = vars(config_from_namespace(RobustConfig, ns))
+    cls = registry.method(values["method"]).config_class()
+    return cls(**{f.name: values[f.name] for f in fields(cls)})
 
 
 def method_args(spec: MethodSpec, extra: Sequence[str]) -> list[str]:

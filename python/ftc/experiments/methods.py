@@ -11,9 +11,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from ftc.control import plugins, registry
+from ftc.control import registry
 
 
+
+from ftc.control.agents import plugins
 @dataclass(frozen=True)
 class MethodSpec:
     """A compared method: a module run with ``python -m`` and its method arguments.
@@ -61,7 +63,7 @@ for _m in registry.METHODS.values():
         register_method(MethodSpec(_m.name, _m.label, ("--method", _m.name, *_m.experiment_args),
                                    module=_m.tool, cost=_m.cost, learns=_m.learns,
                                    benchmark=_m.benchmark, cached=_m.cached))
-PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.control.plugin_cli)
+PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.tools.plugin)
 
 
 def plugin_method(entry: str) -> MethodSpec:

@@ -39,11 +39,11 @@ from ftc.experiments.runs import RunSpec, is_finished
 # The Python files, relative to the ftc package's parent, whose bytes decide a
 # cached method's results besides the native core: the planners and their
 # configuration, the method's spelling, the MPC tool and the interval runner.
-CODE = ("ftc/control/planners.py", "ftc/control/physics_evaluators.py",
-        "ftc/control/episode_planner.py", "ftc/control/mpc_config.py",
-        "ftc/control/true_physics.py", "ftc/control/balance.py",
-        "ftc/control/mpc_agent.py", "ftc/control/mpc_cli.py", "ftc/control/registry.py",
-        "ftc/control/runner.py", "ftc/control/agent.py", "ftc/plant/reward.py")
+CODE = ("ftc/control/planning/planners.py", "ftc/control/planning/physics/evaluators.py",
+        "ftc/control/planning/physics/episode_planner.py", "ftc/control/agents/mpc_config.py",
+        "ftc/control/planning/physics/true_physics.py", "ftc/control/agents/balance.py",
+        "ftc/control/agents/physics/mpc.py", "ftc/tools/mpc.py", "ftc/control/registry.py",
+        "ftc/control/run/runner.py", "ftc/control/run/agent.py", "ftc/plant/reward.py")
 ENV = "FTC_RUN_CACHE"  # overrides the default directory ('' disables the cache)
 DEFAULT_DIR = "~/.cache/ftc/reference"
 

@@ -34,8 +34,8 @@ from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.common.run_lock import RunLock, refuse_existing
-from ftc.control.baselines import BASELINES, baseline_valves
-from ftc.control.config import MAX_STEPS_PER_INTERVAL
+from ftc.control.agents.baselines import BASELINES, baseline_valves
+from ftc.control.run.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
 
 POLICIES = BASELINES
