@@ -70,13 +70,13 @@ def plugin_method(entry: str) -> MethodSpec:
     """A plug-in entry of --methods, ``NAME=SPEC`` or ``SPEC`` (NAME: the factory's
     name or the file's stem), registered under NAME once its spec has given an
     agent; ValueError naming what is wrong (the module, attribute or file)."""
-    name, given, spec = entry.partition("=")
-    if not given:
-        name, spec = plugins.default_name(entry), entry
+    name, spec = plugins.split_name(entry)
+    if name is None:
+        name = plugins.default_name(entry)
     if not plugins.is_plugin(spec):
         raise ValueError(f"{entry}: not a method name nor a plug-in (NAME=SPEC, SPEC one of "
                          f"{', '.join(plugins.KINDS)})")
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
+    if not re.fullmatch(plugins.NAME, name):
         raise ValueError(f"{entry}: the name {name!r} may hold letters, digits and . _ - only")
     if name in registry.METHODS:
         raise ValueError(f"{entry}: {name} is a built-in method; name the plug-in NAME={spec}")

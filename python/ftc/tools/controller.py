@@ -178,9 +178,9 @@ def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    plugin = plugin_cli.plugin_argv(argv)  # --method module:factory, sb3:..., onnx:...
+    plugin = plugin_cli.plugin_run(argv, TOOL)  # --method [NAME=]SPEC, or --resume of one
     if plugin is not None:
-        return plugin_cli.main(plugin)
+        return plugin
     torch.set_num_threads(1)
     cfg, ppo = parse_args(argv)
     return run_or_report(TOOL, lambda: Controller(cfg, ppo).run(), out=cfg.resume or cfg.out)

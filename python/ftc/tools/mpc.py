@@ -64,9 +64,9 @@ def parse_args(argv: Sequence[str] | None = None) -> MPCConfig:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    plugin = plugin_cli.plugin_argv(argv)  # --method module:factory, sb3:..., onnx:...
+    plugin = plugin_cli.plugin_run(argv, TOOL)  # --method [NAME=]SPEC, or --resume of one
     if plugin is not None:
-        return plugin_cli.main(plugin)
+        return plugin
     cfg = parse_args(argv)
     torch.set_num_threads(1)
     return run_or_report(TOOL, lambda: MPCController(cfg).run(), out=cfg.resume or cfg.out)

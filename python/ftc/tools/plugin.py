@@ -2,28 +2,32 @@
 interval runner, scored as every method is.
 
     python -m ftc.plugin --agent examples.custom_agent:make_agent --out runs/mine
-    python -m ftc.plugin --agent mypackage.agents:make_agent --scenario scenarios/single.toml
+    python -m ftc.plugin --agent mine=mypackage.agents:make_agent --scenario scenarios/single.toml
     python -m ftc.plugin --agent sb3:runs/sb3/model.zip --out runs/sb3
     python -m ftc.plugin --agent onnx:policy.onnx --out runs/onnx
 
-``ftc.controller --method SPEC`` and ``ftc.mpc --method SPEC`` run the same
-(:mod:`ftc.control.agents.plugins` lists the specs). The run writes what every run
-writes (config.json with the spec, metrics.csv, checkpoint.pt, done.json);
---resume continues it (a plug-in agent's state is what its state_dict
-returns). A spec that gives no controller is exit 2 with one line naming the
-module, attribute or file.
+``ftc.controller --method [NAME=]SPEC`` and ``ftc.mpc --method [NAME=]SPEC``
+run the same (:mod:`ftc.control.agents.plugins` lists the specs; NAME, the
+name the agent goes by, defaults to the factory's name or the file's stem).
+The run writes what every run writes (config.json with the spec, metrics.csv,
+checkpoint.pt, done.json); --resume continues it, from this tool or from the
+one that started it (a plug-in agent's state is what its state_dict returns).
+A spec that gives no controller is exit 2 with one line naming the option,
+and the module, attribute or file.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from ftc.common.cli import OneLineParser, config_from_namespace
-from ftc.tools.run_cli import add_run_options, check_or_exit, resume_configs, run_or_report
 from ftc.control.agents.plugins import PluginConfig, PluginError, is_plugin, load_agent
 from ftc.control.run.runner import IntervalRunner
+from ftc.tools.run_cli import add_run_options, check_or_exit, resume_configs, run_or_report
 
 TOOL = "ftc.plugin"
 
@@ -33,27 +37,36 @@ class PluginController(IntervalRunner):
 
     tool = TOOL
 
-    def __init__(self, cfg: PluginConfig, agent) -> None:
+    def __init__(self, cfg: PluginConfig, agent, tool: str = TOOL) -> None:
+        self.tool = tool
         super().__init__(cfg, agent, {"plugin": cfg})
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(tool: str = TOOL, option: str = "--agent") -> argparse.ArgumentParser:
+    """The command line of a plug-in run of ``tool``, the spec given as ``option``
+    (``--agent`` here, ``--method`` on ftc.controller and ftc.mpc)."""
     parser = OneLineParser(
-        prog=f"python -m {TOOL}", allow_abbrev=False,
+        prog=f"python -m {tool}", allow_abbrev=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1])
-    add_run_options(parser, PluginConfig)
+    if option != "--agent":
+        parser.add_argument(option, dest="agent", default="", help=(
+            "the plug-in: [NAME=]SPEC, SPEC one of module.path:factory, sb3:PATH.zip, "
+            "onnx:PATH.onnx"))
+    add_run_options(parser, PluginConfig, skip=() if option == "--agent" else ("agent",))
     return parser
 
 
-def parse_args(argv: Sequence[str] | None = None) -> tuple[PluginConfig, object]:
-    """(the run's config, its agent); bad input exits 2 before anything is written."""
-    parser = build_parser()
+def parse_args(argv: Sequence[str] | None = None, tool: str = TOOL, option: str = "--agent"
+               ) -> tuple[PluginConfig, object]:
+    """(the run's config, its agent); bad input exits 2 before anything is
+    written, the line naming ``option``, the option the spec came in."""
+    parser = build_parser(tool, option)
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = config_from_namespace(PluginConfig, vars(parser.parse_args(argv)))
     if not cfg.resume and not cfg.agent:
-        parser.error("--agent is required (module.path:factory, sb3:PATH.zip or "
-                     "onnx:PATH.onnx)")
+        parser.error(f"{option} is required ([NAME=]SPEC, SPEC one of module.path:factory, "
+                     "sb3:PATH.zip or onnx:PATH.onnx)")
     check_or_exit(parser, cfg)
     if cfg.resume:
         cfg = resume_configs(parser, argv, {"plugin": (cfg, "")}, {"plugin": PluginConfig},
@@ -61,28 +74,43 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[PluginConfig, object]
     try:
         agent = load_agent(cfg.agent, cfg)
     except PluginError as e:
-        parser.error(f"--agent: {e}")
+        parser.error(f"{option}: {e}")
     return cfg, agent
 
 
-def plugin_argv(argv: Sequence[str] | None) -> list[str] | None:
-    """``argv`` of ftc.controller or ftc.mpc with ``--method SPEC`` as ftc.plugin
-    reads it (``--agent SPEC``), or None where --method names no plug-in."""
+def plugin_run(argv: Sequence[str] | None, tool: str) -> int | None:
+    """For ftc.controller and ftc.mpc, whose --method is read first: the exit
+    code of the plug-in run ``argv`` asks for (``--method [NAME=]SPEC``, or
+    ``--resume DIR`` of a run a plug-in started), or None when it asks for none."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    for i, word in enumerate(argv):
-        if word == "--method" and i + 1 < len(argv) and is_plugin(argv[i + 1]):
-            return [*argv[:i], "--agent", *argv[i + 1:]]
-        if word.startswith("--method=") and is_plugin(word.split("=", 1)[1]):
-            return [*argv[:i], "--agent=" + word.split("=", 1)[1], *argv[i + 1:]]
-    return None
+    first = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    first.add_argument("--method")
+    first.add_argument("--resume")
+    known, _ = first.parse_known_args(argv)
+    if known.method is not None:
+        plugin = is_plugin(known.method)
+    else:
+        plugin = known.resume is not None and _started_by_plugin(Path(known.resume))
+    return main(argv, tool, "--method") if plugin else None
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _started_by_plugin(out: Path) -> bool:
+    """Whether the run in ``out`` is a plug-in's (its config.json says; a missing
+    or unreadable one is the tool's own error to report)."""
+    try:
+        doc = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and isinstance(doc.get("plugin"), dict) \
+        and "controller" not in doc and "mpc" not in doc
+
+
+def main(argv: Sequence[str] | None = None, tool: str = TOOL, option: str = "--agent") -> int:
     import torch
 
     torch.set_num_threads(1)
-    cfg, agent = parse_args(argv)
-    return run_or_report(TOOL, lambda: PluginController(cfg, agent).run(),
+    cfg, agent = parse_args(argv, tool, option)
+    return run_or_report(tool, lambda: PluginController(cfg, agent, tool).run(),
                          out=cfg.resume or cfg.out)
 
 

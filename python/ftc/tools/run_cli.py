@@ -34,8 +34,9 @@ def option_order(cls: type) -> list[str]:
     return [*method, *RUN_HEAD, *own, *[n for n in run if n not in RUN_HEAD]]
 
 
-def add_run_options(parser: argparse.ArgumentParser, cls: type) -> None:
-    add_dataclass_options(parser, cls, order=option_order(cls))
+def add_run_options(parser: argparse.ArgumentParser, cls: type, skip: Sequence[str] = ()
+                    ) -> None:
+    add_dataclass_options(parser, cls, order=option_order(cls), skip=skip)
 
 
 def method_argv(parser: argparse.ArgumentParser, argv: Sequence[str] | None,

@@ -35,6 +35,7 @@ from ftc.plant.link import PlantObservation
 
 API_VERSION = 1  # the Agent protocol a plug-in is written against
 KINDS = ("module.path:factory", "sb3:PATH.zip", "onnx:PATH.onnx")
+NAME = r"[A-Za-z0-9][A-Za-z0-9_.-]*"  # what a method's name may hold (it names paths)
 
 
 class PluginError(ValueError):
@@ -56,16 +57,27 @@ class PluginConfig(RunConfig):
 
     def validate(self) -> None:
         super().validate()
-        if self.sb3_learn and not self.agent.startswith("sb3:"):
+        name, spec = split_name(self.agent)
+        if name is not None and not re.fullmatch(NAME, name):
+            raise ValueError(f"{self.agent}: the name {name!r} may hold letters, digits and "
+                             ". _ - only")
+        if self.sb3_learn and not spec.startswith("sb3:"):
             raise ValueError(f"--sb3-learn fine-tunes an sb3:PATH.zip model, not {self.agent!r}")
         if not is_plugin(self.agent):
-            raise ValueError(f"--agent {self.agent!r}: not a plug-in spec (one of "
+            raise ValueError(f"{self.agent!r} is not a plug-in spec ([NAME=]SPEC, SPEC one of "
                              f"{', '.join(KINDS)})")
 
 
 def is_plugin(spec: str) -> bool:
-    """Whether ``spec`` names a plug-in (registry names hold no colon)."""
+    """Whether ``spec`` (or ``NAME=SPEC``) names a plug-in (registry names hold no colon)."""
     return ":" in spec
+
+
+def split_name(entry: str) -> tuple[str | None, str]:
+    """``NAME=SPEC`` -> (NAME, SPEC); ``SPEC`` -> (None, SPEC). A NAME is what
+    stands before an ``=`` ahead of the spec's first ``:`` (a path may hold ``=``)."""
+    name, eq, spec = entry.partition("=")
+    return (name, spec) if eq and ":" not in name else (None, entry)
 
 
 def default_name(spec: str) -> str:
@@ -88,18 +100,23 @@ class PolicyAgent(Agent):
         return self.policy(np.asarray(obs.level, np.float32))
 
 
-def load_agent(spec: str, cfg: PluginConfig) -> Agent:
-    """The agent ``spec`` names; PluginError saying what is wrong and where."""
+def load_agent(entry: str, cfg: PluginConfig) -> Agent:
+    """The agent ``entry`` ([NAME=]SPEC) names, going by NAME when given;
+    PluginError saying what is wrong and where."""
+    name, spec = split_name(entry)
     kind, _, rest = spec.partition(":")
     if kind == "sb3":
         model = _sb3_model(Path(rest))
         policy = _checked(lambda levels: model.predict(levels, deterministic=True)[0], spec)
         if cfg.sb3_learn:
-            return SB3Agent(default_name(spec), model)
-        return PolicyAgent(default_name(spec), policy)
+            return SB3Agent(name or default_name(spec), model)
+        return PolicyAgent(name or default_name(spec), policy)
     if kind == "onnx":
-        return PolicyAgent(default_name(spec), _checked(_onnx_policy(Path(rest)), spec))
-    return _factory_agent(kind, rest, cfg)
+        return PolicyAgent(name or default_name(spec), _checked(_onnx_policy(Path(rest)), spec))
+    agent = _factory_agent(kind, rest, cfg)
+    if name is not None:
+        agent.name = name
+    return agent
 
 
 def _factory_agent(module_name: str, attribute: str, cfg: PluginConfig) -> Agent:
