@@ -217,8 +217,8 @@ def test_attached_plant_that_stops_answering_is_retried_with_backoff(tmp_path, s
                               "--scenario", str(scenarios / "single.toml"), "--seed", "3",
                               "--steps-per-interval", "512"], stdout=subprocess.DEVNULL)
     proc = subprocess.Popen(
-        [PY, "-m", "ftc.controller", *SHORT, "--steps-per-interval", "512", "--update-every",
-         "128", "--no-offline", "--intervals", "3", "--scenario", str(scenarios / "single.toml"),
+        [PY, "-m", "ftc.controller", "--seed", "3", "--quiet", "--steps-per-interval", "512",
+         "--update-every", "128", "--no-offline", "--intervals", "3", "--scenario", str(scenarios / "single.toml"),
          "--attach", "--lcm-url", url, "--prefix", prefix, "--link-retry-timeout", "0.05",
          "--link-backoff", "2", "--link-give-up-timeout", "1.5", "--out", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=REPO)

@@ -13,7 +13,7 @@ import pytest
 
 from ftc import _core
 from ftc.control.run.metrics import METRIC_COLUMNS
-from ftc.control.agents.physics.mpc import MPCAgent, MPCConfig
+from ftc.control.agents.physics.mpc import MPCAgent, MPCConfig, OracleConfig
 from ftc.tools.mpc import MPCController, main
 from ftc.control.planning.physics.evaluators import OracleEvaluator
 from ftc.control.planning.planners import CEMPlanner, HoldPlanner, hold_candidates, valve_settings
@@ -155,8 +155,8 @@ def _closed_reward_per_step(steps: int) -> float:
 
 def test_oracle_equals_all_closed_on_the_nominal_plant(tmp_path):
     steps = 128  # two full episodes and part of a third, over LCM
-    cfg = MPCConfig(method="oracle-mpc", scenario="", out=str(tmp_path), intervals=1,
-                    steps_per_interval=steps, quiet=True)
+    cfg = OracleConfig(method="oracle-mpc", scenario="", out=str(tmp_path), intervals=1,
+                       steps_per_interval=steps, quiet=True)
     rows = MPCController(cfg).run()
     closed = _closed_reward_per_step(steps)
     assert rows[0]["reward_per_step"] >= closed - 1e-9

@@ -103,14 +103,16 @@ def test_pruning_expands_only_the_best_first_settings():
 def test_method_reference_is_the_oracle_mpc_with_the_episode_planner(tmp_path):
     ref = mpc_cli.parse_args(["--method", "reference", *NO_PLANT, "--out", str(tmp_path / "r")])
     oracle = mpc_cli.parse_args(["--method", "oracle-mpc", *NO_PLANT, "--out", str(tmp_path / "o")])
-    assert (ref.method, ref.planner, ref.rollout_closed_form) == ("oracle-mpc", "episode", True)
+    assert (ref.method, ref.planner, ref.rollout_closed_form) == ("reference", "episode", True)
+    assert type(ref) is type(oracle)  # the oracle's options, two of them fixed
     assert (oracle.planner, oracle.hold, oracle.horizon) == ("hold", 3, 10)
     # the closed loop it must beat is the oracle's H = 3, L = 10 hold planner
     assert (ref.hold, ref.horizon) == (oracle.hold, oracle.horizon)
     m = registry.METHODS["reference"]
-    assert m.cached and m.knows == "the true faults" and not m.agent
+    assert m.cached and m.knows == "the true faults"
+    assert m.agent == registry.METHODS["oracle-mpc"].agent
+    assert dict(m.options) == {"planner": "episode", "rollout_closed_form": True}
     assert "reference" in registry.tool_methods("ftc.mpc")
-    assert "reference" not in registry.config_values("ftc.mpc")
 
 
 def test_a_short_reference_run_finishes(tmp_path, scenarios):

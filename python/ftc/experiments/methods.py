@@ -60,9 +60,8 @@ def register_method(spec: MethodSpec) -> MethodSpec:
 
 for _m in registry.METHODS.values():
     if _m.compared:  # the experiments run each under its own name: --method NAME
-        register_method(MethodSpec(_m.name, _m.label, ("--method", _m.name, *_m.experiment_args),
-                                   module=_m.tool, cost=_m.cost, learns=_m.learns,
-                                   benchmark=_m.benchmark, cached=_m.cached))
+        register_method(MethodSpec(_m.name, _m.label, _m.args, module=_m.tool, cost=_m.cost,
+                                   learns=_m.learns, benchmark=_m.benchmark, cached=_m.cached))
 PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.tools.plugin)
 
 

@@ -1,9 +1,11 @@
 """The paper's controller (Algorithm 1, method ppo-offline): PPO online on the
 real plant, offline on a world model refitted from real experience, interval
-by interval; and the other methods of ftc.control.registry it runs.
+by interval; and the other methods of ftc.control.registry it runs, each
+with its own options.
 
     python -m ftc.controller --scenario scenarios/single.toml --seed 0 --out runs/s0
-    python -m ftc.controller --method ppo-online --out runs/online  # = --method ppo --no-offline
+    python -m ftc.controller --method ppo-online --out runs/online  # ppo, offline phase off
+    python -m ftc.controller --method ppo-robust --help             # ppo-robust's options
     python -m ftc.controller --method closed --out runs/closed      # a baseline
     python -m ftc.controller --resume runs/s0                       # continue a stopped run
     python -m ftc.controller --resume runs/s0 --intervals 20        # extend a run to 20
@@ -46,31 +48,36 @@ from __future__ import annotations
 import argparse
 import sys
 import textwrap
-from dataclasses import fields
 from typing import Any, Sequence
 
 import torch
 
-from ftc.common.cli import (OneLineParser, add_dataclass_options, config_from_namespace, flag,
-                            given_options)
 from ftc.control import registry
-from ftc.tools import plugin as plugin_cli
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.control.run.agent import Agent
-from ftc.tools.run_cli import (add_run_options, check_or_exit, method_argv, read_run_configs,
-                             refuse_ignored, resume_configs, run_or_report)
-from ftc.control.run.config import RunConfig
-from ftc.control.agents.ppo import PPO_METHODS, ControllerConfig
-from ftc.control.agents.learned.guided_ppo import GUIDED_FIELDS as ROBUST_FIELDS, GuidedConfig as RobustConfig
 from ftc.control.run.runner import IntervalRunner
 from ftc.learning.ppo import PPOConfig
 from ftc.learning.ppo_policy import ENGINE_ALIASES, ENGINES
+from ftc.tools import plugin as plugin_cli
+from ftc.tools.run_cli import (method_parser, parse_method_args, read_run_configs,
+                                run_or_report, stored_config)
 
 TOOL = "ftc.controller"
+DEFAULT = "ppo"
+CHOICES = {"ppo": {"engine": (*ENGINES, *ENGINE_ALIASES)}}
 
 
-def make_agent(cfg: ControllerConfig, ppo_config: PPOConfig) -> Agent:
+def run_configs(cfg: Any, ppo_config: PPOConfig | None = None) -> dict[str, Any]:
+    """The config parts of a run of ``cfg.method``: its run config and the parts
+    its agent has (a PPO method's hyperparameters: ``ppo_config``, or the defaults)."""
+    parts = registry.method(cfg.method).agent_class().parts
+    return {"controller": cfg, **{name: (ppo_config if name == "ppo" and ppo_config is not None
+                                         else part()) for name, (part, _) in parts.items()}}
+
+
+def make_agent(cfg: Any, ppo_config: PPOConfig | None = None) -> Agent:
     """The agent of --method, as :mod:`ftc.control.registry` lists it."""
-    return registry.agent_for({"controller": cfg, "ppo": ppo_config}, cfg.method)
+    return registry.agent_for(run_configs(cfg, ppo_config), cfg.method)
 
 
 class Controller(IntervalRunner):
@@ -78,14 +85,14 @@ class Controller(IntervalRunner):
 
     tool = TOOL
 
-    def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
+    def __init__(self, cfg: Any, ppo_config: PPOConfig | None = None) -> None:
         cfg.validate()
         # one thread before the networks are built: their orthogonal initialisation
         # differs in the last bits under a multi-threaded BLAS (measured: a run built
         # first in a fresh process differed from later ones in approx_kl's 6th digit)
         torch.set_num_threads(1)
-        super().__init__(cfg, make_agent(cfg, ppo_config),
-                         {"controller": cfg, "ppo": ppo_config})
+        configs = run_configs(cfg, ppo_config)
+        super().__init__(cfg, registry.agent_for(configs, cfg.method), configs)
 
     @property
     def ppo(self):
@@ -93,88 +100,37 @@ class Controller(IntervalRunner):
         return getattr(self.agent, "ppo", None)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(
-        prog="python -m ftc.controller", allow_abbrev=False,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description=textwrap.fill(" ".join(__doc__.split("\n\n")[0].split())
-                                  + " Prints one progress line per interval.", 79),
-        epilog=__doc__.split("\n\n", 1)[1])
-    add_run_options(parser, RobustConfig)  # every method's options; each refuses the others'
-    add_dataclass_options(parser.add_argument_group("PPO hyperparameters"), PPOConfig, "ppo-",
-                          choices={"engine": (*ENGINES, *ENGINE_ALIASES)})
-    return parser
+def _texts() -> tuple[str, str]:
+    """The command line's description and epilog."""
+    return (textwrap.fill(" ".join(__doc__.split("\n\n")[0].split())
+                          + " Prints one progress line per interval.", 79),
+            __doc__.split("\n\n", 1)[1])
 
 
-def controller_config(values: dict[str, Any]) -> ControllerConfig:
-    """The config of a run of ``values["method"]`` (its registry config class)
-    from option values, the options of other methods dropped (they have no
-    effect on it and are refused when given); TypeError for an option no
-    method has."""
-    unknown = sorted(values.keys() - {f.name for f in fields(RobustConfig)})
-    if unknown:  # no method has it: not a config this controller wrote
-        raise TypeError(f"unknown options {', '.join(unknown)}")
-    cls = registry.method(values.get("method", "ppo")).config_class()
-    own = {f.name for f in fields(cls)}
-    return cls(**{k: v for k, v in values.items() if k in own})
+def build_parser(method: str = DEFAULT) -> argparse.ArgumentParser:
+    """The command line of a run of ``method`` (what ``--method METHOD --help`` shows)."""
+    return method_parser(TOOL, registry.method(method), *_texts(), CHOICES)
 
 
-# a stored run's fields the controller no longer offers (cli.read_run_configs)
-controller_config.RETIRED_FIELDS = ControllerConfig.RETIRED_FIELDS  # type: ignore[attr-defined]
+def parse_args(argv: Sequence[str] | None = None) -> tuple[Any, PPOConfig]:
+    """The run's config and PPO hyperparameters (the defaults where the method
+    has no policy) from the command line (with --resume, the run's own, every
+    option given honoured or refused); bad input exits 2 before anything is
+    written. ``--method NAME`` is read first: the options offered are NAME's."""
+    configs = parse_method_args(TOOL, argv, DEFAULT, *_texts(), CHOICES)
+    return configs["controller"], configs.get("ppo", PPOConfig())
 
 
-def parse_args(argv: Sequence[str] | None = None) -> tuple[ControllerConfig, PPOConfig]:
-    """The run's configs from the command line (with --resume, the run's own,
-    every option given honoured or refused); bad input exits 2 before anything
-    is written. ``--method NAME`` takes every name of the registry this tool
-    runs (ppo-offline: ppo --offline) and, with a warning, its former names."""
-    parser = build_parser()
-    argv = method_argv(parser, argv, TOOL)
-    ns = vars(parser.parse_args(argv))
-    every = config_from_namespace(RobustConfig, ns)  # this command line, every option
-    ppo = config_from_namespace(PPOConfig, ns, "ppo-")
-    check_or_exit(parser, every, {"ppo-": ppo})
-    named = given_options(parser, argv)
-    if every.resume:
-        def no_effect(stored: dict, named: set[str]) -> None:
-            _refuse_no_effect(parser, named, stored["controller"])
-
-        configs = resume_configs(parser, argv, {"controller": (every, ""), "ppo": (ppo, "ppo-")},
-                                 {"controller": controller_config, "ppo": PPOConfig}, no_effect)
-        return configs["controller"], configs["ppo"]
-    cfg = controller_config(vars(every))
-    _refuse_no_effect(parser, named, cfg)
-    return cfg, ppo
-
-
-def _refuse_no_effect(parser: argparse.ArgumentParser, named: set[str],
-                      cfg: ControllerConfig) -> None:
-    """Exit 2 on an option given that cannot act on a run of ``cfg``: a
-    baseline has no policy (every PPO option), plain PPO no guided fit (the
-    robust options), a run without --pretrain no pretraining."""
-    method = cfg.method
-    if method not in PPO_METHODS:
-        run = {f.name for f in fields(RunConfig)}
-        ppo_only = [flag(f.name) for f in fields(RobustConfig)
-                    if f.name not in run and f.name != "method" and f.name in named]
-        ppo_only += [flag(f.name, "ppo-") for f in fields(PPOConfig) if "ppo_" + f.name in named]
-        if ppo_only:
-            parser.error(f"{ppo_only[0]} has no effect with --method {method} (it configures "
-                         f"the PPO methods: {', '.join(PPO_METHODS)})")
-    robust = [flag(name) for name in ROBUST_FIELDS if name in named]
-    if method not in registry.guided_methods() and robust:
-        parser.error(f"{robust[0]} has no effect with --method {method} (it configures "
-                     f"{', '.join(registry.guided_methods())})")
-    refuse_ignored(parser, cfg, named)
-
-
-def resume_config(out: str) -> tuple[ControllerConfig, PPOConfig]:
+def resume_config(out: str) -> tuple[Any, PPOConfig]:
     """The configuration a stopped run was started with (from its config.json);
     raises CheckpointError when it is missing or malformed."""
-    configs = read_run_configs(out, {"controller": controller_config, "ppo": PPOConfig})
+    configs = read_run_configs(out, {"controller": stored_config(TOOL), "ppo": PPOConfig})
     cfg, ppo = configs["controller"], configs["ppo"]
     cfg.resume, cfg.out = out, out
     return cfg, ppo
+
+
+__all__ = ["Controller", "ControllerConfig", "main", "make_agent", "parse_args", "resume_config"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

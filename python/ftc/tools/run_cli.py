@@ -12,8 +12,8 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from ftc.common.cli import (add_dataclass_options, check_config, flag, given_options,
-                            out_dir_problem)
+from ftc.common.cli import (OneLineParser, add_dataclass_options, check_config,
+                            config_from_namespace, flag, given_options, out_dir_problem, unmet)
 from ftc.common.errors import CheckpointError, RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.common.replacing import STASH
@@ -39,23 +39,121 @@ def add_run_options(parser: argparse.ArgumentParser, cls: type, skip: Sequence[s
     add_dataclass_options(parser, cls, order=option_order(cls), skip=skip)
 
 
-def method_argv(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
-                tool: str) -> list[str]:
-    """The command line with ``--method NAME`` spelled as ``tool`` reads it
-    (:func:`ftc.control.registry.expand_method`); exit 2 on a method of another
-    tool or a flag the method fixes."""
-    try:
-        return registry.expand_method(sys.argv[1:] if argv is None else argv, tool)
-    except ValueError as e:
-        parser.error(str(e))
+def chosen_method(argv: Sequence[str], tool: str, default: str) -> registry.Method:
+    """The method a command line of ``tool`` runs, read before anything else:
+    its ``--method``, or with ``--resume DIR`` alone the run's own (from its
+    config.json), or ``default``. A former name warns on stderr and maps; an
+    unknown name or one of another tool exits 2 with one line."""
+    first = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    first.add_argument("--method")
+    first.add_argument("--resume")
+    known, _ = first.parse_known_args(argv)
+    name = known.method
+    if name is None and known.resume is not None:
+        try:
+            name = json.loads((Path(known.resume) / "config.json").read_text()
+                              )[registry.TOOLS[tool]]["method"]
+        except (OSError, ValueError, KeyError, TypeError):
+            name = None  # read again, and reported, with the run's configuration
+    name = default if name is None else name
+    prog = OneLineParser(prog=f"python -m {tool}")
+    if name in registry.ALIASES:
+        print(f"{tool}: warning: --method {name} is deprecated; use --method "
+              f"{registry.ALIASES[name]}", file=sys.stderr, flush=True)
+    if registry.canonical(name) not in registry.METHODS:
+        others = [t for t in registry.TOOLS if t != tool]
+        prog.error(f"--method {name}: unknown; {tool} runs "
+                   f"{', '.join(registry.tool_methods(tool))} (and "
+                   + "; ".join(f"{t}: {', '.join(registry.tool_methods(t))}" for t in others)
+                   + "; or a plug-in, [NAME=]SPEC)")
+    m = registry.method(name)
+    if m.tool != tool:
+        prog.error(f"--method {m.name} is run by {m.tool}, not {tool}")
+    return m
 
 
-def refuse_ignored(parser: argparse.ArgumentParser, cfg: Any, named: set[str],
-                   prefix: str = "") -> None:
-    """Exit 2 on the first option given that ``cfg.ignored()`` says has no effect."""
-    for name, why in cfg.ignored().items():
-        if prefix.replace("-", "_") + name in named:
-            parser.error(f"{flag(name, prefix)} has no effect {why}")
+def methods_help(tool: str) -> str:
+    """--method's help: each method of ``tool`` with its label, from the registry."""
+    return ("the method (--method NAME --help lists its options): " + "; ".join(
+        f"{m.name}: {m.label}" for m in registry.METHODS.values() if m.tool == tool)
+        + "; or a plug-in, [NAME=]SPEC (python -m ftc.plugin --help)")
+
+
+def method_parser(tool: str, m: registry.Method, description: str, epilog: str,
+                  choices: dict[str, dict[str, Sequence[str]]] | None = None
+                  ) -> argparse.ArgumentParser:
+    """The command line of a run of ``m``: --method, then exactly the options
+    of its run config it offers (:meth:`ftc.control.registry.Method.offered`)
+    and those of its other config parts, each under its prefix. choices: by
+    part, choices of its fields beyond their own."""
+    parser = OneLineParser(
+        prog=f"python -m {tool}", allow_abbrev=False,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=description, epilog=f"Options of --method {m.name} ({m.label}) above.\n\n"
+        + epilog)
+    parser.add_argument("--method", default=m.name, metavar="NAME", help=methods_help(tool))
+    m.add_options(parser, choices)
+    return parser
+
+
+def parse_method_args(tool: str, argv: Sequence[str] | None, default: str, description: str,
+                      epilog: str, choices: dict[str, dict[str, Sequence[str]]] | None = None
+                      ) -> dict[str, Any]:
+    """The configs of the run a command line of ``tool`` asks for, by part
+    ({"controller": ..., "ppo": ...}): the method first, then its options (with
+    --resume, the run's own, every option given honoured or refused); bad input
+    exits 2 with one line before anything is written."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    m = chosen_method(argv, tool, default)
+    parser = method_parser(tool, m, description, epilog, choices)
+    ns, extra = parser.parse_known_args(argv)
+    if extra:  # nothing foreign is offered: an option of another method is none of this one
+        word = next((w for w in extra if w.startswith("-")), extra[0])
+        parser.error(f"{word.split('=', 1)[0]} is not an option of --method {m.name} "
+                     f"(python -m {tool} --method {m.name} --help lists them)")
+    ns = vars(ns)
+    cfg = m.config({name: _value(ns[name]) for name in m.offered()})
+    others = {name: (config_from_namespace(cls, ns, prefix), prefix)
+              for name, (cls, prefix) in m.agent_class().parts.items()}
+    check_or_exit(parser, cfg, {prefix: part for part, prefix in others.values()})
+    if cfg.resume:
+        classes = {m.part: stored_config(tool),
+                   **{n: c for n, (c, _) in m.agent_class().parts.items()}}
+        return resume_configs(parser, argv, {m.part: (cfg, ""), **others}, classes,
+                              lambda stored, named: refuse_unmet(parser, stored[m.part], named))
+    refuse_unmet(parser, cfg, given_options(parser, argv))
+    return {m.part: cfg, **{name: part for name, (part, _) in others.items()}}
+
+
+def _value(v: Any) -> Any:
+    return tuple(v) if isinstance(v, list) else v
+
+
+def stored_config(tool: str) -> Callable[[dict[str, Any]], Any]:
+    """How a stored run of ``tool`` is read back: the run config of the method
+    its ``method`` names, from the stored values. Options of the tool's other
+    methods are dropped (a run of this method never read them); an option no
+    method of the tool has is a TypeError (not a config this tool wrote)."""
+    def build(values: dict[str, Any]) -> Any:
+        cls = registry.method(values["method"]).config_class()
+        own = {f.name for f in fields(cls)}
+        unknown = sorted(values.keys() - own - registry.tool_fields(tool))
+        if unknown:
+            raise TypeError(f"unknown options {', '.join(unknown)}")
+        return cls(**{k: v for k, v in values.items() if k in own})
+
+    build.RETIRED_FIELDS = {  # type: ignore[attr-defined]
+        k: v for m in registry.METHODS.values() if m.tool == tool
+        for k, v in getattr(m.config_class(), "RETIRED_FIELDS", {}).items()}
+    return build
+
+
+def refuse_unmet(parser: argparse.ArgumentParser, cfg: Any, named: set[str]) -> None:
+    """Exit 2 on the first option given that has no effect on ``cfg`` (it acts
+    only with another option's value: :func:`ftc.common.cli.unmet`)."""
+    for name, why in unmet(cfg).items():
+        if name in named:
+            parser.error(f"{flag(name)} has no effect {why}")
 
 
 def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,

@@ -11,27 +11,40 @@ of a balanced plant, as the activity term costs 1/6 per open valve).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ftc.common.constants import NUM_TANKS
+from ftc.common.cli import between
 from ftc.control.run.agent import Agent, StepContext
+from ftc.control.run.config import RunConfig
 from ftc.plant.link import PlantObservation
 from ftc.plant.reward import AREAS, MOMENT_ARMS
 
 LEFT, RIGHT = np.arange(0, 3), np.arange(3, 6)
 
 
+@dataclass
+class BalanceConfig(RunConfig):
+    """A run of the balance rule: the run's options and the rule's band."""
+
+    method: str = field(default="balance", metadata={"help": "the method"})
+    band: float = field(default=0.1, metadata={"check": between(0.0, 1.0), "help": (
+        "|cg| (moment-arm units) above which the rule moves fuel to the light wing")})
+
+
 class BalanceAgent(Agent):
     name = "balance"
+    Config = BalanceConfig
 
     def __init__(self, band: float = 0.1) -> None:
         self.band = band
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "BalanceAgent":
-        return cls()
+        return cls(getattr(configs["controller"], "band", 0.1))
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         return balance_valves(obs.level, self.band)

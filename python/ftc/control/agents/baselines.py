@@ -4,12 +4,14 @@ valve rule that simulate and the experiments' baseline episodes use too."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ftc.common.constants import NUM_TANKS
 from ftc.control.run.agent import Agent, StepContext
+from ftc.control.run.config import RunConfig
 from ftc.plant.link import PlantObservation
 
 BASELINES = ("closed", "open", "random")
@@ -29,10 +31,19 @@ def baseline_valves(policy: str, rng: np.random.Generator | None = None) -> np.n
     raise ValueError(f"unknown baseline {policy!r}; one of {', '.join(BASELINES)}")
 
 
+@dataclass
+class BaselineConfig(RunConfig):
+    """A baseline's run: the run's options alone (a fixed rule has none of its own)."""
+
+    method: str = field(default="closed", metadata={"help": "the baseline (one of "
+                                                    f"{', '.join(BASELINES)})"})
+
+
 class BaselineAgent(Agent):
     """A fixed valve rule: learns nothing, so it has no evaluation episode."""
 
     evaluates = False
+    Config = BaselineConfig
 
     def __init__(self, policy: str, seed: int) -> None:
         baseline_valves(policy, np.random.default_rng(0))  # refuse an unknown name now

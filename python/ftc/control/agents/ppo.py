@@ -34,49 +34,38 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ftc.common.cli import at_least, between, positive
+from ftc.common.cli import at_least
 from ftc.common.errors import CheckpointError
-from ftc.common.constants import DEFAULT_LCM_URL
-from ftc.control import registry
 from ftc.control.run import checkpoint
 from ftc.control.run.agent import Agent, StepContext, Transition
 from ftc.control.run.checkpoint import check_finite_state
-from ftc.control.run.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL, RunConfig
+from ftc.control.run.config import MAX_INTERVALS
 from ftc.control.run.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
-from ftc.control.agents.ppo_online import OnlinePPO
+from ftc.control.agents.ppo_online import OnlinePPO, PolicyConfig
 from ftc.learning.offline import (ModelWindow, OfflineResult, OfflineSettings, offline_phase,
                                   pretrained_world_model)
 from ftc.learning.ppo import PPO, PPOConfig
-from ftc.learning.pretrain import PretrainSettings, code_fingerprint
+from ftc.learning.pretrain import code_fingerprint
 from ftc.learning.transitions import Transitions
 from ftc.learning.world_model import WorldModelConfig
-from ftc.plant.lcm_link import check_loopback_url
 from ftc.plant.link import PlantObservation
 
-METHODS = registry.config_values("ftc.controller")  # the values of ControllerConfig.method
-PPO_METHODS = registry.policy_methods()  # ppo, ppo-robust: the rest refuse PPO's options
 OFFLINE_MODES = ("sequential", "background")
 
 
 @dataclass
-class ControllerConfig(RunConfig):
-    """Everything a controller run depends on (with --ppo-* fields of :class:`PPOConfig`)."""
+class ControllerConfig(PolicyConfig):
+    """A run of Algorithm 1 (``--method ppo`` and its variants ppo-online,
+    ppo-offline, ppo-pretrained): the options of every PPO method and those of
+    its offline phase on the world model."""
 
-    #: options no longer offered (they measured worse: docs/controller.md), with the
-    #: value that does what the controller does now: a stored config.json that
-    #: holds that value resumes, any other is refused (tools/run_cli.py)
-    RETIRED_FIELDS: ClassVar[dict[str, Any]] = {"pretrain_deterministic_closed": False,
-                                                "pretrain_sim": "core"}
+    NEEDS: ClassVar[dict[str, Any]] = {
+        **{name: ("offline", True) for name in (
+            "offline_mode", "offline_steps", "offline_envs", "offline_rollout",
+            "offline_minibatch", "model_window", "model_engine", "model_episodes")},
+        # the cache holds pretrained world models and policies
+        "pretrain_cache": [("offline", True), ("pretrain", True)]}
 
-    method: str = field(default="ppo", metadata={"choices": METHODS, "help": (
-        "ppo: Algorithm 1 as its flags configure it; ppo-online (= ppo --no-offline), "
-        "ppo-offline (= ppo --offline), ppo-pretrained (= ppo --offline --pretrain): its "
-        "compared variants; closed / open / random: baselines (all valves closed, all open, "
-        "each valve open with p=0.5) through the same loop and plant; balance: a rule that "
-        "moves fuel to the light wing when |cg| > 0.1; ppo-robust: PPO online with an "
-        "offline phase guided by a planner on the identified physics (docs/controller.md)")})
-    update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
-        "t_update: real steps between PPO updates (paper: 128)")})
     offline: bool = field(default=True, metadata={"help": (
         "after each online interval refit the world model and train PPO on it")})
     offline_mode: str = field(default="sequential", metadata={"choices": OFFLINE_MODES, "help": (
@@ -84,15 +73,6 @@ class ControllerConfig(RunConfig):
         "process while online control continues with the current policy, the improved "
         "policy swapped in at the next update boundary after it is ready (not "
         "reproducible step for step: the swap point depends on timing)")})
-    offline_steps: int = field(default=2048, metadata={"check": at_least(0, 100_000_000), "help": (
-        "t_offline: model steps of offline PPO per interval (paper: 2048; ppo-robust: 0 "
-        "keeps only the guided fit)")})
-    offline_envs: int = field(default=16, metadata={"check": at_least(1, 100_000), "help": (
-        "model rollouts run side by side (one batch through the world model)")})
-    offline_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
-        "model steps per env between offline PPO updates (update batch = envs x rollout)")})
-    offline_minibatch: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
-        "PPO minibatch size for offline updates (online uses --ppo-minibatch-size)")})
     model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
         "intervals of real data each refit trains on: 1 = only the interval just run "
         "(Algorithm 1: the cache is cleared after each refit); k > 1 keeps the last k")})
@@ -102,70 +82,11 @@ class ControllerConfig(RunConfig):
         "rounding differs (docs/benchmarks.md)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
         "nominal random-valve episodes for world-model pretraining (paper: 50)")})
-    pretrain: bool = field(default=False, metadata={"help": (
-        "pretrain the policy on the nominal plant in simulation (in-process core) "
-        "before interval 0, stopped while it still explores (see --pretrain-open-fraction)")})
-    pretrain_open_fraction: float = field(default=0.05, metadata={"check": between(0.0, 1.0), "help": (
-        "pretraining stops once the mean valve-open probability over the last rollout "
-        "falls to this (~5% keeps enough exploration to adapt; trained to convergence the "
-        "policy barely adapts)")})
-    pretrain_max_steps: int = field(default=200_000, metadata={"check": at_least(1, 1_000_000_000), "help": (
-        "upper bound on pretraining simulation steps")})
-    pretrain_envs: int = field(default=16, metadata={"check": at_least(1, 10_000), "help": "nominal plants simulated side by side"})
-    pretrain_ent_coef: float = field(default=0.0, metadata={"check": between(0.0, 10.0), "help": (
-        "entropy bonus while pretraining; 0: the stop rule, not the bonus, decides how "
-        "much exploration is left (with 0.01 the open fraction stalls near 0.15)")})
-    pretrain_lr: float | None = field(default=None, metadata={"check": positive(1.0), "help": (
-        "Adam step size while pretraining (None: the PPO learning rate)")})
-    pretrain_minibatch: int = field(default=256, metadata={"check": at_least(1, 1_000_000), "help": (
-        "PPO minibatch size while pretraining (large batches of cheap simulated steps)")})
-    pretrain_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": "steps per plant between updates"})
-    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
-        "directory of pretrained policies and world models, keyed by a hash of everything "
-        "pretraining depends on (seed, pretrain, PPO and model settings, code); a hit skips "
-        "pretraining with the same result ('' disables)")})
-    fresh_optimizer: bool = field(default=True, metadata={"help": (
-        "reset Adam's state when adaptation starts, after pretraining (narrows the spread "
-        "across seeds)")})
-    push_policy: str | None = field(default=None, metadata={"help": (
-        "after every interval, push the acting policy's weights (policy_t, the version "
-        "the time in ms) to a policy node (build/policy_node) listening on this channel "
-        "prefix at --push-url: learn here, fly there (docs/deploy.md). PPO methods only "
-        "(None: no push)")})
-    push_url: str = field(default=DEFAULT_LCM_URL, metadata={"help": (
-        "with --push-policy: the node's LCM URL (ttl=0)")})
-
-    def ignored(self) -> dict[str, str]:
-        """The pretraining options that have no effect on this run, each with why
-        (the command line refuses them when given; a baseline refuses every PPO
-        option, ppo its robust options)."""
-        if self.pretrain or self.method not in PPO_METHODS:
-            return {}
-        return {f.name: "without --pretrain" for f in dataclasses.fields(self)
-                if f.name.startswith("pretrain_") and f.name != "pretrain_cache"}
 
     def validate(self) -> None:
         super().validate()
-        if self.push_policy is not None and not self.push_policy.strip():
-            raise ValueError("--push-policy must name the node's channel prefix, got ''")
-        try:
-            check_loopback_url(self.push_url)
-        except ValueError as e:
-            raise ValueError(f"--push-url: {e}") from None
-        if self.push_policy is None and self.push_url != DEFAULT_LCM_URL:
-            raise ValueError("--push-url is where --push-policy sends the policy: give "
-                             "--push-policy PREFIX with it")
-        if self.method == "ppo" and self.offline and self.offline_steps < 1:
-            raise ValueError("--offline-steps must be >= 1 with --method ppo --offline")
-        if self.method in PPO_METHODS and self.steps_per_interval % self.update_every:
-            raise ValueError("--steps-per-interval must be a multiple of --update-every")
-
-    def pretrain_settings(self) -> PretrainSettings:
-        return PretrainSettings(
-            seed=self.seed, steps_per_interval=self.steps_per_interval, envs=self.pretrain_envs,
-            rollout=self.pretrain_rollout, minibatch=self.pretrain_minibatch,
-            max_steps=self.pretrain_max_steps, open_fraction=self.pretrain_open_fraction,
-            ent_coef=self.pretrain_ent_coef, lr=self.pretrain_lr)
+        if self.offline and self.offline_steps < 1:
+            raise ValueError("--offline-steps must be >= 1 with --offline")
 
     def offline_settings(self) -> OfflineSettings:
         return OfflineSettings(seed=self.seed, steps=self.offline_steps, envs=self.offline_envs,
@@ -182,6 +103,8 @@ class PPOAgent(Agent):
     name = "ppo"
     extra_columns = PPO_COLUMNS
     progress_keys = PPO_PROGRESS_KEYS
+    Config = ControllerConfig
+    parts = {"ppo": (PPOConfig, "ppo-")}
 
     def __init__(self, cfg: ControllerConfig, ppo_config: PPOConfig) -> None:
         self.cfg, self.ppo_config = cfg, ppo_config

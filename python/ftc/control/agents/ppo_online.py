@@ -10,25 +10,116 @@ these, and adds its own offline phase: :class:`ftc.control.agents.ppo.PPOAgent`
 from __future__ import annotations
 
 import concurrent.futures
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
+from ftc.common.cli import at_least, between, positive
+from ftc.common.constants import DEFAULT_LCM_URL
 from ftc.common.errors import CheckpointError
 from ftc.control.run import checkpoint
 from ftc.control.run.agent import StepContext, Transition
 from ftc.control.run.checkpoint import check_finite_state, check_update
+from ftc.control.run.config import MAX_STEPS_PER_INTERVAL, RunConfig
 from ftc.control.run.metrics import mean
 from ftc.learning.buffer import RolloutBuffer
 from ftc.learning.ppo import PPO, UpdateStats
 from ftc.learning.pretrain import PretrainSettings, pretrain_cached
+from ftc.plant.lcm_link import check_loopback_url
 from ftc.learning.rollout import RolloutCollector
 from ftc.plant.link import PlantObservation
 
 # what end_online reports: the means over the interval's updates
 ONLINE_METRICS = ("entropy", "open_fraction", "approx_kl", "clipfrac", "explained_variance",
                   "value_loss")
+
+
+
+@dataclass
+class PolicyConfig(RunConfig):
+    """The options of every method with a PPO policy (ppo and its variants,
+    ppo-robust, ppo-learned), beside its PPO hyperparameters (--ppo-*:
+    :class:`ftc.learning.ppo.PPOConfig`): updates, the offline phase's PPO,
+    pretraining, pushing the policy."""
+
+    #: options no longer offered (they measured worse: docs/controller.md), with the
+    #: value that does what the controller does now: a stored config.json that
+    #: holds that value resumes, any other is refused (tools/run_cli.py)
+    RETIRED_FIELDS: ClassVar[dict[str, Any]] = {"pretrain_deterministic_closed": False,
+                                                "pretrain_sim": "core"}
+    #: options that act only with another's value (ftc.common.cli.unmet)
+    NEEDS: ClassVar[dict[str, Any]] = {name: ("pretrain", True) for name in (
+        "pretrain_cache", "fresh_optimizer", "pretrain_open_fraction", "pretrain_max_steps",
+        "pretrain_envs", "pretrain_ent_coef", "pretrain_lr", "pretrain_minibatch",
+        "pretrain_rollout")}
+
+    method: str = field(default="ppo", metadata={"help": "the method (--help lists them)"})
+    update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
+        "t_update: real steps between PPO updates (paper: 128)")})
+    offline_steps: int = field(default=2048, metadata={"check": at_least(0, 100_000_000), "help": (
+        "t_offline: model steps of offline PPO per interval (paper: 2048; ppo-robust, "
+        "ppo-learned: 0 keeps only the guided fit)")})
+    offline_envs: int = field(default=16, metadata={"check": at_least(1, 100_000), "help": (
+        "model rollouts run side by side (one batch through the world model)")})
+    offline_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
+        "model steps per env between offline PPO updates (update batch = envs x rollout)")})
+    offline_minibatch: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": (
+        "PPO minibatch size for offline updates (online uses --ppo-minibatch-size)")})
+    pretrain: bool = field(default=False, metadata={"help": (
+        "pretrain the policy on the nominal plant in simulation (in-process core) "
+        "before interval 0, stopped while it still explores (see --pretrain-open-fraction)")})
+    pretrain_open_fraction: float = field(default=0.05, metadata={"check": between(0.0, 1.0), "help": (
+        "pretraining stops once the mean valve-open probability over the last rollout "
+        "falls to this (~5% keeps enough exploration to adapt; trained to convergence the "
+        "policy barely adapts)")})
+    pretrain_max_steps: int = field(default=200_000, metadata={"check": at_least(1, 1_000_000_000), "help": (
+        "upper bound on pretraining simulation steps")})
+    pretrain_envs: int = field(default=16, metadata={"check": at_least(1, 10_000), "help": "nominal plants simulated side by side"})
+    pretrain_ent_coef: float = field(default=0.0, metadata={"check": between(0.0, 10.0), "help": (
+        "entropy bonus while pretraining; 0: the stop rule, not the bonus, decides how "
+        "much exploration is left (with 0.01 the open fraction stalls near 0.15)")})
+    pretrain_lr: float | None = field(default=None, metadata={"check": positive(1.0), "help": (
+        "Adam step size while pretraining (None: the PPO learning rate)")})
+    pretrain_minibatch: int = field(default=256, metadata={"check": at_least(1, 1_000_000), "help": (
+        "PPO minibatch size while pretraining (large batches of cheap simulated steps)")})
+    pretrain_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": "steps per plant between updates"})
+    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
+        "directory of pretrained policies and world models, keyed by a hash of everything "
+        "pretraining depends on (seed, pretrain, PPO and model settings, code); a hit skips "
+        "pretraining with the same result ('' disables)")})
+    fresh_optimizer: bool = field(default=True, metadata={"help": (
+        "reset Adam's state when adaptation starts, after pretraining (narrows the spread "
+        "across seeds)")})
+    push_policy: str | None = field(default=None, metadata={"help": (
+        "after every interval, push the acting policy's weights (policy_t, the version "
+        "the time in ms) to a policy node (build/policy_node) listening on this channel "
+        "prefix at --push-url: learn here, fly there (docs/deploy.md). PPO methods only "
+        "(None: no push)")})
+    push_url: str = field(default=DEFAULT_LCM_URL, metadata={"help": (
+        "with --push-policy: the node's LCM URL (ttl=0)")})
+
+    def validate(self) -> None:
+        super().validate()
+        if self.push_policy is not None and not self.push_policy.strip():
+            raise ValueError("--push-policy must name the node's channel prefix, got ''")
+        try:
+            check_loopback_url(self.push_url)
+        except ValueError as e:
+            raise ValueError(f"--push-url: {e}") from None
+        if self.push_policy is None and self.push_url != DEFAULT_LCM_URL:
+            raise ValueError("--push-url is where --push-policy sends the policy: give "
+                             "--push-policy PREFIX with it")
+        if self.steps_per_interval % self.update_every:
+            raise ValueError("--steps-per-interval must be a multiple of --update-every")
+
+    def pretrain_settings(self) -> PretrainSettings:
+        return PretrainSettings(
+            seed=self.seed, steps_per_interval=self.steps_per_interval, envs=self.pretrain_envs,
+            rollout=self.pretrain_rollout, minibatch=self.pretrain_minibatch,
+            max_steps=self.pretrain_max_steps, open_fraction=self.pretrain_open_fraction,
+            ent_coef=self.pretrain_ent_coef, lr=self.pretrain_lr)
 
 
 def _obs(o: PlantObservation) -> torch.Tensor:

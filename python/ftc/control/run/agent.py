@@ -79,6 +79,11 @@ class Agent:
     or process and the acting policy is swapped in between two steps."""
 
     name = "agent"
+    #: the run config of its method (a RunConfig with the agent's own options), and
+    #: the configs of its other parts by name, with their option prefix
+    #: ({"ppo": (PPOConfig, "ppo-")}); the command line offers exactly these
+    Config: type | None = None
+    parts: dict[str, tuple[type, str]] = {}
     evaluates = True
     extra_columns: tuple[str, ...] = ()
     progress_keys: tuple[tuple[str, str], ...] = ()

@@ -22,8 +22,7 @@ import torch
 
 from ftc.common.atomic import atomic_torch_save
 from ftc.common.errors import CheckpointError, NonFiniteError
-from ftc.control import registry
-from ftc.control.run.config import EXTENSIBLE_FIELDS, RUN_LOCAL_FIELDS
+from ftc.control.run.config import EXTENSIBLE_FIELDS, RUN_LOCAL_FIELDS, canonical
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
@@ -79,7 +78,7 @@ def load(path: Path, configs: dict[str, Any], intervals: int) -> dict[str, Any]:
     theirs = state["config"] if isinstance(state["config"], dict) else {}
     for part in theirs.values():  # a run written under a former name of its method
         if isinstance(part, dict) and isinstance(part.get("method"), str):
-            part["method"] = registry.canonical(part["method"])
+            part["method"] = canonical(part["method"])
     diffs = [f"{part}.{key} {theirs.get(part, {}).get(key)!r} in the checkpoint, {value!r} here"
              for part in mine for key, value in mine[part].items()
              if theirs.get(part, {}).get(key) != value]

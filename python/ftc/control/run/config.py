@@ -121,6 +121,16 @@ RUN_LOCAL_FIELDS = ("out", "resume", "overwrite", "lcm_url", "prefix", "attach",
                     "realtime", "watchdog", "push_policy", "push_url",
                     "quiet", "link_retry_timeout", "link_backoff", "link_give_up_timeout",
                     "pretrain_cache", "tensorboard")
+# Former tool-local names of methods, accepted (with a warning) and read from
+# older run directories and results.
+ALIASES = {"oracle": "oracle-mpc", "model": "model-mpc", "adaptive": "identified-mpc"}
+
+
+def canonical(name: str) -> str:
+    """Today's name of method ``name`` (a former name mapped; anything else unchanged)."""
+    return ALIASES.get(name, name)
+
+
 # Fields a resumed run may raise: more intervals extend it.
 EXTENSIBLE_FIELDS = ("intervals",)
 # The files that make a run directory hold a run (what --overwrite replaces).

@@ -14,7 +14,6 @@ guided fit itself and its plan cache. It knows no plant equations.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import operator
 import time
@@ -32,17 +31,16 @@ from ftc.control.run.checkpoint import check_finite_state
 from ftc.control.run.deferred import DeferredAgent
 from ftc.control.run.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
 from ftc.control.planning.planners import Evaluator, HoldPlanner
-from ftc.control.agents.ppo import ControllerConfig
-from ftc.control.agents.ppo_online import OnlinePPO
+from ftc.control.agents.ppo_online import OnlinePPO, PolicyConfig
 from ftc.learning.distill import distill, distinct
 from ftc.learning.ppo import PPO, PPOConfig
 from ftc.plant.link import PlantObservation
 
 
 @dataclass
-class GuidedConfig(ControllerConfig):
-    """A guided PPO run (ppo-robust, ppo-learned): the controller's options and
-    those of its guided fit."""
+class GuidedConfig(PolicyConfig):
+    """A guided PPO run (ppo-robust, ppo-learned): the options of every PPO
+    method and those of its guided fit."""
 
     branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
         "guided: share of offline episodes that start from a level observed on the "
@@ -84,11 +82,6 @@ class GuidedConfig(ControllerConfig):
         "repeat their levels), instead of to every labelled level")})
     branch_steps: int = field(default=64, metadata={"check": at_least(1, 100_000), "help": (
         "guided: steps of a branched offline rollout")})
-
-
-# the options only the guided methods read
-GUIDED_FIELDS = tuple(f.name for f in dataclasses.fields(GuidedConfig)
-                      if f.name not in {g.name for g in dataclasses.fields(ControllerConfig)})
 
 
 class ModelHooks(DeferredAgent):
@@ -134,6 +127,8 @@ class GuidedPPOAgent(ModelHooks):
                      "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
                      "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
     progress_keys = PPO_PROGRESS_KEYS
+    Config = GuidedConfig
+    parts = {"ppo": (PPOConfig, "ppo-")}
 
     def __init__(self, cfg: GuidedConfig, ppo_config: PPOConfig) -> None:
         super().__init__(cfg.seed)

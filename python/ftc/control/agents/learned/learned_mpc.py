@@ -26,10 +26,12 @@ catches such an import.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from ftc.common.cli import at_least, between, positive
 from ftc.common.constants import EMPTY_VOLUME, NUM_TANKS, TANK_HEIGHT, TERMINAL_TOLERANCE
 from ftc.common.errors import CheckpointError
 from ftc.control.run.agent import Agent, StepContext, Transition
@@ -42,6 +44,32 @@ from ftc.plant.link import CorePlant, PlantObservation
 from ftc.plant.reward import AREAS, MOMENT_ARMS
 
 DEMAND_MEMORY = 0.8  # weight of the old estimate of the demand per step in each update
+
+
+@dataclass
+class LearnedMPCConfig(MPCConfig):
+    """A learned-mpc run: the planner's options and the learned model's."""
+
+    method: str = field(default="learned-mpc", metadata={"help": "the method"})
+    learn_features: int = field(default=256, metadata={"check": at_least(1, 100_000), "help": (
+        "random ReLU features of the learned model (beside a constant, the "
+        "12 inputs and their 66 pairwise products)")})
+    learn_forget: float = field(default=0.998, metadata={"check": between(0.5, 1.0), "help": (
+        "weight a step keeps per later step in the model's fit (0.998: a "
+        "half-life of 350 steps; 1: never forget)")})
+    learn_ridge: float = field(default=0.01, metadata={"check": positive(1e6), "help": (
+        "weight of the prior (the fit at the last interval's end) against the "
+        "data, per feature direction")})
+    learn_episodes: int = field(default=100, metadata={"check": at_least(1, 100_000), "help": (
+        "nominal episodes the model is first fitted on: half the paper's "
+        "random valves held up to 30 steps, half sparse openings (each valve open with a "
+        "probability drawn from [0, 0.3], held up to 10 steps), where closed valves, the "
+        "best policy's usual choice, are common")})
+    learn_terminal_band: float = field(default=0.005, metadata={"check": between(0.0, 1.0), "help": (
+        "a predicted step ends the episode only if it leaves this much less "
+        "fuel (m^3) than the demand estimated from what was burnt; a model slightly wrong "
+        "near the end otherwise plans on a reset that never comes (fuel stranded behind a "
+        "dead pump: docs/controller.md)")})
 
 
 ARMS_SQUARED = MOMENT_ARMS ** 2
@@ -141,8 +169,9 @@ class LearnedMPCAgent(Agent):
     extra_columns = ("model_one_step_rmse", "model_max_step_error", "demand_estimate",
                      "open_fraction", "decisions_per_second", "stuck_valves")
     progress_keys = (("model_one_step_rmse", "model rmse"),)
+    Config = LearnedMPCConfig
 
-    def __init__(self, cfg: MPCConfig) -> None:
+    def __init__(self, cfg: LearnedMPCConfig) -> None:
         self.cfg = cfg
         self.rng = np.random.default_rng(cfg.seed)
         self.planner = make_planner(cfg, self.rng)

@@ -29,9 +29,8 @@ from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.run.agent import Transition
 from ftc.control.agents.learned.guided_ppo import GuidedConfig, GuidedPPOAgent
-from ftc.control.agents.learned.learned_mpc import (LearnedEvaluator, error_metrics, fit_nominal,
-                                       learn_step)
-from ftc.control.agents.mpc_config import MPCConfig
+from ftc.control.agents.learned.learned_mpc import (LearnedEvaluator, LearnedMPCConfig,
+                                                   error_metrics, fit_nominal, learn_step)
 from ftc.learning.branched import BranchedStarts
 from ftc.learning.feature_model import FeatureModel
 from ftc.learning.ppo import PPOConfig
@@ -39,7 +38,7 @@ from ftc.learning.rollout import EnvStep, train_on_env
 from ftc.plant.reward import AREAS, reward
 
 # the learned model as learned-mpc's defaults configure it (ftc.mpc --help: --learn-*)
-MODEL = MPCConfig(method="learned-mpc")
+MODEL = LearnedMPCConfig()
 
 
 class LearnedModelEnv(BranchedStarts):

@@ -32,14 +32,16 @@ Per interval k:
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 
+from ftc.common.cli import at_least, between
 from ftc.common.errors import CheckpointError
 from ftc.control.run.agent import StepContext, Transition
-from ftc.control.agents.physics.mpc import MPCAgent, MPCConfig
+from ftc.control.agents.physics.mpc import MPCAgent, PhysicsConfig
 from ftc.control.planning.physics.evaluators import ParamsEvaluator
 from ftc.control.planning.planners import Evaluator
 from ftc.learning.identify import Identifier, OnlineIdentification
@@ -47,14 +49,30 @@ from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
 
+@dataclass
+class IdentifiedConfig(PhysicsConfig):
+    """An identified-mpc run: the physics MPC's options and the identification's."""
+
+    method: str = field(default="identified-mpc", metadata={"help": "the method"})
+    identify_every: int = field(default=64, metadata={"check": at_least(0, 1_000_000), "help": (
+        "re-identify the parameters every N steps of an interval from its data "
+        "so far (0: only at interval ends)")})
+    identify_trigger: float = field(default=1e-4, metadata={"check": between(0.0, 1.0), "help": (
+        "a one-step prediction error above this (m) means the plant changed: the "
+        "parameters are re-identified from the data since then at once, not at the next "
+        "scheduled refit (0: off, relearn on the schedule only)")})
+
+
 class IdentifiedAgent(MPCAgent):
     """MPC on identified physics; see the module docstring."""
+
+    Config = IdentifiedConfig
 
     # (refused_rollouts: one of MPCAgent's columns)
     extra_columns = (*MPCAgent.extra_columns, "identify_seconds", "identified_pump_min",
                      "identified_demand_max", "detected_changes", "mispredicted_steps")
 
-    def __init__(self, cfg: MPCConfig) -> None:
+    def __init__(self, cfg: IdentifiedConfig) -> None:
         super().__init__(cfg)
         from ftc import _core  # native: the plant's integrator for the rollouts
 

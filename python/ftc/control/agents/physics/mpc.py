@@ -39,16 +39,19 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 
+from ftc.common.cli import at_least, positive
 from ftc.common.constants import NUM_TANKS
 from ftc.common.errors import CheckpointError
 from ftc.control.run import checkpoint
 from ftc.control.run.agent import Agent, StepContext
 from ftc.control.run.metrics import MODEL_COLUMNS
-from ftc.control.agents.mpc_config import METHODS, PLANNERS, MPCConfig  # noqa: F401 - re-exported
+from ftc.control.agents.mpc_config import PLANNERS, MPCConfig
+from ftc.control.run.config import MAX_INTERVALS
 from ftc.control.planning.physics.episode_planner import EpisodePlanner
 from ftc.control.planning.physics.true_physics import TruePhysics
 from ftc.control.planning.physics.evaluators import OracleEvaluator
@@ -65,6 +68,64 @@ from ftc.plant.link import PlantObservation
 # where the plant departed from a plan
 MPC_COLUMNS = ("decisions_per_second", "plan_open_fraction", "model_fit_epochs",
                "refused_rollouts", "episode_plans")
+
+
+@dataclass
+class PhysicsConfig(MPCConfig):
+    """An MPC run on the plant's equations (oracle-mpc, identified-mpc): the
+    planner's options and the rollouts' integrator."""
+
+    rollout_closed_form: bool = field(default=False, metadata={"help": (
+        "step the rollouts with two or more valves open in closed "
+        "form (_core.BatchRollout's exact_active_conduit; CVODE only where a tank is pinned): "
+        "within CVODE's tolerances of it and several times faster")})
+    rollout_rtol: float = field(default=1e-6, metadata={"check": positive(1.0), "help": (
+        "CVODE relative tolerance of the rollouts (measured: 1e-6 moves summed "
+        "10-step rewards by < 2e-5 against 1e-12, never the chosen action in the bench, "
+        "and is 1.6x faster than the plant's 1e-8)")})
+    rollout_atol: float = field(default=1e-8, metadata={"check": positive(1.0), "help": "CVODE absolute tolerance, m"})
+
+
+@dataclass
+class OracleConfig(PhysicsConfig):
+    """An oracle-mpc run: it may also plan whole episodes (--planner episode)."""
+
+    NEEDS: ClassVar[dict[str, tuple[str, Any]]] = {"episode_sweeps": ("planner", "episode"),
+                                                   "episode_tolerance": ("planner", "episode")}
+
+    planner: str = field(default="hold", metadata={"choices": (*PLANNERS, "episode"), "help": (
+        "hold: the 64 settings each held --hold steps then all closed; cem: "
+        "cross-entropy search over per-step valve probabilities; two-stage: each setting "
+        "held --two-stage-hold steps then each setting to the horizon (4,096 plans), and "
+        "the hold plans; episode: whole episodes optimised on the true physics and played, "
+        "never below the hold planner's closed loop "
+        "(ftc.control.planning.physics.episode_planner)")})
+    episode_sweeps: int = field(default=6, metadata={"check": at_least(1, 1000), "help": (
+        "episode: coordinate-ascent sweeps over an episode's steps at most (each tries every "
+        "setting held 1, 2, 4 and 8 steps at every step)")})
+    episode_tolerance: float = field(default=1e-6, metadata={"check": positive(1.0), "help": (
+        "episode: the plan is remade where an observed level differs from its prediction "
+        "by more than this (plus 6 times the scenario's sensor-noise std), m")})
+
+
+@dataclass
+class ModelMPCConfig(MPCConfig):
+    """A model-mpc run: the planner's options and the world model's."""
+
+    method: str = field(default="model-mpc", metadata={"help": "the method"})
+    model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
+        "intervals of real data each refit trains on (1 = the interval just run, "
+        "as the controller's default)")})
+    model_engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
+        "how the world model is trained: numpy (several times faster at this size) or "
+        "torch (autograd); the same algorithm, minibatches and stopping rule, float32 "
+        "rounding differs (docs/benchmarks.md)")})
+    model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
+        "nominal random-valve episodes for world-model pretraining (paper: 50)")})
+    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
+        "directory of pretrained world models keyed by a hash of everything "
+        "pretraining depends on (episodes, seed, model config, code); a hit skips the "
+        "pretraining with the same weights ('' disables)")})
 
 
 class MPCAgent(Agent):
@@ -84,10 +145,10 @@ class MPCAgent(Agent):
         self.episode: EpisodePlanner | None = None
         self.model = None
         self.demand = 0.0
-        self.window = ModelWindow(cfg.model_window)
+        self.window = ModelWindow(cfg.model_window if isinstance(cfg, ModelMPCConfig) else 1)
         self.decisions, self.plan_seconds, self.opened = 0, 0.0, 0
         self._interval_start = (0, 0.0, 0)
-        if cfg.method == "oracle-mpc":
+        if isinstance(cfg, OracleConfig):
             from ftc import _core  # native: the plant's scenario parser and physics
 
             scenario = _core.load_scenario(cfg.scenario) if cfg.scenario else _core.Scenario()
@@ -119,10 +180,10 @@ class MPCAgent(Agent):
                 "model_pretrain_cached": info["model_pretrain_cached"]}
 
     def wants_data(self) -> bool:
-        return self.cfg.method == "model-mpc"
+        return isinstance(self.cfg, ModelMPCConfig)
 
     def config_doc(self) -> dict[str, Any]:
-        if self.cfg.method != "model-mpc":
+        if not isinstance(self.cfg, ModelMPCConfig):
             return {}
         return {"world_model": dataclasses.asdict(
             WorldModelConfig(seed=self.cfg.seed, engine=self.cfg.model_engine))}
@@ -196,7 +257,7 @@ class MPCAgent(Agent):
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.rng.bit_generator.state = state["np_rng"]
         self.demand = float(state["demand"])
-        if (state["model"] is None) != (self.cfg.method != "model-mpc"):
+        if (state["model"] is None) != (not isinstance(self.cfg, ModelMPCConfig)):
             raise CheckpointError("checkpoint of another MPC method")
         if state["model"] is not None:
             self.model = WorldModel(WorldModelConfig(seed=self.cfg.seed,
@@ -206,3 +267,15 @@ class MPCAgent(Agent):
             self.model.load_state_dict(state["model"])
             self.model.fits = int(state["model_fits"])
         self.window.parts = [checkpoint.transitions_from_state(w) for w in state["window"]]
+
+
+class OracleMPCAgent(MPCAgent):
+    """oracle-mpc (and reference, its episode planner): MPC on the true physics."""
+
+    Config = OracleConfig
+
+
+class ModelMPCAgent(MPCAgent):
+    """model-mpc: MPC on the world model refitted every interval."""
+
+    Config = ModelMPCConfig

@@ -30,16 +30,13 @@ import numpy as np
 from ftc.common.constants import offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.run.agent import Transition
-from ftc.control.agents.learned.guided_ppo import GUIDED_FIELDS, GuidedConfig, GuidedPPOAgent
+from ftc.control.agents.learned.guided_ppo import GuidedConfig, GuidedPPOAgent
 from ftc.control.planning.physics.evaluators import ParamsEvaluator
 from ftc.learning.identify import Identifier, OnlineIdentification
 from ftc.learning.physics_env import PhysicsEnv
 from ftc.learning.ppo import PPO, PPOConfig
 from ftc.learning.rollout import train_on_env
 
-# ppo-robust's options: those of every guided method (control/agents/learned/guided_ppo.py)
-RobustConfig = GuidedConfig
-ROBUST_FIELDS = GUIDED_FIELDS
 
 
 class RobustPPOAgent(GuidedPPOAgent):
