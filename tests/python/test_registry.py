@@ -299,3 +299,28 @@ def test_a_stored_run_drops_the_options_its_method_never_read(tmp_path):
     with pytest.raises(CheckpointError, match="unknown options no_such_option"):
         controller_cli.resume_config(str(tmp_path))
     assert ModelMPCConfig().method == "model-mpc"
+
+
+def test_a_checkpoint_written_before_an_option_existed_resumes_at_its_default(tmp_path):
+    """balance's --band is new: a run checkpointed without it had the rule's 0.1,
+    so it resumes under the default and is refused under another band."""
+    import torch
+
+    out = tmp_path / "run"
+    common = ["--link", "core", "--quiet", "--scenario", ""]
+    assert controller_cli.main(["--method", "balance", "--intervals", "1",
+                                "--steps-per-interval", "16", *common, "--out", str(out)]) == 0
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    del state["config"]["controller"]["band"]  # as a checkpoint of the code before
+    torch.save(state, out / "checkpoint.pt")
+    config = json.loads((out / "config.json").read_text())
+    del config["controller"]["band"]
+    (out / "config.json").write_text(json.dumps(config))
+    assert controller_cli.main(["--resume", str(out), "--intervals", "2", "--quiet"]) == 0
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    del state["config"]["controller"]["band"]
+    torch.save(state, out / "checkpoint.pt")
+    (out / "done.json").unlink()
+    config["controller"]["band"] = 0.2  # a run that claims another band: not this checkpoint's
+    (out / "config.json").write_text(json.dumps(config))
+    assert controller_cli.main(["--resume", str(out), "--intervals", "3", "--quiet"]) == 2

@@ -70,6 +70,17 @@ def read(path: Path) -> dict[str, Any]:
     return state
 
 
+_ABSENT = object()
+
+
+def _constructible(cfg: Any) -> bool:
+    try:
+        type(cfg)()
+        return True
+    except TypeError:
+        return False
+
+
 def load(path: Path, configs: dict[str, Any], intervals: int) -> dict[str, Any]:
     """``path`` checked: readable, of this format, written under the same
     configuration, consistent; raises CheckpointError saying why not."""
@@ -79,9 +90,12 @@ def load(path: Path, configs: dict[str, Any], intervals: int) -> dict[str, Any]:
     for part in theirs.values():  # a run written under a former name of its method
         if isinstance(part, dict) and isinstance(part.get("method"), str):
             part["method"] = canonical(part["method"])
+    # a field added since the checkpoint was written, at its default, is what the run had
+    defaults = {part: config_stamp({part: type(cfg)()})[part] if _constructible(cfg) else {}
+                for part, cfg in configs.items()}
     diffs = [f"{part}.{key} {theirs.get(part, {}).get(key)!r} in the checkpoint, {value!r} here"
              for part in mine for key, value in mine[part].items()
-             if theirs.get(part, {}).get(key) != value]
+             if theirs.get(part, {}).get(key, defaults[part].get(key, _ABSENT)) != value]
     if diffs:
         raise CheckpointError(f"{path}: written by a run with another configuration: "
                               + "; ".join(diffs[:4]) + (" ..." if len(diffs) > 4 else ""))
