@@ -44,7 +44,7 @@ class BalanceAgent(Agent):
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "BalanceAgent":
-        return cls(getattr(configs["controller"], "band", 0.1))
+        return cls(configs["controller"].band)
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         return balance_valves(obs.level, self.band)
