@@ -9,7 +9,7 @@ fuel more than the other, then moves fuel across through the two outer tanks.
 
 import numpy as np
 
-from ftc.control.agent import Agent, StepContext  # the protocol: docs/architecture.md
+from ftc.control.run.agent import Agent, StepContext  # the protocol: docs/architecture.md
 
 
 class OuterTransfer(Agent):

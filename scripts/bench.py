@@ -341,8 +341,8 @@ def _distill_step(fit: Callable, epochs: int = 10) -> float:
 def _plans(closed_form: bool, count: int = 200) -> float:
     """Seconds per plan of the teacher's planner at ``count`` random levels."""
     from ftc import _core
-    from ftc.control.physics_evaluators import ParamsEvaluator
-    from ftc.control.planners import HoldPlanner
+    from ftc.control.planning.physics.evaluators import ParamsEvaluator
+    from ftc.control.planning.planners import HoldPlanner
     from ftc.experiments.suite import write_suite
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -414,7 +414,7 @@ print(time.perf_counter() - start)
 
 MODEL_DECISION = """
 import time, numpy as np
-from ftc.control.planners import HoldPlanner, ModelEvaluator
+from ftc.control.planning.planners import HoldPlanner, ModelEvaluator
 from ftc.learning.offline import pretrained_world_model
 model, demand, _ = pretrained_world_model(50, 0, "~/.cache/ftc/pretrain", "numpy")
 planner, x = HoldPlanner(3, 10), np.array([0.9, 0.8, 0.7, 0.7, 0.8, 0.9])

@@ -28,8 +28,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "python"))
 
 from ftc import _core  # noqa: E402
-from ftc.control.physics_evaluators import OracleEvaluator  # noqa: E402
-from ftc.control.planners import HoldPlanner, ModelEvaluator  # noqa: E402
+from ftc.control.planning.physics.evaluators import OracleEvaluator  # noqa: E402
+from ftc.control.planning.planners import HoldPlanner, ModelEvaluator  # noqa: E402
 from ftc.plant import CorePlant  # noqa: E402
 
 SCENARIO = REPO / "scenarios" / "single.toml"

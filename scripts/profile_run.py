@@ -28,11 +28,11 @@ import tempfile
 
 # function (file suffix, name) whose cumulative time makes up a phase
 PHASES = {
-    "run": ("control/runner.py", "run"),
-    "prepare": ("control/ppo_agent.py", "prepare"),
-    "online": ("control/runner.py", "online"),
+    "run": ("control/run/runner.py", "run"),
+    "prepare": ("control/agents/ppo.py", "prepare"),
+    "online": ("control/run/runner.py", "online"),
     "online_updates": ("learning/rollout.py", "update"),
-    "evaluation": ("control/runner.py", "evaluate"),
+    "evaluation": ("control/run/runner.py", "evaluate"),
     "refit": ("learning/offline.py", "refit"),
     "offline_ppo": ("learning/rollout.py", "train_on_env"),
 }

@@ -119,7 +119,7 @@ def _methods(name: str, meta: dict[str, str], rows: list[dict[str, str]]) -> str
     for m in methods:
         r = scores.get(m.name, {})
         command = " ".join([".venv/bin/python -m", m.tool, "--method", m.name,
-                            *m.experiment_args, "--out", f"runs/{m.name}"])
+                            *m.recommended, "--out", f"runs/{m.name}"])
         lines.append(f"| `{m.name}` | {m.label} | {m.knows} | {iqm.get(m.name, '')} | "
                      f"{r.get('normalized score', '')} | {r.get('fraction of the oracle', '')} | "
                      f"`{command}` |")

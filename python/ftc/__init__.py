@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# One BLAS thread, as one torch thread (control/ppo_agent.py): the networks here are
+# One BLAS thread, as one torch thread (control/agents/ppo.py): the networks here are
 # tiny, and OpenBLAS's second thread spins against the other runs on a shared
 # machine (measured: a policy's forward + backward pass on 128 states 1.6 ms with
 # one thread, 8.9 ms with two beside a 2-job benchmark). It also makes results

@@ -1,9 +1,10 @@
 """``python -m ftc.controller``: the adaptive controller and the baselines
-(:mod:`ftc.control.controller_cli`)."""
+(:mod:`ftc.tools.controller`)."""
 
 import sys
 
-from ftc.control.controller_cli import main
+# parse_args: ftc.experiments checks its runs' command lines with it
+from ftc.tools.controller import main, parse_args  # noqa: F401
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,9 +1,10 @@
 """``python -m ftc.plugin``: a controller from outside the package
-(:mod:`ftc.control.plugin_cli`)."""
+(:mod:`ftc.tools.plugin`)."""
 
 import sys
 
-from ftc.control.plugin_cli import main
+# parse_args: ftc.experiments checks its runs' command lines with it
+from ftc.tools.plugin import main, parse_args  # noqa: F401
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -249,7 +249,7 @@ TEST(Integrator, EmptyTankWhoseInflowEqualsItsDrawIsPinned) {
 // covers both with a margin.
 constexpr double kBalanceTol = 1e-10;
 
-// The tolerances of the oracle's rollouts (python/ftc/control/planners.py) and
+// The tolerances of the oracle's rollouts (python/ftc/control/planning/planners.py) and
 // the plant's (IntegratorOptions' defaults).
 std::vector<IntegratorOptions> RolloutAndPlantTolerances() {
   IntegratorOptions rollout;

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.metrics import TIMING_COLUMNS
-from ftc.control.physics_evaluators import OracleEvaluator
-from ftc.control.planners import HoldPlanner
+from ftc.control.run.metrics import TIMING_COLUMNS
+from ftc.control.planning.physics.evaluators import OracleEvaluator
+from ftc.control.planning.planners import HoldPlanner
 from ftc.plant import CorePlant, launch
 from ftc.plant.reward import reward
 

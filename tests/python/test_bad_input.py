@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from ftc.common.errors import EXIT_FAILURE, EXIT_USAGE
-from ftc.control import plugin_cli
-from ftc.control.cli import run_or_report
-from ftc.control.runner import replacement
+from ftc.tools import plugin as plugin_cli
+from ftc.tools.run_cli import run_or_report
+from ftc.control.run.runner import replacement
 
 REPO = Path(__file__).resolve().parents[2]
 SHORT = ["--link", "core", "--intervals", "2", "--steps-per-interval", "16", "--quiet"]
@@ -30,7 +30,7 @@ SHORT = ["--link", "core", "--intervals", "2", "--steps-per-interval", "16", "--
 # A plug-in whose act answers well until (interval, step) = AT, then with BAD[kind].
 PLUGIN = '''
 import numpy as np
-from ftc.control.agent import Agent
+from ftc.control.run.agent import Agent
 
 AT = {at}
 BAD = {{"short": [0] * 5, "nan": [np.nan] + [0] * 5, "two": [2] + [0] * 5,

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ftc.control.baselines import BaselineAgent
-from ftc.control.ppo_agent import ControllerConfig
-from ftc.control.runner import IntervalRunner
+from ftc.control.agents.baselines import BaselineAgent
+from ftc.control.agents.ppo import ControllerConfig
+from ftc.control.run.runner import IntervalRunner
 from ftc.plant import CorePlant
 
 REPO = Path(__file__).resolve().parents[2]

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.identified_agent import IdentifiedAgent
-from ftc.control.mpc_agent import MPCAgent, MPCConfig
-from ftc.control.physics_evaluators import OracleEvaluator, ParamsEvaluator
-from ftc.control.planners import HoldPlanner, hold_candidates, valve_settings
-from ftc.control.ppo_robust_agent import RobustPPOAgent
+from ftc.control.agents.physics.identified_mpc import IdentifiedAgent
+from ftc.control.agents.physics.mpc import MPCAgent, OracleConfig
+from ftc.control.planning.physics.evaluators import OracleEvaluator, ParamsEvaluator
+from ftc.control.planning.planners import HoldPlanner, hold_candidates, valve_settings
+from ftc.control.agents.physics.ppo_robust import RobustPPOAgent
 
 SCENARIO = """
 name = "chatter"
@@ -111,7 +111,7 @@ def test_a_refused_candidate_scores_minus_inf_and_is_counted(name):
 
 
 def test_the_oracle_mpc_reports_refused_rollouts_per_interval():
-    agent = MPCAgent(MPCConfig(method="oracle-mpc", scenario=""))
+    agent = MPCAgent(OracleConfig(method="oracle-mpc", scenario=""))
     agent.oracle.set_age(0.0)
     agent.oracle.rollout = RefusingRollout(np.ones(6, np.int64))
     agent.oracle(LEVELS["planned from"], hold_candidates(3, 10))

@@ -17,7 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from ftc.control import controller_cli, mpc_cli
+from ftc.common.cli import needs
+from ftc.control import registry
+from ftc.tools import controller as controller_cli
+from ftc.tools import mpc as mpc_cli
 
 BAD_VALUES = ["0", "-1", "nan", "inf", "1e18", "", "abc"]
 # (option, value) pairs that are valid input (each reviewed by hand)
@@ -27,6 +30,8 @@ ACCEPTED = {
     ("--pretrain-open-fraction", "0"), ("--cem-smoothing", "0"), ("--ppo-target-kl", "1e18"),
     ("--branch-fraction", "0"), ("--teacher-rounds", "0"), ("--teacher-refits", "0"),
     ("--identify-every", "0"), ("--identify-trigger", "0"), ("--teacher-stop-loss", "0"),
+    ("--band", "0"),  # balance: act on any imbalance
+    ("--learn-terminal-band", "0"),  # learned-mpc: end episodes at the estimated demand
     ("--teacher-memory", "0"), ("--teacher-check-every", "0"), ("--teacher-check-regret", "0"),
     # 0: that part switched off
     ("--scenario", ""),                       # the nominal plant
@@ -47,23 +52,18 @@ SKIPPED = {"--out"}
 
 
 def _acting(tool: str, flag: str) -> list[str]:
-    """The method (or mode) under which ``flag`` acts: an option given where it
-    has no effect is refused (test_registry.py), before its value is checked."""
-    if tool == "ftc.controller":
-        if flag.startswith(("--teacher-", "--branch-")):
-            return ["--method", "ppo-robust"]
-        if flag.startswith("--pretrain-") and flag != "--pretrain-cache":
-            return ["--pretrain"]
+    """The method and the options under which ``flag`` acts: the first method of
+    the tool whose command line offers it, and what its NEEDS ask for (an option
+    given where it has no effect is refused before its value is checked)."""
+    name = OFFERED[(tool, flag)]
+    if name is None:
         return []
-    if flag.startswith("--cem-"):
-        return ["--planner", "cem"]
-    if flag.startswith("--two-stage-"):
-        return ["--planner", "two-stage"]
-    if flag.startswith("--model-") or flag == "--pretrain-cache":
-        return ["--method", "model-mpc"]
-    if flag.startswith("--identify-"):
-        return ["--method", "identified-mpc"]
-    return []
+    m = registry.method(name)
+    need = needs(m.config_class()).get(flag[2:].replace("-", "_"))
+    dep, value = (need[0] if isinstance(need, list) else need) if need else (None, None)
+    if dep is None or dep in m.options:
+        return ["--method", name]
+    return ["--method", name, f"--{dep.replace('_', '-')}", *([] if value is True else [value])]
 
 
 SINGLE = Path(__file__).resolve().parents[2] / "scenarios" / "single.toml"
@@ -81,8 +81,13 @@ def _value_options(parser: argparse.ArgumentParser) -> list[str]:
     return flags
 
 
-CASES = [(tool, flag, value) for tool, module in TOOLS.items()
-         for flag in _value_options(module.build_parser()) if flag not in SKIPPED
+# every option of every method's command line, with the first method that offers it
+OFFERED: dict[tuple[str, str], str | None] = {}
+for _tool, _module in TOOLS.items():
+    for _name in registry.tool_methods(_tool):
+        for _flag in _value_options(_module.build_parser(_name)):
+            OFFERED.setdefault((_tool, _flag), None if _flag == "--method" else _name)
+CASES = [(tool, flag, value) for (tool, flag) in OFFERED if flag not in SKIPPED
          for value in BAD_VALUES]
 
 
@@ -119,14 +124,15 @@ def test_the_base_class_names_only_its_own_run_local_fields():
     were marked, so checkpoints' configuration stamps are unchanged."""
     from dataclasses import fields
 
-    from ftc.control.config import RUN_LOCAL_FIELDS, RunConfig, run_local_fields
-    from ftc.control.guided_ppo import GuidedConfig
-    from ftc.control.mpc_config import MPCConfig
-    from ftc.control.ppo_agent import ControllerConfig
+    from ftc.control.run.config import RUN_LOCAL_FIELDS, RunConfig, run_local_fields
+    from ftc.control.agents.learned.guided_ppo import GuidedConfig
+    from ftc.control.agents.mpc_config import MPCConfig
+    from ftc.control.agents.ppo import ControllerConfig
 
     assert set(RUN_LOCAL_FIELDS) <= {f.name for f in fields(RunConfig)}
     own = set(RUN_LOCAL_FIELDS)
     assert run_local_fields(RunConfig()) == own
     for cls in (ControllerConfig, GuidedConfig):
         assert run_local_fields(cls()) == own | {"pretrain_cache", "push_policy", "push_url"}
-    assert run_local_fields(MPCConfig()) == own | {"pretrain_cache"}
+    assert run_local_fields(MPCConfig()) == own
+    assert run_local_fields(ModelMPCConfig()) == own | {"pretrain_cache"}

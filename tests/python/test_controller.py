@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ftc.control.controller_cli import Controller, main, parse_args, resume_config
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools.controller import Controller, main, parse_args, resume_config
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.learning.ppo import PPOConfig
 
 TIME_COLUMNS = {"online_seconds", "offline_seconds", "wall_time", "refit_seconds",
@@ -92,10 +92,12 @@ def test_cli_parses_every_option_and_help_explains_them(capsys):
                 "--scenario", "--seed", "--out", "--intervals", "--steps-per-interval",
                 "--attach", "--lcm-url", "--prefix", "--resume", "--ppo-learning-rate"):
         assert opt in text
-    cfg, ppo = parse_args(["--no-offline", "--method", "ppo-robust", "--ppo-learning-rate",
+    cfg, ppo = parse_args(["--no-offline", "--method", "ppo", "--ppo-learning-rate",
                            "0.01", "--ppo-trunk-sizes", "32", "32"])
-    assert cfg.offline is False and cfg.method == "ppo-robust"
+    assert cfg.offline is False and cfg.method == "ppo"
     assert ppo.learning_rate == 0.01 and ppo.trunk_sizes == (32, 32)
+    cfg, ppo = parse_args(["--method", "ppo-robust", "--ppo-learning-rate", "0.02"])
+    assert cfg.method == "ppo-robust" and ppo.learning_rate == 0.02
 
 
 def test_background_offline_swaps_in_improved_policies(tmp_path, scenarios):

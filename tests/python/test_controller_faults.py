@@ -38,12 +38,12 @@ import torch
 
 from proc_state import ended
 
-import ftc.control.controller_cli as controller
-import ftc.control.runner as runner
+import ftc.tools.controller as controller
+import ftc.control.run.runner as runner
 from ftc.common.build_info import plant_binary
 from ftc.common.errors import NonFiniteError
-from ftc.control.controller_cli import Controller, resume_config
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools.controller import Controller, resume_config
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.plant import CorePlant, private_lcm_url, private_prefix
 from ftc.learning.ppo import PPOConfig
 
@@ -229,8 +229,8 @@ def test_attached_plant_that_stops_answering_is_retried_with_backoff(tmp_path, s
                               "--scenario", str(scenarios / "single.toml"), "--seed", "3",
                               "--steps-per-interval", "512"], stdout=subprocess.DEVNULL)
     proc = subprocess.Popen(
-        [PY, "-m", "ftc.controller", *SHORT, "--steps-per-interval", "512", "--update-every",
-         "128", "--no-offline", "--intervals", "3", "--scenario", str(scenarios / "single.toml"),
+        [PY, "-m", "ftc.controller", "--seed", "3", "--quiet", "--steps-per-interval", "512",
+         "--update-every", "128", "--no-offline", "--intervals", "3", "--scenario", str(scenarios / "single.toml"),
          "--attach", "--lcm-url", url, "--prefix", prefix, "--link-retry-timeout", "0.05",
          "--link-backoff", "2", "--link-give-up-timeout", "1.5", "--out", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=REPO)

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from ftc.control.agent import StepContext, Transition
-from ftc.control.deferred import DeferredAgent
+from ftc.control.run.agent import StepContext, Transition
+from ftc.control.run.deferred import DeferredAgent
 from ftc.learning.ppo_policy import ActorCritic
 from ftc.plant.link import PlantObservation
 
@@ -125,7 +125,7 @@ def test_a_jobs_error_is_raised_in_the_loop():
 def _robust_interval(background: bool):
     """ppo-robust driven through one interval of 64 steps on the core plant, then
     its end_interval; returns (agent, the state saved after the fit)."""
-    from ftc.control.controller_cli import make_agent, parse_args
+    from ftc.tools.controller import make_agent, parse_args
     from ftc.plant.link import CorePlant
     from ftc.plant.reward import reward
 
@@ -178,7 +178,7 @@ def test_the_state_saved_after_a_background_fit_is_the_lockstep_checkpoint():
 def test_an_offline_phase_queued_in_real_time_survives_a_checkpoint():
     """Algorithm 1 on a real-time plant queues an interval's offline phase behind
     the one still running; a checkpoint keeps it, a resumed agent starts it."""
-    from ftc.control.controller_cli import make_agent, parse_args
+    from ftc.tools.controller import make_agent, parse_args
 
     cfg, ppo = parse_args(["--method", "ppo-offline", "--link", "core", "--out", "unused"])
     agent = make_agent(cfg, ppo)

@@ -7,7 +7,7 @@ so a check that could never fail is caught too:
   module) or resolves (an attribute of one);
 * every repository path the text mentions exists. Checked: paths under the
   repository's source roots (``CHECKED_ROOTS``), paths relative to the package
-  (``control/runner.py`` is ``python/ftc/control/runner.py``) and the targets
+  (``control/run/runner.py`` is ``python/ftc/control/run/runner.py``) and the targets
   of Markdown links and images. Not checked, by rule: anything else, in
   particular ``build/...`` (made by scripts/setup.sh), ``runs/...`` (written
   by the tools), ``.venv/...`` and paths inside a run directory. Globs
@@ -213,7 +213,7 @@ def test_a_missing_path_is_reported_and_outputs_are_not_checked(tmp_path):
 
 
 def test_a_package_relative_path_is_checked_under_python_ftc():
-    assert missing_paths("`control/runner.py` and learning/no_such.py", REPO / "docs") == [
+    assert missing_paths("`control/run/runner.py` and learning/no_such.py", REPO / "docs") == [
         "learning/no_such.py"]
 
 

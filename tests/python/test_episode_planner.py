@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control import mpc_cli
-from ftc.control.episode_planner import EpisodePlanner, Repeated, repeat_scores, tail_scores
-from ftc.control.true_physics import TruePhysics
+from ftc.tools import mpc as mpc_cli
+from ftc.control.planning.physics.episode_planner import EpisodePlanner, Repeated, repeat_scores, tail_scores
+from ftc.control.planning.physics.true_physics import TruePhysics
 
 FULL = np.ones(6)
 
@@ -149,7 +149,7 @@ def _parse(args, tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--method", "model-mpc", "--planner", "episode"], "needs --method oracle-mpc"),
+    (["--method", "model-mpc", "--planner", "episode"], "invalid choice: 'episode'"),
     (["--method", "oracle-mpc", "--episode-sweeps", "3"], "--episode-sweeps"),
 ])
 def test_the_planners_options_are_refused_where_they_mean_nothing(args, message, tmp_path):
@@ -180,7 +180,7 @@ def test_an_exhausted_budget_stops_the_search_and_keeps_the_oracles_plan(single_
 
 
 def test_sensor_noise_widens_the_tolerance_by_six_standard_deviations(tmp_path):
-    from ftc.control.mpc_agent import MPCAgent
+    from ftc.control.agents.physics.mpc import MPCAgent
 
     noisy = tmp_path / "noisy.toml"
     noisy.write_text(open("scenarios/single.toml").read() + "\n[noise]\nstd = 0.005\n")

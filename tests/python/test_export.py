@@ -17,9 +17,11 @@ import onnxruntime
 import pytest
 import torch
 
-from ftc.control import controller_cli, mpc_cli
-from ftc.control.agent import StepContext
-from ftc.control.ppo_agent import ControllerConfig, PPOAgent
+from ftc.tools import controller as controller_cli
+
+from ftc.tools import mpc as mpc_cli
+from ftc.control.run.agent import StepContext
+from ftc.control.agents.ppo import ControllerConfig, PPOAgent
 from ftc.learning.ppo import PPOConfig
 from ftc.plant.link import PlantObservation
 from ftc.tools import export

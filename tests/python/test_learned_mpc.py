@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from ftc.common.errors import CheckpointError
-from ftc.control.learned_agent import LearnedEvaluator, LearnedMPCAgent
-from ftc.control.mpc_cli import main
-from ftc.control.mpc_config import MPCConfig
-from ftc.control.planners import hold_candidates
+from ftc.control.agents.learned.learned_mpc import LearnedEvaluator, LearnedMPCAgent
+from ftc.tools.mpc import main
+from ftc.control.agents.learned.learned_mpc import LearnedMPCConfig
+from ftc.control.planning.planners import hold_candidates
 from ftc.learning.feature_model import FeatureModel
 from ftc.plant import CorePlant
 from ftc.plant.reward import reward
@@ -143,7 +143,7 @@ def test_the_model_learns_a_pump_that_died(tmp_path):
     """Tank 3's pump dead (factor 0.5, age 1), every valve closed: the nominal fit
     expects tank 3 to drain first, and the model learns otherwise from the steps
     it observes."""
-    agent = LearnedMPCAgent(MPCConfig(method="learned-mpc", seed=0, learn_episodes=20))
+    agent = LearnedMPCAgent(LearnedMPCConfig(seed=0, learn_episodes=20))
     agent.prepare()
     scenario = tmp_path / "dead.toml"
     scenario.write_text('name = "dead"\ntank_factor = [inf, inf, 0.5, inf, inf, inf]\n'

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.metrics import METRIC_COLUMNS
-from ftc.control.mpc_agent import MPCAgent, MPCConfig
-from ftc.control.mpc_cli import MPCController, main
-from ftc.control.physics_evaluators import OracleEvaluator
-from ftc.control.planners import CEMPlanner, HoldPlanner, hold_candidates, valve_settings
+from ftc.control.run.metrics import METRIC_COLUMNS
+from ftc.control.agents.physics.mpc import MPCAgent, MPCConfig, OracleConfig
+from ftc.tools.mpc import MPCController, main
+from ftc.control.planning.physics.evaluators import OracleEvaluator
+from ftc.control.planning.planners import CEMPlanner, HoldPlanner, hold_candidates, valve_settings
 from ftc.plant import CorePlant, launch
 from ftc.plant.reward import reward
 
@@ -155,8 +155,8 @@ def _closed_reward_per_step(steps: int) -> float:
 
 def test_oracle_equals_all_closed_on_the_nominal_plant(tmp_path):
     steps = 128  # two full episodes and part of a third, over LCM
-    cfg = MPCConfig(method="oracle-mpc", scenario="", out=str(tmp_path), intervals=1,
-                    steps_per_interval=steps, quiet=True)
+    cfg = OracleConfig(method="oracle-mpc", scenario="", out=str(tmp_path), intervals=1,
+                       steps_per_interval=steps, quiet=True)
     rows = MPCController(cfg).run()
     closed = _closed_reward_per_step(steps)
     assert rows[0]["reward_per_step"] >= closed - 1e-9
@@ -198,7 +198,7 @@ def test_model_evaluator_equals_the_world_model_stepped_in_torch():
     import torch
 
     from ftc.common.constants import TANK_HEIGHT
-    from ftc.control.planners import ModelEvaluator
+    from ftc.control.planning.planners import ModelEvaluator
     from ftc.learning.world_model import WorldModel, WorldModelConfig
     from ftc.plant.reward import AREAS, reward_torch
 

@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ftc.control import plugin_cli, plugins
+from ftc.tools import plugin as plugin_cli
+
+from ftc.control.agents import plugins
 from ftc.experiments import methods
 
 REPO = Path(__file__).resolve().parents[2]
@@ -124,10 +126,10 @@ def test_specs_names_and_the_tools_method_option():
     assert plugins.default_name("examples.custom_agent:make_agent") == "make_agent"
     assert plugins.default_name("sb3:runs/x/My Model.zip") == "My-Model"
     assert plugins.default_name("onnx:/a/policy.onnx") == "policy"
-    assert plugin_cli.plugin_argv(["--method", "m:f", "--seed", "1"]) == [
-        "--agent", "m:f", "--seed", "1"]
-    assert plugin_cli.plugin_argv(["--method=onnx:p.onnx"]) == ["--agent=onnx:p.onnx"]
-    assert plugin_cli.plugin_argv(["--method", "balance"]) is None
+    assert plugins.split_name("mine=examples.custom_agent:make_agent") == (
+        "mine", "examples.custom_agent:make_agent")
+    assert plugins.split_name("sb3:runs/a=b/model.zip") == (None, "sb3:runs/a=b/model.zip")
+    assert plugin_cli.plugin_run(["--method", "balance"], "ftc.controller") is None
     assert methods.resolve_methods(["balance", "closed"], None) == ["balance", "closed"]
 
 
@@ -143,11 +145,51 @@ def test_ftc_controller_runs_a_plugin_as_its_method(tmp_path):
     assert (out / "done.json").is_file()
 
 
+TINY = ["--intervals", "1", "--steps-per-interval", "16", "--link", "core", "--quiet"]
+
+
+@pytest.mark.parametrize("tool,option", [("controller", "--method"), ("mpc", "--method"),
+                                         ("plugin", "--agent")])
+def test_name_equals_spec_runs_as_the_readme_writes_it(tool, option, tmp_path, capsys):
+    """Issue 35, item 7: ``--method NAME=SPEC`` (``--agent`` on ftc.plugin) runs the
+    plug-in under NAME; a spec that gives no controller names the option given."""
+    import importlib
+
+    main = importlib.import_module(f"ftc.tools.{tool}").main
+    out = tmp_path / "run"
+    assert main([option, "mine=examples.custom_agent:make_agent", *TINY, "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["plugin"]["agent"] == \
+        "mine=examples.custom_agent:make_agent"
+    assert (out / "done.json").is_file()
+    with pytest.raises(SystemExit) as e:
+        main([option, "mine=no_such_module_here:f", *TINY, "--out", str(tmp_path / "bad")])
+    assert e.value.code == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith(f"ftc.{tool}: error: {option}: cannot import module "
+                           "'no_such_module_here'"), line
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("tool", ["controller", "mpc"])
+def test_a_plugin_run_started_by_a_tool_resumes_there(tool, tmp_path):
+    """Issue 35, item 9: ``ftc.controller --resume DIR`` of the plug-in run it
+    started continues it (it said: malformed run configuration, KeyError 'controller')."""
+    import importlib
+
+    main = importlib.import_module(f"ftc.tools.{tool}").main
+    out = tmp_path / "run"
+    assert main(["--method", "examples.custom_agent:make_agent", *TINY, "--out", str(out)]) == 0
+    assert main(["--resume", str(out), "--intervals", "2", "--quiet"]) == 0
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert [r["interval"] for r in rows] == ["0", "1"]
+    assert json.loads((out / "done.json").read_text())["intervals"] == 2
+
+
 def test_a_factory_gets_the_config_only_where_it_has_a_parameter_to_fill(tmp_path):
     cfg = plugins.PluginConfig(agent="x:y", scenario=None)
     module = tmp_path / "factories_for_test.py"
     module.write_text(
-        "from ftc.control.agent import Agent\n"
+        "from ftc.control.run.agent import Agent\n"
         "class A(Agent):\n"
         "    def __init__(self, margin=0.15):\n"
         "        self.margin = margin\n"

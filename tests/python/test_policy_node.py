@@ -235,7 +235,7 @@ def test_push_policy_refuses_a_method_without_a_policy(tmp_path):
                           "--out", str(tmp_path / "run")], cwd=REPO, capture_output=True,
                          text=True, timeout=120)
     assert run.returncode == 2
-    assert "--push-policy has no effect with --method closed" in run.stderr
+    assert "--push-policy is not an option of --method closed" in run.stderr
     assert not (tmp_path / "run" / "config.json").exists()
 
 

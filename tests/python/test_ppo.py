@@ -231,8 +231,8 @@ def test_stored_configs_of_older_runs_still_resume(tmp_path, capsys):
     import json
 
     from ftc.common.errors import CheckpointError
-    from ftc.control.cli import read_run_configs
-    from ftc.control.ppo_agent import ControllerConfig
+    from ftc.tools.run_cli import read_run_configs
+    from ftc.control.agents.ppo import ControllerConfig
 
     parts = {"controller": ControllerConfig, "ppo": PPOConfig}
     controller = {**dataclasses.asdict(ControllerConfig()), "pretrain_sim": "core",

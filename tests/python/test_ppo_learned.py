@@ -1,4 +1,4 @@
-"""``ppo-learned`` (control/ppo_learned_agent.py): guided PPO on the model
+"""``ppo-learned`` (control/agents/learned/ppo_learned.py): guided PPO on the model
 learned online. Its env on the model on a case with a known answer, its
 checkpoint, and a short run on the real plant process over LCM where the
 guided fit makes a fresh policy act as the planner on the learned model."""
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from ftc.control.controller_cli import main, make_agent, parse_args
-from ftc.control.ppo_learned_agent import LearnedModelEnv, LearnedPPOAgent
+from ftc.tools.controller import main, make_agent, parse_args
+from ftc.control.agents.learned.ppo_learned import LearnedModelEnv, LearnedPPOAgent
 
 
 class _Drain:

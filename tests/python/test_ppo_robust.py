@@ -1,4 +1,4 @@
-"""ppo-robust (control/ppo_robust_agent.py): the planner-guided offline phase
+"""ppo-robust (control/agents/physics/ppo_robust.py): the planner-guided offline phase
 makes a policy that starts from scratch act as the planner on the identified
 physics, plans each distinct level once, and stops its fits early when told."""
 
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control.physics_evaluators import ParamsEvaluator
-from ftc.control.guided_ppo import PlanCache
-from ftc.control.ppo_robust_agent import _same_plan
+from ftc.control.planning.physics.evaluators import ParamsEvaluator
+from ftc.control.agents.learned.guided_ppo import PlanCache
+from ftc.control.agents.physics.ppo_robust import _same_plan
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -79,7 +79,7 @@ def test_each_fit_keeps_a_bounded_memory_of_the_levels_earlier_fits_labelled(run
 def test_recent_distinct_keeps_the_last_occurrences_most_recent_last():
     import numpy as np
 
-    from ftc.control.guided_ppo import _recent_distinct
+    from ftc.control.agents.learned.guided_ppo import _recent_distinct
 
     a, b, c, d = (np.full(6, v) for v in (0.1, 0.2, 0.3, 0.4))
     rows = np.array([a, b, a, c, d, c])
@@ -91,7 +91,7 @@ def test_recent_distinct_keeps_the_last_occurrences_most_recent_last():
 def test_the_memory_survives_a_checkpoint():
     import numpy as np
 
-    from ftc.control.controller_cli import make_agent, parse_args
+    from ftc.tools.controller import make_agent, parse_args
 
     cfg, ppo = parse_args(["--method", "ppo-robust", "--link", "core", "--out", "unused"])
     agent = make_agent(cfg, ppo)
@@ -109,7 +109,7 @@ def test_the_check_prices_a_policy_that_strands_fuel_behind_a_dead_pump():
     import numpy as np
     import torch
 
-    from ftc.control.controller_cli import make_agent, parse_args
+    from ftc.tools.controller import make_agent, parse_args
 
     cfg, ppo = parse_args(["--method", "ppo-robust", "--link", "core", "--out", "unused"])
     agent = make_agent(cfg, ppo)
@@ -121,7 +121,7 @@ def test_the_check_prices_a_policy_that_strands_fuel_behind_a_dead_pump():
         head = [m for m in last if m.out_features == 6][-1]
         head.weight.zero_()
         head.bias.fill_(-10.0)
-    from ftc.control.guided_ppo import regret
+    from ftc.control.agents.learned.guided_ppo import regret
 
     def price(level):
         return regret(agent.ppo, agent.teacher, agent.teacher_eval, level)

@@ -11,8 +11,8 @@ import shutil
 from pathlib import Path
 
 from ftc import _core
-from ftc.control.controller_cli import Controller
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools.controller import Controller
+from ftc.control.agents.ppo import ControllerConfig
 import torch
 
 from ftc.learning import offline, pretrain

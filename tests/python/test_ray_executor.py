@@ -29,7 +29,7 @@ from pathlib import Path
 
 import pytest
 
-from ftc.control.metrics import TIMING_COLUMNS
+from ftc.control.run.metrics import TIMING_COLUMNS
 from ftc.experiments import cli, ray_executor
 from ftc.experiments.runs import is_finished
 

@@ -24,8 +24,8 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from ftc.common.build_info import plant_binary
-from ftc.control.config import RUN_FILES
-from ftc.control.realtime import REALTIME_COLUMNS
+from ftc.control.run.config import RUN_FILES
+from ftc.control.run.realtime import REALTIME_COLUMNS
 from ftc.plant import private_lcm_url, private_prefix
 from ftc.plant_state_t import plant_state_t
 

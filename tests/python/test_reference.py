@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 
 from ftc import _core
-from ftc.control import mpc_cli, registry
-from ftc.control.physics_evaluators import OracleEvaluator
-from ftc.control.planners import (HoldPlanner, TwoStagePlanner, two_stage_candidates,
+from ftc.control import registry
+from ftc.tools import mpc as mpc_cli
+from ftc.control.planning.physics.evaluators import OracleEvaluator
+from ftc.control.planning.planners import (HoldPlanner, TwoStagePlanner, two_stage_candidates,
                                   valve_settings)
 from ftc.experiments import run_cache
 from ftc.experiments.run_cache import RunCache, RunKey
@@ -103,14 +104,16 @@ def test_pruning_expands_only_the_best_first_settings():
 def test_method_reference_is_the_oracle_mpc_with_the_episode_planner(tmp_path):
     ref = mpc_cli.parse_args(["--method", "reference", *NO_PLANT, "--out", str(tmp_path / "r")])
     oracle = mpc_cli.parse_args(["--method", "oracle-mpc", *NO_PLANT, "--out", str(tmp_path / "o")])
-    assert (ref.method, ref.planner, ref.rollout_closed_form) == ("oracle-mpc", "episode", True)
+    assert (ref.method, ref.planner, ref.rollout_closed_form) == ("reference", "episode", True)
+    assert type(ref) is type(oracle)  # the oracle's options, two of them fixed
     assert (oracle.planner, oracle.hold, oracle.horizon) == ("hold", 3, 10)
     # the closed loop it must beat is the oracle's H = 3, L = 10 hold planner
     assert (ref.hold, ref.horizon) == (oracle.hold, oracle.horizon)
     m = registry.METHODS["reference"]
-    assert m.cached and m.knows == "the true faults" and not m.agent
+    assert m.cached and m.knows == "the true faults"
+    assert m.agent == registry.METHODS["oracle-mpc"].agent
+    assert dict(m.options) == {"planner": "episode", "rollout_closed_form": True}
     assert "reference" in registry.tool_methods("ftc.mpc")
-    assert "reference" not in registry.config_values("ftc.mpc")
 
 
 def test_a_short_reference_run_finishes(tmp_path, scenarios):

@@ -28,9 +28,9 @@ import pytest
 import torch
 
 from ftc.common.atomic import atomic_torch_save, atomic_write_bytes, atomic_write_text
-from ftc.control import controller_cli
-from ftc.control.controller_cli import Controller
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools import controller as controller_cli
+from ftc.tools.controller import Controller
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.learning.ppo import PPOConfig
 
 REPO = Path(__file__).resolve().parents[2]
@@ -285,7 +285,7 @@ def closed_run(tmp_path_factory) -> Path:
     (["--ppo-trunk-sizes", "32", "32"], "--ppo-trunk-sizes"),  # no effect on a baseline
     (["--intervals", "1"], "below the run's 2"),
     (["--out", "elsewhere"], "--out elsewhere"),
-    (["--ppo-learning-rate", "0.5"], "no effect with --method closed"),
+    (["--ppo-learning-rate", "0.5"], "is not an option of --method closed"),
 ])
 def test_resume_refuses_an_option_that_fixes_results(closed_run, given, named):
     before = _digest(closed_run)
@@ -317,9 +317,9 @@ def test_mpc_resume_refuses_another_horizon_and_accepts_no_ppo_options(finished)
 @pytest.mark.parametrize("option", [["--offline-steps", "10"], ["--pretrain"],
                                     ["--ppo-learning-rate", "0.1"]])
 @pytest.mark.parametrize("method", ["closed", "balance"])
-def test_a_baseline_refuses_ppo_options_that_would_have_no_effect(tmp_path, method, option):
+def test_a_baseline_refuses_ppo_options_it_does_not_have(tmp_path, method, option):
     proc = _tool("ftc.controller", "--method", method, *option, "--out", str(tmp_path / "r"))
-    _one_error_line(proc, "ftc.controller", option[0], "no effect", f"--method {method}")
+    _one_error_line(proc, "ftc.controller", option[0], f"is not an option of --method {method}")
     assert not (tmp_path / "r").exists()
 
 
@@ -494,7 +494,9 @@ def test_each_experiment_option_goes_to_the_methods_it_acts_on():
     from ftc.experiments.methods import METHODS
 
     extra = ["--update-every", "32", "--model-episodes", "4", "--link-retry-timeout", "0.1"]
-    assert method_args(METHODS["ppo-online"], extra) == extra
+    assert method_args(METHODS["ppo-offline"], extra) == extra
+    # ppo-online has no offline phase, so no world model to pretrain
+    assert method_args(METHODS["ppo-online"], extra) == extra[:2] + extra[4:]
     assert method_args(METHODS["model-mpc"], extra) == extra[2:]  # MPC: its own option
     assert method_args(METHODS["closed"], extra) == extra[4:]  # a baseline: run options only
     assert untaken(["closed", "oracle-mpc"], ["--update-every", "32", "--nope"]) == [

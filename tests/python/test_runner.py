@@ -1,5 +1,5 @@
 """The interval runner drives any Agent through the protocol of
-ftc.control.agent, in order, with the plant's episodes; and a new controller
+ftc.control.run.agent, in order, with the plant's episodes; and a new controller
 is one small class (the balance rule of docs/architecture.md)."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ftc.control.agent import Agent, StepContext, Transition
-from ftc.control.ppo_agent import ControllerConfig
-from ftc.control.runner import IntervalRunner
+from ftc.control.run.agent import Agent, StepContext, Transition
+from ftc.control.agents.ppo import ControllerConfig
+from ftc.control.run.runner import IntervalRunner
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -42,8 +42,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ftc.control.metrics import PPO_COLUMNS, TIMING_COLUMNS
-from ftc.control.mpc_agent import MPCAgent
+from ftc.control.run.metrics import PPO_COLUMNS, TIMING_COLUMNS
+from ftc.control.agents.physics.mpc import MPCAgent
 
 REPO = Path(__file__).resolve().parents[2]
 SAVED = REPO / "tests" / "data" / "same_results"

@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from ftc.control import controller_cli
-from ftc.control.controller_cli import Controller, resume_config
-from ftc.control.ppo_agent import ControllerConfig
+from ftc.tools import controller as controller_cli
+from ftc.tools.controller import Controller, resume_config
+from ftc.control.agents.ppo import ControllerConfig
 from ftc.learning.ppo import PPOConfig
 
 REPO = Path(__file__).resolve().parents[2]

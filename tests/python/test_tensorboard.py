@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from ftc.control import controller_cli, mpc_cli
-from ftc.control.controller_cli import Controller
-from ftc.control.ppo_agent import ControllerConfig
-from ftc.control.telemetry import NULL_TELEMETRY, Telemetry
+from ftc.tools import controller as controller_cli
+
+from ftc.tools import mpc as mpc_cli
+from ftc.tools.controller import Controller
+from ftc.control.agents.ppo import ControllerConfig
+from ftc.control.run.telemetry import NULL_TELEMETRY, Telemetry
 from ftc.experiments import cli as experiments_cli
 from ftc.learning.ppo import PPOConfig, UpdateStats
 from ftc.plant.link import CorePlant, PlantGoneError

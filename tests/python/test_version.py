@@ -28,7 +28,7 @@ def test_the_version_is_pyprojects_and_python_m_ftc_prints_it():
 
 
 def test_a_runs_config_records_the_version(tmp_path, scenarios):
-    from ftc.control.controller_cli import main
+    from ftc.tools.controller import main
 
     out = tmp_path / "closed"
     assert main(["--method", "closed", "--link", "core", "--intervals", "1",

@@ -134,6 +134,43 @@ def add_dataclass_options(parser: Any, cls: type, prefix: str = "",
         parser.add_argument(flag(f.name, prefix), **kwargs)
 
 
+def needs(cls: type) -> dict[str, tuple[str, Any]]:
+    """What the fields of config class ``cls`` act only with: field -> (the field
+    it needs, the value it needs there), or a list of such pairs of which any one
+    will do, from the ``NEEDS`` mappings its classes declare (a subclass's
+    entries over its bases')."""
+    out: dict[str, tuple[str, Any]] = {}
+    for klass in reversed(cls.__mro__):
+        out.update(klass.__dict__.get("NEEDS", {}))
+    return out
+
+
+def unmet(cfg: Any) -> dict[str, str]:
+    """The fields of ``cfg`` that have no effect on it (their :func:`needs` are
+    not met), each with why ("without --pretrain", "with --planner hold")."""
+    out = {}
+    for name, need in needs(type(cfg)).items():
+        ways = need if isinstance(need, list) else [need]  # a list: any one of them
+        if all(getattr(cfg, dep) != value for dep, value in ways):
+            out[name] = " and ".join(
+                f"without {flag(dep)}" if value is True else f"with {flag(dep)}"
+                if value is False else f"with {flag(dep)} {getattr(cfg, dep)}"
+                for dep, value in ways)
+    return out
+
+
+def offered(cls: type, fixed: dict[str, Any]) -> list[str]:
+    """The fields of ``cls`` a command line offers when ``fixed`` sets some: not
+    those, and not those that need a fixed field at another value."""
+    def possible(need: Any) -> bool:
+        return any(dep not in fixed or fixed[dep] == value
+                   for dep, value in (need if isinstance(need, list) else [need]))
+
+    wants = needs(cls)
+    return [f.name for f in fields(cls)
+            if f.name not in fixed and (f.name not in wants or possible(wants[f.name]))]
+
+
 def config_from_namespace(cls: type, ns: dict[str, Any], prefix: str = "") -> Any:
     """An instance of ``cls`` from the parsed options of :func:`add_dataclass_options`."""
     values = {}

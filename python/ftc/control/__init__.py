@@ -1,3 +1,4 @@
-"""Control: the interval runner (:mod:`ftc.control.runner`) and the agents it
-drives (baselines, PPO as in Algorithm 1, MPC oracle, MPC on the learned
-model), their configs and command lines. See docs/architecture.md."""
+"""Control, in rooms: ``run/`` (the interval runner and its loops, checkpoints,
+metrics), ``planning/`` (planners and their evaluators), ``agents/`` (one
+module per method family) and :mod:`ftc.control.registry` (the methods, as
+data). Their command lines are in :mod:`ftc.tools`. See docs/architecture.md."""

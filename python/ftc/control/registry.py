@@ -1,54 +1,63 @@
-"""The one list of methods: for each controller, the name every tool knows it
-by (``ftc.controller --method``, ``ftc.mpc --method``, ``ftc.experiments
---methods``), the agent that runs it, its config class, what it is told about
-the plant, its label, the tool and arguments that run it, and how the
-experiments schedule it.
+"""The one list of methods, as data (Gymnasium's ``register(id, entry_point,
+kwargs)``): for each controller, the name every tool knows it by
+(``ftc.controller --method``, ``ftc.mpc --method``, ``ftc.experiments
+--methods``), the agent that runs it, the values of the agent's options that
+make this variant, its label and colour, what it is told about the plant, the
+settings the experiments recommend, and how they schedule it.
 
-A leaf of the control room: the agents and their configs are named as
-``"module:attribute"`` and imported only when a run needs them, so listing
-the methods imports neither torch nor the native core. A new controller is
-its file plus one :class:`Method` line in :data:`METHODS`.
+An agent class owns its options: its ``Config`` (a :class:`RunConfig` with
+the agent's own fields, each with its help) and its other config ``parts``
+(PPO's hyperparameters). The command lines offer exactly those, less the ones
+a method fixes (:meth:`Method.offered`), so nothing foreign is offered.
+
+A leaf above the agents: they are named as ``"module:Class"`` and imported
+only when a run needs them, so listing the methods imports neither torch nor
+the native core, and no agent imports this module. A new controller is its
+file plus one :class:`Method` entry (:func:`register`).
 """
 
 from __future__ import annotations
 
 import importlib
-import sys
-from dataclasses import dataclass
-from typing import Any, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+from ftc.common.cli import add_dataclass_options, offered
+from ftc.control.run.config import ALIASES, canonical  # noqa: F401 - former names, re-exported
 
 # What a method is told about the plant, from least to most.
 KNOWS = ("nothing", "the learned model", "the plant's equations", "the true faults")
-TOOLS = ("ftc.controller", "ftc.mpc")
+# The tools that run methods, and the name of a run's own config in its config.json.
+TOOLS = {"ftc.controller": "controller", "ftc.mpc": "mpc"}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Method:
     """A controller, as every tool names and runs it.
 
-    name: on every command line and in result paths; label: legend text in
-    figures and tables; tool: the module run with ``python -m``; args: what
-    ``--method NAME`` means on that tool's command line (its own
-    ``--method`` value and the flags that make the variant); agent: the
-    ``"module:Class"`` whose ``from_configs(configs)`` builds the agent,
-    empty for a variant of another method (args name it); config: the
-    ``"module:Class"`` of its run config; knows: one of :data:`KNOWS`;
-    experiment_args: what ``ftc.experiments`` adds to its runs; cost:
-    relative wall time (scheduling, ETA); learns: a learned policy or model
-    (deterministic evaluation, model R^2); benchmark: run by ``ftc.experiments
-    benchmark`` by default; compared: offered to ``ftc.experiments`` (False:
-    a tool-level method whose variants are compared instead); cached: its results
-    depend on the scenario only (deterministic planning on the true physics), so
-    the benchmark runs it once per scenario and keeps the run."""
+    name: on every command line and in result paths; agent: the
+    ``"module:Class"`` that runs it (its ``Config`` and ``parts`` are the run's
+    options, ``from_configs(configs)`` builds it); options: values of the
+    agent's options that make this variant (fixed: not offered on its command
+    line); label: legend text in figures and tables; color: its colour in
+    figures; tool: the module run with ``python -m``; knows: one of
+    :data:`KNOWS`; recommended: the options ``ftc.experiments`` adds to its
+    runs; cost: relative wall time (scheduling, ETA); learns: a learned policy
+    or model (deterministic evaluation, model R^2); benchmark: run by
+    ``ftc.experiments benchmark`` by default; compared: offered to
+    ``ftc.experiments`` (False: a method whose variants are compared instead);
+    cached: its results depend on the scenario only (deterministic planning on
+    the true physics), so the benchmark runs it once per scenario and keeps the
+    run."""
 
     name: str
-    label: str
-    tool: str
-    args: tuple[str, ...]
     agent: str
-    config: str
+    label: str
+    tool: str = "ftc.controller"
+    options: Mapping[str, Any] = field(default_factory=dict)
+    color: str | None = None
     knows: str = "nothing"
-    experiment_args: tuple[str, ...] = ()
+    recommended: tuple[str, ...] = ()
     cost: float = 1.0
     learns: bool = False
     benchmark: bool = True
@@ -59,18 +68,55 @@ class Method:
         if self.knows not in KNOWS:
             raise ValueError(f"method {self.name}: knows {self.knows!r}, not one of {KNOWS}")
         if self.tool not in TOOLS:
-            raise ValueError(f"method {self.name}: tool {self.tool!r}, not one of {TOOLS}")
-
-    @property
-    def tool_method(self) -> str:
-        """The value of its tool's ``--method`` (its config's ``method`` field)."""
-        return self.args[1]
+            raise ValueError(f"method {self.name}: tool {self.tool!r}, not one of "
+                             f"{', '.join(TOOLS)}")
 
     def agent_class(self) -> type:
-        return _load(METHODS[self.tool_method].agent if not self.agent else self.agent)
+        return _load(self.agent)
 
     def config_class(self) -> type:
-        return _load(self.config)
+        """Its run config: RunConfig and the agent's own options."""
+        return self.agent_class().Config
+
+    @property
+    def part(self) -> str:
+        """The name of its run config in config.json ("controller", "mpc")."""
+        return TOOLS[self.tool]
+
+    def parts(self) -> dict[str, tuple[type, str]]:
+        """Every config of its runs by name, with its option prefix."""
+        return {self.part: (self.config_class(), ""), **self.agent_class().parts}
+
+    def offered(self) -> list[str]:
+        """The fields of its run config its command line offers: not ``method``,
+        not those it fixes, not those that act only with a value it fixes otherwise."""
+        return [n for n in offered(self.config_class(), dict(self.options)) if n != "method"]
+
+    def add_options(self, parser: Any, choices: dict[str, dict[str, Any]] | None = None
+                    ) -> None:
+        """Its options on ``parser`` (an ArgumentParser): those of its run config
+        it offers, then those of its other parts under their prefixes (choices:
+        by part, choices of their fields beyond their own)."""
+        cls, shown = self.config_class(), set(self.offered())
+        first = ("scenario", "seed", "out", "intervals", "steps_per_interval")
+        add_dataclass_options(parser, cls, skip=[f.name for f in fields(cls) if f.name not in shown],
+                              order=[n for n in first if n in shown])
+        for name, (part, prefix) in self.agent_class().parts.items():
+            add_dataclass_options(parser.add_argument_group(f"--method {self.name}: {name} options"),
+                                  part, prefix, choices=(choices or {}).get(name))
+
+    def config(self, values: Mapping[str, Any]) -> Any:
+        """Its run config from option values (its fixed options and name set)."""
+        return self.config_class()(**{**values, **self.options, "method": self.name})
+
+    @property
+    def args(self) -> tuple[str, ...]:
+        """How ``ftc.experiments`` starts its runs (with its tool, :attr:`module`)."""
+        return ("--method", self.name, *self.recommended)
+
+    @property
+    def module(self) -> str:
+        return self.tool
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -78,74 +124,72 @@ class Method:
         return tuple(self.agent_class().extra_columns)
 
 
-_CONTROLLER = "ftc.control.ppo_agent:ControllerConfig"
-_ROBUST = "ftc.control.guided_ppo:GuidedConfig"
-_MPC = "ftc.control.mpc_config:MPCConfig"
-_BASELINE = "ftc.control.baselines:BaselineAgent"
+METHODS: dict[str, Method] = {}
 
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("closed", "all valves closed", "ftc.controller", ("--method", "closed"), _BASELINE,
-           _CONTROLLER),
-    Method("open", "all valves open", "ftc.controller", ("--method", "open"), _BASELINE,
-           _CONTROLLER),
-    Method("random", "each valve open with p = 1/2", "ftc.controller", ("--method", "random"),
-           _BASELINE, _CONTROLLER, benchmark=False),
-    Method("balance", "rule: balance the wings", "ftc.controller", ("--method", "balance"),
-           "ftc.control.balance:BalanceAgent", _CONTROLLER),
-    Method("ppo", "PPO (Algorithm 1, as its flags configure it)", "ftc.controller",
-           ("--method", "ppo"), "ftc.control.ppo_agent:PPOAgent", _CONTROLLER,
+
+def register(m: Method) -> Method:
+    """Add ``m`` to the methods (a name registered differently is a ValueError)."""
+    if m.name in METHODS and METHODS[m.name] is not m:
+        raise ValueError(f"method {m.name!r} is already registered")
+    if m.name in ALIASES:
+        raise ValueError(f"method {m.name!r}: a former name of {ALIASES[m.name]}")
+    METHODS[m.name] = m
+    return m
+
+
+_BASELINE = "ftc.control.agents.baselines:BaselineAgent"
+_PPO = "ftc.control.agents.ppo:PPOAgent"
+_ORACLE = "ftc.control.agents.physics.mpc:OracleMPCAgent"
+# the guided methods' recommended settings: pretrained, the guided fit only, the C++ PPO kernel
+_GUIDED = ("--pretrain", "--offline-steps", "0", "--ppo-engine", "native")
+
+for _m in (
+    Method("closed", _BASELINE, "all valves closed", color="tab:blue"),
+    Method("open", _BASELINE, "all valves open", color="tab:orange"),
+    Method("random", _BASELINE, "each valve open with p = 1/2", color="tab:gray",
+           benchmark=False),
+    Method("balance", "ftc.control.agents.balance:BalanceAgent", "rule: balance the wings",
+           color="tab:pink"),
+    Method("ppo", _PPO, "PPO (Algorithm 1, as its options configure it)",
            knows="the learned model", learns=True, compared=False),
-    Method("ppo-online", "PPO online", "ftc.controller", ("--method", "ppo", "--no-offline"),
-           "", _CONTROLLER, knows="nothing", cost=3.0, learns=True),
-    Method("ppo-offline", "PPO online + offline", "ftc.controller",
-           ("--method", "ppo", "--offline"), "", _CONTROLLER, knows="the learned model",
-           cost=8.0, learns=True),
-    Method("ppo-pretrained", "PPO online + offline, pretrained", "ftc.controller",
-           ("--method", "ppo", "--offline", "--pretrain"), "", _CONTROLLER,
+    Method("ppo-online", _PPO, "PPO online", options={"offline": False}, color="tab:green",
+           cost=3.0, learns=True),
+    Method("ppo-offline", _PPO, "PPO online + offline", options={"offline": True},
+           color="tab:red", knows="the learned model", cost=8.0, learns=True),
+    Method("ppo-pretrained", _PPO, "PPO online + offline, pretrained",
+           options={"offline": True, "pretrain": True}, color="tab:olive",
            knows="the learned model", cost=8.0, learns=True),
-    Method("ppo-robust", "PPO online + guided offline (robust)", "ftc.controller",
-           ("--method", "ppo-robust"), "ftc.control.ppo_robust_agent:RobustPPOAgent", _ROBUST,
-           knows="the plant's equations",
-           experiment_args=("--pretrain", "--offline-steps", "0", "--ppo-engine", "native"),
-           cost=30.0, learns=True),
-    Method("ppo-learned", "PPO online + guided offline on a model learned online",
-           "ftc.controller", ("--method", "ppo-learned"),
-           "ftc.control.ppo_learned_agent:LearnedPPOAgent", _ROBUST, knows="the learned model",
+    Method("ppo-robust", "ftc.control.agents.physics.ppo_robust:RobustPPOAgent",
+           "PPO online + guided offline (robust)", color="tab:brown",
+           knows="the plant's equations", recommended=_GUIDED, cost=30.0, learns=True),
+    Method("ppo-learned", "ftc.control.agents.learned.ppo_learned:LearnedPPOAgent",
+           "PPO online + guided offline on a model learned online", color="#d4a017",
+           knows="the learned model",
            # four refits an interval: the model learns a dying pump within the interval,
            # and the policy needs more than ppo-robust's two to follow it (docs/controller.md)
-           experiment_args=("--pretrain", "--offline-steps", "0", "--ppo-engine", "native",
-                            "--teacher-refits", "4"),
-           cost=10.0, learns=True),
-    Method("oracle-mpc", "MPC, faults known (oracle)", "ftc.mpc", ("--method", "oracle-mpc"),
-           "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the true faults", cost=1.5),
+           recommended=(*_GUIDED, "--teacher-refits", "4"), cost=10.0, learns=True),
+    Method("oracle-mpc", _ORACLE, "MPC, faults known (oracle)", tool="ftc.mpc", color="black",
+           knows="the true faults", cost=1.5),
     # whole episodes optimised on the true physics (episode_planner.py), never below
     # oracle-mpc's closed loop on the physics it plans with; its margin and cost: docs/benchmarks.md
-    Method("reference", "episode optimisation on the true physics (reference)", "ftc.mpc",
-           ("--method", "oracle-mpc", "--planner", "episode", "--rollout-closed-form"), "", _MPC,
+    Method("reference", _ORACLE, "episode optimisation on the true physics (reference)",
+           tool="ftc.mpc", options={"planner": "episode", "rollout_closed_form": True},
            knows="the true faults", cost=20.0, cached=True),
-    Method("model-mpc", "MPC on the learned model", "ftc.mpc", ("--method", "model-mpc"),
-           "ftc.control.mpc_agent:MPCAgent", _MPC, knows="the learned model", cost=3.0,
-           learns=True),
-    Method("learned-mpc", "MPC on a model learned online", "ftc.mpc", ("--method", "learned-mpc"),
-           "ftc.control.learned_agent:LearnedMPCAgent", _MPC, knows="the learned model", cost=2.0,
-           learns=True),
-    Method("identified-mpc", "MPC on identified physics", "ftc.mpc",
-           ("--method", "identified-mpc"), "ftc.control.identified_agent:IdentifiedAgent", _MPC,
+    Method("model-mpc", "ftc.control.agents.physics.mpc:ModelMPCAgent",
+           "MPC on the learned model", tool="ftc.mpc", color="tab:purple",
+           knows="the learned model", cost=3.0, learns=True),
+    Method("learned-mpc", "ftc.control.agents.learned.learned_mpc:LearnedMPCAgent",
+           "MPC on a model learned online", tool="ftc.mpc", color="#1f3f99",
+           knows="the learned model", cost=2.0, learns=True),
+    Method("identified-mpc", "ftc.control.agents.physics.identified_mpc:IdentifiedAgent",
+           "MPC on identified physics", tool="ftc.mpc", color="tab:cyan",
            knows="the plant's equations", cost=2.0, learns=True),
-)}
-
-# Former tool-local names, accepted (with a warning) and read from older run
-# directories and results.
-ALIASES = {"oracle": "oracle-mpc", "model": "model-mpc", "adaptive": "identified-mpc"}
-
-
-def canonical(name: str) -> str:
-    """The registry's name for ``name`` (an alias mapped; anything else unchanged)."""
-    return ALIASES.get(name, name)
+):
+    register(_m)
 
 
 def method(name: str) -> Method:
-    """The method called ``name`` (or an alias of it); ValueError listing the names."""
+    """The method called ``name`` (or a former name of it); ValueError listing the names."""
     try:
         return METHODS[canonical(name)]
     except KeyError:
@@ -153,24 +197,13 @@ def method(name: str) -> Method:
 
 
 def tool_methods(tool: str) -> tuple[str, ...]:
-    """The names ``tool``'s ``--method`` accepts (aliases aside)."""
+    """The names ``tool``'s ``--method`` accepts (former names aside)."""
     return tuple(m.name for m in METHODS.values() if m.tool == tool)
 
 
-def config_values(tool: str) -> tuple[str, ...]:
-    """The values of ``tool``'s config ``method`` field (the methods with an agent)."""
-    return tuple(m.name for m in METHODS.values() if m.tool == tool and m.agent)
-
-
-def guided_methods() -> tuple[str, ...]:
-    """The methods whose runs take the guided fit's options (ppo-robust, ppo-learned)."""
-    return tuple(m.name for m in METHODS.values() if m.config == _ROBUST)
-
-
-def policy_methods(tool: str = "ftc.controller") -> tuple[str, ...]:
-    """The config ``method`` values of ``tool`` whose agent learns a policy (PPO's
-    options act on them; the other methods refuse them)."""
-    return tuple(m.name for m in METHODS.values() if m.tool == tool and m.agent and m.learns)
+def colors() -> dict[str, str]:
+    """Each method's colour in figures."""
+    return {m.name: m.color for m in METHODS.values() if m.color}
 
 
 def agent_for(configs: dict[str, Any], method_name: str) -> Any:
@@ -178,43 +211,9 @@ def agent_for(configs: dict[str, Any], method_name: str) -> Any:
     return method(method_name).agent_class().from_configs(configs)
 
 
-def expand_method(argv: Sequence[str], tool: str) -> list[str]:
-    """``argv`` with ``--method NAME`` replaced by what NAME means on ``tool``'s
-    command line (``--method ppo-offline`` -> ``--method ppo --offline``); an
-    alias warns on stderr and maps. ValueError: a method of another tool, an
-    unknown one, or a flag the method fixes given as well."""
-    argv = list(argv)
-    for i, word in enumerate(argv):
-        if word == "--method" and i + 1 < len(argv):
-            start, name = i, argv[i + 1]
-            end = i + 2
-        elif word.startswith("--method="):
-            start, name, end = i, word.split("=", 1)[1], i + 1
-        else:
-            continue
-        if name in ALIASES:
-            print(f"{tool}: warning: --method {name} is deprecated; use --method "
-                  f"{ALIASES[name]}", file=sys.stderr, flush=True)
-        if canonical(name) not in METHODS:
-            others = [t for t in TOOLS if t != tool]
-            raise ValueError(f"--method {name}: unknown; {tool} runs "
-                             f"{', '.join(tool_methods(tool))} (and "
-                             + "; ".join(f"{t}: {', '.join(tool_methods(t))}" for t in others)
-                             + ")")
-        m = method(name)
-        if m.tool != tool:
-            raise ValueError(f"--method {m.name} is run by {m.tool}, not {tool}")
-        rest = argv[:start] + argv[end:]
-        for fixed in m.args[2:]:
-            stem = fixed.removeprefix("--no-").removeprefix("--")
-            given = [w.split("=", 1)[0] for w in rest
-                     if w.split("=", 1)[0] in (f"--{stem}", f"--no-{stem}")]
-            if given:
-                raise ValueError(f"{given[0]} is fixed by --method {m.name} "
-                                 f"(it means {' '.join(m.args)}); give --method "
-                                 f"{m.tool_method} to choose it")
-        return argv[:start] + list(m.args) + argv[end:]
-    return argv
+def tool_fields(tool: str) -> set[str]:
+    """Every field of the run configs of ``tool``'s methods (what its stored runs may hold)."""
+    return {f.name for m in METHODS.values() if m.tool == tool for f in fields(m.config_class())}
 
 
 def _load(path: str) -> Any:

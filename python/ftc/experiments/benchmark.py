@@ -48,9 +48,9 @@ from typing import Sequence, TextIO
 from ftc.common.atomic import atomic_write_csv, atomic_write_json, atomic_write_text
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError, StorageError
-from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
+from ftc.control.run.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark_report, reference_scores, run_cache
-from ftc.experiments.method_args import PARSERS, method_args, untaken
+from ftc.experiments.method_args import method_args, tool_parser, untaken
 from ftc.experiments.methods import METHODS, resolve_methods
 from ftc.experiments.orchestrator import executor_line, provenance, run_on_pool
 from ftc.experiments.processes import (Guardian, OrchestratorLock, OrchestratorReplacement,
@@ -294,8 +294,8 @@ def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
                 "goes to the methods whose runs it acts on)")
     for name in config.methods:
         method = METHODS[name]
-        module = PARSERS.get(method.module)
-        if module is None:  # a registered module of another kind: its runs will tell
+        parse = tool_parser(method.module)
+        if parse is None:  # a registered module of another kind: its runs will tell
             continue
         argv = [*method.args, "--scenario", "", "--seed", str(config.seeds[0]),
                 "--intervals", str(config.intervals),
@@ -305,7 +305,7 @@ def _run_options_problem(config: BenchmarkConfig, out: Path) -> str | None:
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-                module.parse_args(argv)
+                parse(argv)
         except SystemExit as e:
             line = (err.getvalue().strip().splitlines() or [f"exit {e.code}"])[-1]
             what = line.split(": error: ", 1)[-1] if e.code else "--help is not a run option"

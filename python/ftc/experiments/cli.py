@@ -51,10 +51,10 @@ from typing import Sequence
 
 from ftc.common.cli import Check, OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
-from ftc.control.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
+from ftc.control.run.config import MAX_INTERVALS, MAX_STEPS_PER_INTERVAL
 from ftc.experiments import benchmark, compare, report
 from ftc.experiments.collect import collect
-from ftc.experiments.method_args import PARSERS, method_args, untaken
+from ftc.experiments.method_args import method_args, tool_parser, untaken
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS, resolve_methods
 from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
@@ -147,8 +147,8 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
                 "methods whose runs it acts on)")
     for name in methods:
         method = METHODS[name]
-        module = PARSERS.get(method.module)
-        if module is None:  # a registered module of another kind: its runs will tell
+        parse = tool_parser(method.module)
+        if parse is None:  # a registered module of another kind: its runs will tell
             continue
         argv = [*method.args, "--scenario", "", "--seed", str(config.seeds[0]),
                 "--intervals", str(config.intervals),
@@ -158,7 +158,7 @@ def _controller_args_problem(methods: Sequence[str], extra: Sequence[str],
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-                module.parse_args(argv)
+                parse(argv)
         except SystemExit as e:
             if e.code:
                 line = (err.getvalue().strip().splitlines() or [f"exit {e.code}"])[-1]

@@ -30,6 +30,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ftc.control import registry
 from ftc.common.atomic import atomic_write_bytes  # noqa: E402
 from ftc.experiments.methods import METHODS  # noqa: E402
 
@@ -39,11 +40,7 @@ FORMATS = ("png", "svg")
 STYLE = {"font.size": 8, "axes.titlesize": 9, "axes.labelsize": 8, "legend.fontsize": 7,
          "xtick.labelsize": 7, "ytick.labelsize": 7, "lines.linewidth": 1.2,
          "savefig.dpi": 200, "axes.grid": True, "grid.alpha": 0.3}
-METHOD_COLORS = {"closed": "tab:blue", "open": "tab:orange", "ppo-online": "tab:green",
-                 "ppo-offline": "tab:red", "random": "tab:gray", "oracle-mpc": "black",
-                 "model-mpc": "tab:purple", "ppo-pretrained": "tab:olive", "balance": "tab:pink",
-                 "ppo-robust": "tab:brown", "identified-mpc": "tab:cyan",
-                 "learned-mpc": "#1f3f99", "ppo-learned": "#d4a017"}  # one colour per method
+METHOD_COLORS = registry.colors()  # one colour per method, from its registry entry
 TANK_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02"]
 
 

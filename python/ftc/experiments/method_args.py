@@ -12,19 +12,28 @@ chosen method takes is refused before anything runs.
 
 from __future__ import annotations
 
+import argparse
 import functools
+import importlib
 from dataclasses import fields
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
-from ftc.common.cli import config_from_namespace
-from ftc.control import controller_cli, mpc_cli, plugin_cli, registry
-from ftc.control.mpc_config import MPCConfig
-from ftc.control.guided_ppo import GUIDED_FIELDS as ROBUST_FIELDS, GuidedConfig as RobustConfig
-from ftc.control.config import RunConfig
+from ftc.common.cli import add_dataclass_options, unmet
+from ftc.control import registry
+from ftc.control.agents.plugins import PluginConfig
+from ftc.control.run.config import RunConfig
 from ftc.experiments.methods import METHODS, MethodSpec
 
-# The command line each method's module is started with.
-PARSERS = {"ftc.controller": controller_cli, "ftc.mpc": mpc_cli, "ftc.plugin": plugin_cli}
+PLUGIN = "ftc.plugin"  # the tool of the plug-ins (its options: PluginConfig's)
+
+
+def tool_parser(module: str) -> Callable[[Sequence[str]], Any] | None:
+    """The ``parse_args`` of the tool a method's runs are started with
+    (``python -m MODULE``), loaded by that name as the runs are, to check their
+    command lines in process; None for a module of another kind."""
+    if module not in registry.TOOLS and module != PLUGIN:
+        return None
+    return importlib.import_module(module).parse_args
 
 
 def option_groups(extra: Sequence[str]) -> list[list[str]]:
@@ -40,9 +49,19 @@ def option_groups(extra: Sequence[str]) -> list[list[str]]:
 
 
 @functools.cache
-def _flags(module: str) -> tuple[frozenset[str], frozenset[str]]:
-    """(every option of the module's command line, those of RunConfig's fields)."""
-    parser = PARSERS[module].build_parser()
+def _parser(name: str) -> argparse.ArgumentParser:
+    """The options of a run of ``name`` (a registry method's, or a plug-in's)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    if name == PLUGIN:
+        add_dataclass_options(parser, PluginConfig)
+    else:
+        parser.add_argument("--method")
+        registry.method(name).add_options(parser)
+    return parser
+
+
+def _flags(parser: argparse.ArgumentParser) -> tuple[frozenset[str], frozenset[str]]:
+    """(every option of ``parser``, those of RunConfig's fields)."""
     shared = {f.name for f in fields(RunConfig)}
     every, run = set(), set()
     for action in parser._actions:  # noqa: SLF001 - the parser's own options
@@ -53,36 +72,30 @@ def _flags(module: str) -> tuple[frozenset[str], frozenset[str]]:
 
 
 def takes(spec: MethodSpec, option: str) -> bool:
-    """Whether the runs of ``spec`` get ``option`` (a flag, ``--x`` or ``--x=v``)."""
-    if spec.module not in PARSERS:  # a module of another kind: it gets everything
-        return True
-    every, run = _flags(spec.module)
+    """Whether the runs of ``spec`` get ``option`` (a flag, ``--x`` or ``--x=v``):
+    an option its command line offers and that acts on it as its own arguments
+    configure it."""
+    if spec.module not in registry.TOOLS and spec.module != PLUGIN:
+        return True  # a module of another kind: it gets everything
+    plugin = spec.module == PLUGIN
+    every, run = _flags(_parser(PLUGIN if plugin else spec.name))
     flag = option.split("=", 1)[0]
-    if flag not in every:
+    if flag not in every or flag == "--method":
         return False
     if flag in run:
         return True
-    if spec.module == "ftc.plugin":  # its own options: --agent is its spec, and
-        # --sb3-learn acts on an sb3: model only
+    if plugin:  # its own options: --agent is its spec, and --sb3-learn acts on an sb3: model only
         return flag == "--sb3-learn" and spec.args[-1].startswith("sb3:")
-    parsed = _parsed(spec)
     dest = flag[2:].replace("-", "_").removeprefix("no_")
-    if dest in parsed.ignored():
-        return False
-    if spec.module == "ftc.mpc":
-        return True
-    return spec.learns and (parsed.method in registry.guided_methods() or dest not in ROBUST_FIELDS)
+    return dest not in unmet(_parsed(spec.name))
 
 
 @functools.cache
-def _parsed(spec: MethodSpec):
-    """The config a run of ``spec`` gets from its own arguments (what ignores what)."""
-    module = PARSERS[spec.module]
-    ns = vars(module.build_parser().parse_args(registry.expand_method(spec.args, spec.module)))
-    if spec.module == "ftc.mpc":
-        return config_from_namespace(MPCConfig, ns)
-    # the controller's own options (its --ppo-* options configure PPOConfig)
-    return module.controller_config(vars(config_from_namespace(RobustConfig, ns)))
+def _parsed(name: str) -> Any:
+    """The run config a run of method ``name`` gets from its own arguments."""
+    m = registry.method(name)
+    ns = vars(_parser(name).parse_known_args(list(m.args))[0])
+    return m.config({n: ns[n] for n in m.offered()})
 
 
 def method_args(spec: MethodSpec, extra: Sequence[str]) -> list[str]:

@@ -11,9 +11,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from ftc.control import plugins, registry
+from ftc.control import registry
 
 
+
+from ftc.control.agents import plugins
 @dataclass(frozen=True)
 class MethodSpec:
     """A compared method: a module run with ``python -m`` and its method arguments.
@@ -58,23 +60,22 @@ def register_method(spec: MethodSpec) -> MethodSpec:
 
 for _m in registry.METHODS.values():
     if _m.compared:  # the experiments run each under its own name: --method NAME
-        register_method(MethodSpec(_m.name, _m.label, ("--method", _m.name, *_m.experiment_args),
-                                   module=_m.tool, cost=_m.cost, learns=_m.learns,
-                                   benchmark=_m.benchmark, cached=_m.cached))
-PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.control.plugin_cli)
+        register_method(MethodSpec(_m.name, _m.label, _m.args, module=_m.tool, cost=_m.cost,
+                                   learns=_m.learns, benchmark=_m.benchmark, cached=_m.cached))
+PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.tools.plugin)
 
 
 def plugin_method(entry: str) -> MethodSpec:
     """A plug-in entry of --methods, ``NAME=SPEC`` or ``SPEC`` (NAME: the factory's
     name or the file's stem), registered under NAME once its spec has given an
     agent; ValueError naming what is wrong (the module, attribute or file)."""
-    name, given, spec = entry.partition("=")
-    if not given:
-        name, spec = plugins.default_name(entry), entry
+    name, spec = plugins.split_name(entry)
+    if name is None:
+        name = plugins.default_name(entry)
     if not plugins.is_plugin(spec):
         raise ValueError(f"{entry}: not a method name nor a plug-in (NAME=SPEC, SPEC one of "
                          f"{', '.join(plugins.KINDS)})")
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
+    if not re.fullmatch(plugins.NAME, name):
         raise ValueError(f"{entry}: the name {name!r} may hold letters, digits and . _ - only")
     if name in registry.METHODS:
         raise ValueError(f"{entry}: {name} is a built-in method; name the plug-in NAME={spec}")

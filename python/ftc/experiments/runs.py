@@ -27,7 +27,7 @@ from typing import Callable, TextIO
 
 from ftc.common.atomic import atomic_write_csv, atomic_write_json
 from ftc.common.errors import EXIT_STORAGE, StorageError
-from ftc.control.baselines import baseline_valves
+from ftc.control.agents.baselines import baseline_valves
 from ftc.experiments.method_args import method_args
 from ftc.experiments.methods import METHODS
 from ftc.experiments.processes import (LcmLogger, RunFailed, RunHandle, die_with_parent,

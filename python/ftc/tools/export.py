@@ -50,11 +50,11 @@ from ftc.common.build_info import git_revision
 from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import CheckpointError, NonFiniteError, RunError
 from ftc.common.run_lock import RunLock, refuse_existing
-from ftc.control import checkpoint
-from ftc.control.cli import run_or_report
+from ftc.control.run import checkpoint
+from ftc.tools.run_cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
 from ftc.learning.ppo import ActorCritic
-from ftc.control import policy_weights
+from ftc.control.run import policy_weights
 
 TOOL = "ftc.export"
 INPUT = "levels"
@@ -221,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the .onnx file to write (atomically)")
     parser.add_argument("--weights", type=checked(Path, nonempty=True),
                         help="also (or only) write the weights file build/policy_node reads "
-                             "(ftc.control.policy_weights has its format), atomically")
+                             "(ftc.control.run.policy_weights has its format), atomically")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --out file (atomically, once the new model "
                              "is verified; default: refuse it)")

@@ -1,5 +1,5 @@
 """``python -m ftc.tools.policy_weights push``: push a weights file to a running
-policy node (the format and the message: :mod:`ftc.control.policy_weights`).
+policy node (the format and the message: :mod:`ftc.control.run.policy_weights`).
 
     python -m ftc.tools.policy_weights push policy.txt --version 2 --lcm-url ... --prefix RT_
 
@@ -17,7 +17,7 @@ from typing import Sequence
 from ftc.common.cli import OneLineParser, at_least, checked, positive
 from ftc.common.errors import EXIT_FAILURE, UsageError
 from ftc.plant.signing import load_key
-from ftc.control.policy_weights import (actions, actor_layers, checksum, format_weights,  # noqa: F401
+from ftc.control.run.policy_weights import (actions, actor_layers, checksum, format_weights,  # noqa: F401
                                         policy_message, push, read_weights, write_weights)
 
 

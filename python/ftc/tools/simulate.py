@@ -35,8 +35,8 @@ from ftc.common.errors import RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
 from ftc.common.paths import scenario_file
 from ftc.common.run_lock import RunLock, refuse_existing
-from ftc.control.baselines import BASELINES, baseline_valves
-from ftc.control.config import MAX_STEPS_PER_INTERVAL
+from ftc.control.agents.baselines import BASELINES, baseline_valves
+from ftc.control.run.config import MAX_STEPS_PER_INTERVAL
 from ftc.plant import PlantError, launch, trajectory
 
 POLICIES = BASELINES

@@ -1,0 +1,1 @@
+"""The controllers that plan on the plant's equations (true or identified)."""
