@@ -127,6 +127,7 @@ def test_the_base_class_names_only_its_own_run_local_fields():
     from ftc.control.run.config import RUN_LOCAL_FIELDS, RunConfig, run_local_fields
     from ftc.control.agents.learned.guided_ppo import GuidedConfig
     from ftc.control.agents.mpc_config import MPCConfig
+    from ftc.control.agents.physics.mpc import ModelMPCConfig
     from ftc.control.agents.ppo import ControllerConfig
 
     assert set(RUN_LOCAL_FIELDS) <= {f.name for f in fields(RunConfig)}
