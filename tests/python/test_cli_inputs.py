@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from ftc.common.cli import needs
+from ftc.common.cli import NONZERO, needs
 from ftc.control import registry
 from ftc.tools import controller as controller_cli
 from ftc.tools import mpc as mpc_cli
@@ -61,7 +61,7 @@ def _acting(tool: str, flag: str) -> list[str]:
     m = registry.method(name)
     need = needs(m.config_class()).get(flag[2:].replace("-", "_"))
     dep, value = (need[0] if isinstance(need, list) else need) if need else (None, None)
-    if dep is None or dep in m.options:
+    if dep is None or dep in m.options or value is NONZERO:  # NONZERO: met by the default
         return ["--method", name]
     return ["--method", name, f"--{dep.replace('_', '-')}", *([] if value is True else [value])]
 

@@ -134,6 +134,28 @@ def add_dataclass_options(parser: Any, cls: type, prefix: str = "",
         parser.add_argument(flag(f.name, prefix), **kwargs)
 
 
+class _Nonzero:
+    """A need met by any value but zero (or False, or empty)."""
+
+    def __repr__(self) -> str:
+        return "NONZERO"
+
+
+NONZERO = _Nonzero()  # e.g. ("offline_steps", NONZERO): acts only with offline steps
+
+
+def _meets(value: Any, need: Any) -> bool:
+    return bool(value) if need is NONZERO else value == need
+
+
+def _unmet_reason(cfg: Any, dep: str, value: Any) -> str:
+    if value is True:
+        return f"without {flag(dep)}"
+    if value is False or value is NONZERO:
+        return f"with {flag(dep)}" + (f" {getattr(cfg, dep)}" if value is NONZERO else "")
+    return f"with {flag(dep)} {getattr(cfg, dep)}"
+
+
 def needs(cls: type) -> dict[str, tuple[str, Any]]:
     """What the fields of config class ``cls`` act only with: field -> (the field
     it needs, the value it needs there), or a list of such pairs of which any one
@@ -151,11 +173,8 @@ def unmet(cfg: Any) -> dict[str, str]:
     out = {}
     for name, need in needs(type(cfg)).items():
         ways = need if isinstance(need, list) else [need]  # a list: any one of them
-        if all(getattr(cfg, dep) != value for dep, value in ways):
-            out[name] = " and ".join(
-                f"without {flag(dep)}" if value is True else f"with {flag(dep)}"
-                if value is False else f"with {flag(dep)} {getattr(cfg, dep)}"
-                for dep, value in ways)
+        if not any(_meets(getattr(cfg, dep), value) for dep, value in ways):
+            out[name] = " and ".join(_unmet_reason(cfg, dep, value) for dep, value in ways)
     return out
 
 
@@ -163,7 +182,7 @@ def offered(cls: type, fixed: dict[str, Any]) -> list[str]:
     """The fields of ``cls`` a command line offers when ``fixed`` sets some: not
     those, and not those that need a fixed field at another value."""
     def possible(need: Any) -> bool:
-        return any(dep not in fixed or fixed[dep] == value
+        return any(dep not in fixed or _meets(fixed[dep], value)
                    for dep, value in (need if isinstance(need, list) else [need]))
 
     wants = needs(cls)

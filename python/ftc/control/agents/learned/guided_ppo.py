@@ -18,12 +18,12 @@ import functools
 import operator
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 import torch
 
-from ftc.common.cli import at_least, between
+from ftc.common.cli import NONZERO, at_least, between
 from ftc.common.constants import NUM_TANKS, offline_seed
 from ftc.common.errors import CheckpointError
 from ftc.control.run.agent import Agent, StepContext, Transition
@@ -41,6 +41,15 @@ from ftc.plant.link import PlantObservation
 class GuidedConfig(PolicyConfig):
     """A guided PPO run (ppo-robust, ppo-learned): the options of every PPO
     method and those of its guided fit."""
+
+    #: options that act only with another's value (ftc.common.cli.unmet): the
+    #: offline PPO phase runs only with offline steps, the regret check only
+    #: every so many steps
+    NEEDS: ClassVar[dict[str, Any]] = {
+        **{name: ("offline_steps", NONZERO) for name in (
+            "offline_envs", "offline_rollout", "offline_minibatch", "branch_fraction",
+            "branch_steps")},
+        "teacher_check_regret": ("teacher_check_every", NONZERO)}
 
     branch_fraction: float = field(default=0.5, metadata={"check": between(0.0, 1.0), "help": (
         "guided: share of offline episodes that start from a level observed on the "
