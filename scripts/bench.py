@@ -58,6 +58,19 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             (2,000 steps per rate), ftc.controller ppo-offline learning on and
                             ftc.mpc oracle-mpc (scripts/bench_realtime.py, which also writes
                             the whole table); aims 100 / 20 / 20 Hz
+  vector_steps_per_s        the batched plant pool (FuelTransferVectorEnv, closed form), env
+                            steps/s with random valves, the best of N >= 1024 envs at 1 or 2
+                            threads (vector_steps_per_s_nN_tT: every N from 1 to 4096),
+                            aim >= 1,000,000 (scripts/bench_vector.py)
+  vector_over_core_env      that rate over gym.make("ftc/FuelTransferCore-v0")'s, measured in
+                            the same rounds, aim >= 50 (vector_steps_per_cpu_s: the pool's
+                            steps per CPU-second, 1024 envs, 1 thread: an unshared core's rate;
+                            vector_over_core_env_per_cpu_s: over the Core env's, per CPU-second)
+  sb3_pool_over_subproc_rollouts  SB3 PPO's collect_rollouts through PoolVecEnv over
+                            SubprocVecEnv of Core envs, 16 envs each, aim >= 20
+                            (sb3_pool_learn_steps_per_s: PPO.learn, updates included)
+  vector_closed_form_level_error_m / _reward_error   the largest difference of the
+                            pool's closed-form envs from its CVODE envs over the suite
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -484,6 +497,33 @@ def bench_realtime(rounds: int) -> list[Figure]:
             for c in ("node", "ppo", "mpc")]
 
 
+def bench_vector(rounds: int) -> list[Figure]:
+    import bench_vector as bv
+
+    rows, core = bv.scaling(rounds)
+    rate = {(int(r["threads"]), int(r["num_envs"])): float(r["steps_per_s"]) for r in rows}
+    best = max(v for (t, n), v in rate.items() if n >= 1024)
+    sb3 = bv.sb3_rates(16, rounds)
+    level, reward, ends = bv.closed_form_error()
+    med = statistics.median
+    return ([Figure("vector_steps_per_s", best, "steps/s", ">= 1000000"),
+             Figure("vector_over_core_env", best / med(core), "ratio", ">= 50"),
+             Figure("core_env_steps_per_s", med(core), "steps/s", rounds=core),
+             Figure("vector_steps_per_cpu_s", med(bv.CPU_RATE), "steps/s", rounds=bv.CPU_RATE),
+             Figure("vector_over_core_env_per_cpu_s", med(bv.CPU_RATE) / med(bv.CORE_CPU_RATE),
+                    "ratio")]
+            + [Figure(f"vector_steps_per_s_n{n}_t{t}", v, "steps/s")
+               for (t, n), v in sorted(rate.items())]
+            + [Figure("sb3_pool_over_subproc_rollouts", sb3["pool"] / sb3["subproc"], "ratio",
+                      ">= 20"),
+               Figure("sb3_pool_rollout_steps_per_s", sb3["pool"], "steps/s"),
+               Figure("sb3_subproc_rollout_steps_per_s", sb3["subproc"], "steps/s"),
+               Figure("sb3_pool_learn_steps_per_s", sb3["learn"], "steps/s"),
+               Figure("vector_closed_form_level_error_m", level, "m"),
+               Figure("vector_closed_form_reward_error", reward, "reward"),
+               Figure("vector_closed_form_episode_ends_differing", ends, "steps")])
+
+
 def bench_long() -> list[Figure]:
     full = _run(["-m", "ftc.experiments", "all", "--full", "--jobs", "2"]) / 60
     suite = _run(["-m", "ftc.experiments", "benchmark", "--jobs", "2"]) / 60
@@ -494,7 +534,7 @@ def bench_long() -> list[Figure]:
 GROUPS: dict[str, Callable[[int], list[Figure]]] = {
     "cvode": lambda rounds: bench_cvode(), "lockstep": bench_lockstep,
     "learning": bench_learning, "robust": bench_robust, "startup": bench_startup,
-    "runs": bench_runs, "realtime": bench_realtime}
+    "runs": bench_runs, "realtime": bench_realtime, "vector": bench_vector}
 
 
 def main() -> int:

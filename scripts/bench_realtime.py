@@ -4,6 +4,9 @@ mode at rising rates, driven by
 
     node   build/policy_node flying a policy (a fresh ActorCritic, seed 0,
            exported as the node reads it) for --steps steps;
+    node-signed  the same with a bus key (plant and node --key-file): every
+           message signed and checked (HMAC-SHA256), for the signing's cost
+           side by side with node at the same rates;
     ppo    python -m ftc.controller --method ppo-offline --realtime RATE, learning
            on: 2 intervals of 256 steps, a PPO update every 128 steps and the
            offline phase (2048 model steps) after each interval, plus the
@@ -48,6 +51,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from ftc.common.build_info import git_revision, plant_binary, policy_node_binary  # noqa: E402
+from ftc.plant.signing import new_key  # noqa: E402
 from ftc.learning.ppo import ActorCritic  # noqa: E402
 from ftc.plant import private_lcm_url, private_prefix  # noqa: E402
 from ftc.tools import policy_weights  # noqa: E402
@@ -57,16 +61,18 @@ SUMMARY = re.compile(r"steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
 MISS_LIMIT = 0.001  # the aim: fewer than 0.1% of the steps missed
 
 
-def run_rate(weights: Path, rate: float, steps: int, log: Path) -> dict:
+def run_rate(weights: Path, rate: float, steps: int, log: Path,
+             key_file: Path | None = None) -> dict:
     url, prefix = private_lcm_url(), private_prefix()
+    keyed = ["--key-file", str(key_file)] if key_file else []
     plant = subprocess.Popen([str(plant_binary()), "--scenario", str(REPO / "scenarios" /
                               "single.toml"), "--mode", "realtime", "--rate", str(rate),
-                              "--watchdog", "1", "--lcm-url", url, "--prefix", prefix],
+                              "--watchdog", "1", "--lcm-url", url, "--prefix", prefix, *keyed],
                              stderr=subprocess.DEVNULL)
     try:
         out = subprocess.run([str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
                               url, "--prefix", prefix, "--steps", str(steps),
-                              "--latency-log", str(log)], capture_output=True, text=True,
+                              "--latency-log", str(log), *keyed], capture_output=True, text=True,
                              timeout=steps / rate + 60)
     finally:
         plant.kill()
@@ -75,7 +81,7 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path) -> dict:
     if out.returncode or not m:
         raise SystemExit(f"bench_realtime: the node failed at {rate} Hz: {out.stderr.strip()}")
     n, misses, p50, p99, worst = map(int, m.groups())
-    return _row("node", rate, n, misses, p50, p99, worst)
+    return _row("node-signed" if key_file else "node", rate, n, misses, p50, p99, worst)
 
 
 def _row(controller: str, rate: float, n: int, misses: int, p50: float, p99: float,
@@ -124,11 +130,16 @@ def measure(controllers: list[str], steps: int, rates: list[float],
     with tempfile.TemporaryDirectory() as tmp:
         weights = Path(tmp) / "policy.txt"
         policy_weights.write_weights(weights, *policy_weights.actor_layers(ActorCritic()))
+        key_file = Path(tmp) / "bus.key"
+        key_file.write_text(new_key().hex())
+        key_file.chmod(0o600)
         for controller in controllers:
-            for rate in sorted(rates if controller == "node" else python_rates):
-                if controller == "node":
-                    log = Path(tmp) / f"latency-{rate:g}.txt"
-                    rows.append(run_rate(weights, rate, steps, log))
+            node = controller.startswith("node")
+            for rate in sorted(rates if node else python_rates):
+                if node:
+                    log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
+                    rows.append(run_rate(weights, rate, steps, log,
+                                         key_file if controller == "node-signed" else None))
                     if first_log is None:
                         first_log = (np.loadtxt(log), rows[-1])
                 else:
@@ -147,7 +158,7 @@ def highest_rate(rows: list[dict], controller: str) -> float | None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--controllers", nargs="+", choices=["node", *PYTHON_RUNS],
+    p.add_argument("--controllers", nargs="+", choices=["node", "node-signed", *PYTHON_RUNS],
                    default=["node", *PYTHON_RUNS], help="which controllers (default all)")
     p.add_argument("--steps", type=int, default=5000,
                    help="the node's steps per rate (default 5000)")

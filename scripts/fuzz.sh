@@ -5,6 +5,11 @@
 #   bash scripts/fuzz.sh                 # 60 s per target
 #   bash scripts/fuzz.sh 300             # 300 s per target
 #   bash scripts/fuzz.sh 60 fuzz_scenario
+#   FUZZ_RUNS=10000000 bash scripts/fuzz.sh 0 fuzz_policy   # a number of inputs instead
+#
+# Targets: fuzz_messages (the plant's command handling), fuzz_scenario, and one
+# per message decoder (fuzz_valve_command, fuzz_plant_control, fuzz_plant_state,
+# fuzz_policy, fuzz_policy_ack: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h).
 #
 # Builds into build-fuzz/ (-DFTC_FUZZ=ON), never part of the default build or
 # test command. Seeds: tests/fuzz/corpus/<target>/ (committed); the growing
@@ -16,7 +21,10 @@ cd "$root"
 seconds="${1:-60}"
 shift || true
 targets=("$@")
-[ ${#targets[@]} -eq 0 ] && targets=(fuzz_messages fuzz_scenario)
+[ ${#targets[@]} -eq 0 ] && targets=(fuzz_messages fuzz_scenario fuzz_valve_command \
+  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack)
+limit=(-max_total_time="$seconds")
+[ -n "${FUZZ_RUNS:-}" ] && limit=(-runs="$FUZZ_RUNS")
 
 # clang and its libFuzzer/sanitizer runtime: only fuzzing needs them.
 if ! command -v clang++ >/dev/null || ! ls /usr/lib/llvm-*/lib/clang/*/lib/linux/libclang_rt.fuzzer-x86_64.a >/dev/null 2>&1 \
@@ -42,9 +50,9 @@ for t in "${targets[@]}"; do
   mkdir -p "$corpus" "$crashes"
   dict=()
   [ -f "tests/fuzz/${t#fuzz_}.dict" ] && dict=(-dict="tests/fuzz/${t#fuzz_}.dict")
-  echo "== $t: ${seconds} s, seeds $seeds"
+  echo "== $t: ${limit[*]}, seeds $seeds"
   # -jobs=1: the machine has 2 cores and other work on it.
-  if ! ./build-fuzz/"$t" "$corpus" "$seeds" "${dict[@]}" -max_total_time="$seconds" \
+  if ! ./build-fuzz/"$t" "$corpus" "$seeds" "${dict[@]}" -rss_limit_mb=512 "${limit[@]}" \
       -artifact_prefix="$crashes" -print_final_stats=1 2>"build-fuzz/$t.log"; then
     echo "$t: FOUND A CRASH (see build-fuzz/$t.log, inputs in $crashes)"
     status=1

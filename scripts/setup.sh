@@ -14,7 +14,7 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
-apt_packages=(libsundials-dev libeigen3-dev libcli11-dev libgtest-dev libtomlplusplus-dev
+apt_packages=(libsundials-dev libeigen3-dev libcli11-dev libgtest-dev libtomlplusplus-dev libssl-dev
               cmake g++ make iproute2 curl xz-utils)
 missing=()
 for p in "${apt_packages[@]}"; do

@@ -6,6 +6,15 @@
 //   steps N deadline_misses M latency_p50_us A latency_p99_us B latency_max_us C
 // A deadline miss is a plant step taken without the command answering the
 // state before it (the next state's command_seq is older than that command).
+//
+// The node opens a control session of its own (OPEN with a random 64-bit id,
+// re-sent until the plant answers in it) and acts only on states of that
+// session whose seq is newer than the last, but not absurdly so (kMaxSeqJump):
+// one fake state cannot poison newest-wins or silence the node. Every buffer
+// is checked before decoding (plant/lcm/wire.h); refused messages are counted
+// by cause, logged rate-limited, and summed up on stderr at exit. With
+// --key-file every message it takes must carry a valid MAC with a rising
+// timestamp (plant/lcm/signing.h), and every message it sends is signed.
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
@@ -17,17 +26,29 @@
 #include <iostream>
 #include <memory>
 #include <optional>
+#include <random>
 #include <vector>
 
+#include "ftc/plant_control_t.hpp"
+#include "ftc/policy_ack_t.hpp"
 #include "ftc/plant_state_t.hpp"
 #include "ftc/policy_t.hpp"
 #include "ftc/valve_command_t.hpp"
+#include "plant/lcm/signing.h"
+#include "plant/lcm/wire.h"
 #include "policy/policy.h"
 
 namespace {
 
 using Clock = std::chrono::steady_clock;
 constexpr std::int64_t kLoggedMisses = 10;  // the first misses are logged, then only counted
+// A state more than this ahead of the last one acted on is refused: the plant
+// publishes one per tick and LCM queues them, so a real gap is never this big.
+constexpr std::int64_t kMaxSeqJump = 1 << 16;
+// The OPEN is re-sent this often until answered, and again when no state of
+// the session came for kSessionLost (a restarted plant follows no session).
+constexpr auto kOpenRetry = std::chrono::milliseconds(250);
+constexpr auto kSessionLost = std::chrono::seconds(2);
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
@@ -37,18 +58,39 @@ std::int64_t WallMicros() {
       .count();
 }
 
+std::int64_t RandomSession() {
+  std::random_device rd;  // the kernel's entropy
+  std::int64_t id = 0;
+  while (id == 0)
+    id = static_cast<std::int64_t>((static_cast<std::uint64_t>(rd()) << 32) ^ rd());
+  return id;
+}
+
 class Node {
  public:
-  Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy)
-      : lcm_(lcm), command_channel_(prefix + "COMMAND"), policy_(std::move(policy)) {
+  Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy,
+       const ftc::signing::Key& key)
+      : lcm_(lcm),
+        command_channel_(prefix + "COMMAND"),
+        control_channel_(prefix + "CONTROL"),
+        ack_channel_(prefix + "POLICY_ACK"),
+        policy_(std::move(policy)) {
     auto* state = lcm_->subscribe(prefix + "STATE", &Node::OnState, this);
-    state->setQueueCapacity(1000);
-    lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this);
+    state->setQueueCapacity(1000);  // ~250 kB of states
+    // a valid push is at most 1 MB (policy_t::MAX_PARAMS); LCM drops what
+    // arrives beyond 8 queued ones before the node sees it (bounded memory)
+    lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this)->setQueueCapacity(8);
+    if (!key.empty()) {
+      verifier_.emplace(key);
+      signer_.emplace(key, static_cast<std::uint8_t>(1 + session_ % 255));
+    }
   }
 
   // Waits up to timeout_ms for messages, takes every queued one, then acts on
   // the newest state if there is a new one. Returns false on an LCM error.
   bool Spin(int timeout_ms) {
+    const auto now = Clock::now();
+    if (!open_ || now - heard_ > kSessionLost) Open(now);
     if (lcm_->handleTimeout(timeout_ms) < 0) return false;
     while (lcm_->handleTimeout(0) > 0) {
     }
@@ -60,10 +102,99 @@ class Node {
   std::int64_t misses() const { return misses_; }
   std::int64_t watchdog_states() const { return watchdog_states_; }
   std::vector<double>& latencies_us() { return latencies_us_; }
+  std::string refused() const {
+    return "bad decode " + std::to_string(bad_decode_) + ", other session " +
+           std::to_string(other_session_) + ", stale " + std::to_string(stale_) +
+           ", seq jump " + std::to_string(jumps_) + ", bad signature " +
+           std::to_string(bad_signature_) + ", replay " + std::to_string(replay_) +
+           ", stale timestamp " + std::to_string(stale_signed_);
+  }
+  std::int64_t refused_total() const {
+    return bad_decode_ + other_session_ + stale_ + jumps_ + bad_signature_ + replay_ +
+           stale_signed_;
+  }
 
  private:
-  void OnState(const lcm::ReceiveBuffer*, const std::string&, const ftc::plant_state_t* s) {
-    if (s->seq <= last_state_seq_ || s->num_tanks != ftc::policy::kTanks) return;
+  template <typename T>
+  void Publish(const std::string& channel, const T& msg) {
+    if (!signer_) {
+      lcm_->publish(channel, &msg);
+      return;
+    }
+    std::vector<unsigned char> buf(static_cast<std::size_t>(msg.getEncodedSize()));
+    msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    const auto out = signer_->Sign(channel, buf.data(), buf.size(), WallMicros());
+    lcm_->publish(channel, out.data(), static_cast<unsigned>(out.size()));
+  }
+
+  // With a key: checks the trailer, *size the payload's; false (counted) if refused.
+  bool Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel, std::size_t* size) {
+    *size = rbuf->data_size;
+    if (!verifier_) return true;
+    const auto v = verifier_->Verify(channel, rbuf->data, rbuf->data_size, WallMicros(), size);
+    if (v == ftc::signing::Verdict::kOk) return true;
+    ++(v == ftc::signing::Verdict::kBadSignature ? bad_signature_
+       : v == ftc::signing::Verdict::kReplay     ? replay_
+                                                  : stale_signed_);
+    log_.Refused("refused a message on " + channel + ": " + ftc::signing::Describe(v));
+    return false;
+  }
+
+  void Open(Clock::time_point now) {
+    if (open_) {  // the plant stopped answering in our session: open it again
+      open_ = false;
+      std::cerr << "policy_node: no state of session " << session_ << " for "
+                << std::chrono::duration_cast<std::chrono::seconds>(kSessionLost).count()
+                << " s; opening it again\n";
+    }
+    if (open_seq_ != 0 && now - opened_at_ < kOpenRetry) return;
+    if (open_seq_ == 0 || now - opened_at_ > kSessionLost) open_seq_ = ++seq_;
+    ftc::plant_control_t msg{};
+    msg.utime = WallMicros();
+    msg.session = session_;
+    msg.seq = open_seq_;
+    msg.command = ftc::plant_control_t::OPEN;
+    Publish(control_channel_, msg);
+    opened_at_ = now;
+  }
+
+  void OnState(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftc::plant_state_t m{};
+    std::string why;
+    std::size_t size = 0;
+    if (!Authentic(rbuf, channel, &size)) return;
+    if (!ftc::wire::Decode(rbuf->data, size, &m, &why)) {
+      ++bad_decode_;
+      log_.Refused("undecodable state on " + channel + ": " + why);
+      return;
+    }
+    const ftc::plant_state_t* s = &m;
+    if (s->session != session_) {
+      ++other_session_;
+      if (open_)  // (before its OPEN is answered the plant follows another session: normal)
+        log_.Refused("ignored state " + std::to_string(s->seq) + " of session " +
+                   std::to_string(s->session) + " (ours: " + std::to_string(session_) + ")");
+      return;
+    }
+    if (!open_) {
+      if (s->command_seq != open_seq_) return;  // an answer to an earlier OPEN of ours
+      open_ = true;  // the answer to our OPEN: newest-wins starts from it
+      last_state_seq_ = s->seq - 1;
+      std::cerr << "policy_node: session " << session_ << " open\n";
+    }
+    if (s->seq <= last_state_seq_ || s->seq - last_state_seq_ > kMaxSeqJump) {
+      ++(s->seq <= last_state_seq_ ? stale_ : jumps_);
+      log_.Refused("ignored state " + std::to_string(s->seq) + ": the last was " +
+                   std::to_string(last_state_seq_));
+      return;
+    }
+    if (s->num_tanks != ftc::policy::kTanks) {
+      ++bad_decode_;
+      log_.Refused("ignored state " + std::to_string(s->seq) + ": num_tanks " +
+                   std::to_string(s->num_tanks));
+      return;
+    }
+    heard_ = Clock::now();
     if (last_sent_seq_ && s->command_seq < *last_sent_seq_) {
       if (++misses_ <= kLoggedMisses)
         std::cerr << "policy_node: deadline miss: the plant took step " << s->step
@@ -76,8 +207,22 @@ class Node {
     received_ = Clock::now();
   }
 
-  void OnPolicy(const lcm::ReceiveBuffer*, const std::string&, const ftc::policy_t* m) {
+  void OnPolicy(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftc::policy_t msg{};
     std::string why;
+    std::size_t size = 0;
+    if (!Authentic(rbuf, channel, &size)) {
+      Ack(0, 0, "bad signature, replayed or stale");
+      return;
+    }
+    if (!ftc::wire::Decode(rbuf->data, size, &msg, &why)) {
+      ++bad_decode_;
+      why = "undecodable push (" + std::to_string(rbuf->data_size) + " bytes): " + why;
+      log_.Refused("rejected an " + why + " on " + channel);
+      Ack(0, 0, why);
+      return;
+    }
+    const ftc::policy_t* m = &msg;
     std::vector<int> widths(m->widths.begin(), m->widths.end());
     std::vector<float> params(m->params.begin(), m->params.end());
     if (m->version <= policy_->version()) {
@@ -91,10 +236,26 @@ class Node {
     if (!next) {
       std::cerr << "policy_node: rejected policy version " << m->version << ": " << why
                 << "; keeping version " << policy_->version() << "\n";
+      Ack(m->version, m->utime, why);
       return;
     }
     policy_ = std::move(next);  // between two states: the next one is acted on by it
     std::cerr << "policy_node: policy version " << policy_->version() << " in use\n";
+    Ack(m->version, m->utime, "");
+  }
+
+  // Answers a push: accepted when `why` is empty.
+  void Ack(std::int64_t version, std::int64_t push_utime, std::string why) {
+    ftc::policy_ack_t ack{};
+    ack.utime = WallMicros();
+    ack.version = version;
+    ack.push_utime = push_utime;
+    ack.accepted = why.empty();
+    ack.running_version = policy_->version();
+    if (why.size() > static_cast<std::size_t>(ftc::policy_ack_t::MAX_REASON))
+      why.resize(static_cast<std::size_t>(ftc::policy_ack_t::MAX_REASON));
+    ack.reason = why;
+    Publish(ack_channel_, ack);
   }
 
   void Act() {
@@ -103,11 +264,12 @@ class Node {
     const auto u = policy_->Act(level);
     ftc::valve_command_t cmd{};
     cmd.utime = WallMicros();
+    cmd.session = session_;
     cmd.seq = ++seq_;
     cmd.state_seq = pending_->seq;
     cmd.num_valves = ftc::policy::kTanks;
     cmd.valve.assign(u.begin(), u.end());
-    lcm_->publish(command_channel_, &cmd);
+    Publish(command_channel_, cmd);
     latencies_us_.push_back(
         std::chrono::duration<double, std::micro>(Clock::now() - received_).count());
     last_sent_seq_ = cmd.seq;
@@ -116,16 +278,23 @@ class Node {
   }
 
   lcm::LCM* lcm_;
-  std::string command_channel_;
+  std::string command_channel_, control_channel_, ack_channel_;
   std::unique_ptr<ftc::policy::Policy> policy_;
   std::optional<ftc::plant_state_t> pending_;
   Clock::time_point received_;
+  const std::int64_t session_ = RandomSession();
+  bool open_ = false;
+  std::int64_t open_seq_ = 0;  // seq of the OPEN being sent
+  Clock::time_point opened_at_, heard_;
   std::int64_t last_state_seq_ = 0;
   std::optional<std::int64_t> last_sent_seq_;
-  // Commands start above any seq a lockstep client of the same plant used: the
-  // wall clock in microseconds (the plant ignores a seq below its last one).
-  std::int64_t seq_ = WallMicros();
+  std::int64_t seq_ = 0;  // counts within the session
   std::int64_t steps_ = 0, misses_ = 0, watchdog_states_ = 0;
+  std::int64_t bad_decode_ = 0, other_session_ = 0, stale_ = 0, jumps_ = 0;
+  std::int64_t bad_signature_ = 0, replay_ = 0, stale_signed_ = 0;
+  std::optional<ftc::signing::Verifier> verifier_;
+  std::optional<ftc::signing::Signer> signer_;
+  ftc::wire::RateLimitedLog log_{"policy_node"};
   std::vector<double> latencies_us_;
 };
 
@@ -139,7 +308,7 @@ double Percentile(std::vector<double> v, double q) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string policy_path, url, prefix = "FTC_", latency_log;
+  std::string policy_path, url, prefix = "FTC_", latency_log, key_file;
   std::int64_t max_steps = 0;
   CLI::App app{"The embedded controller: flies an exported policy (ftc.export --weights) on a "
                "plant in real-time mode over LCM; takes pushed policy_t weights between steps"};
@@ -151,6 +320,8 @@ int main(int argc, char** argv) {
   app.add_option("--latency-log", latency_log,
                  "write each step's latency (state received to command sent, microseconds), "
                  "one per line, to this file at exit");
+  app.add_option("--key-file", key_file,
+                 "sign and check every message with the key in this file (hex, mode 600)");
   app.add_option("--steps", max_steps, "stop after acting on this many states (0: until a signal)")
       ->check(CLI::NonNegativeNumber);
   try {
@@ -161,6 +332,14 @@ int main(int argc, char** argv) {
   if (url.find("ttl=0") == std::string::npos) {
     std::cerr << "policy_node: --lcm-url " << url << " lacks ttl=0 (loopback only)\n";
     return 2;
+  }
+  ftc::signing::Key key;
+  if (!key_file.empty()) {
+    const std::string why = ftc::signing::LoadKey(key_file, &key);
+    if (!why.empty()) {
+      std::cerr << "policy_node: --key-file " << why << "\n";
+      return 2;
+    }
   }
   std::string error;
   auto policy = ftc::policy::Policy::FromFile(policy_path, &error);
@@ -175,7 +354,7 @@ int main(int argc, char** argv) {
   }
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
-  Node node(&lcm, prefix, std::move(policy));
+  Node node(&lcm, prefix, std::move(policy), key);
   while (!g_stop && (max_steps == 0 || node.steps() < max_steps)) {
     if (!node.Spin(100) && !g_stop) {
       std::cerr << "policy_node: LCM failed while waiting for the plant\n";
@@ -197,6 +376,8 @@ int main(int argc, char** argv) {
               static_cast<long long>(node.steps()), static_cast<long long>(node.misses()),
               Percentile(lat, 0.50), Percentile(lat, 0.99),
               lat.empty() ? 0.0 : *std::max_element(lat.begin(), lat.end()));
+  if (node.refused_total())
+    std::cerr << "policy_node: refused messages: " << node.refused() << "\n";
   if (node.watchdog_states())
     std::cerr << "policy_node: " << node.watchdog_states()
               << " states with the plant's watchdog tripped\n";

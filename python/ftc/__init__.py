@@ -43,12 +43,15 @@ def _register_envs() -> None:
     (scenarios/*.toml: steps_per_interval): the plant cuts off the episode that
     is running at an interval boundary itself, so no episode is longer, and the
     time limit is a backstop that never ends an episode the plant would not.
+    ``gym.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")``
+    gives the batched C++ pool (ftc.plant.vector) for either id.
     """
     import gymnasium
 
     for env_id, link in (("ftc/FuelTransfer-v0", "lcm"), ("ftc/FuelTransferCore-v0", "core")):
         if env_id not in gymnasium.registry:  # a reload of ftc must not warn about overriding
             gymnasium.register(id=env_id, entry_point="ftc.plant.env:FuelTransferEnv",
+                               vector_entry_point="ftc.plant.vector:make_vector",
                                kwargs={"scenario": "single", "link": link},
                                max_episode_steps=512)
 

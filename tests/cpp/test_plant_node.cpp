@@ -1,5 +1,7 @@
-// PlantNode's protocol (lockstep answers, retries, stale and duplicate
-// messages, the real-time watchdog, shutdown) on memq://, with a fake clock.
+// PlantNode's protocol (sessions, lockstep answers, retries, stale and
+// duplicate messages, the real-time watchdog, shutdown) on memq://, with a
+// fake clock. Every test but the session tests runs in a session the fixture
+// opens (OPEN, seq 0).
 //
 // memq:// in LCM 1.5.3: one in-process queue per lcm instance, one message
 // dispatched per handle() call, and a publish to a channel nobody subscribes
@@ -13,6 +15,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <string>
 #include <vector>
@@ -36,19 +39,27 @@ class PlantNodeTest : public ::testing::Test {
     lcm_.subscribe(channels_.state, &PlantNodeTest::OnState, this);
   }
 
-  void StartNode(RunMode mode, SafeState safe_state = SafeState::kClosed) {
+  void StartNode(RunMode mode, SafeState safe_state = SafeState::kClosed, bool open = true) {
     NodeOptions options;
     options.prefix = kPrefix;
     options.mode = mode;
     options.rate_hz = 10.0;
     options.watchdog_s = 1.0;
     options.safe_state = safe_state;
+    options.session_timeout_s = 2.0;
     node_ = std::make_unique<PlantNode>(&lcm_, &plant_, options, [this] { return now_; });
+    if (open) {
+      SendControl(0, plant_control_t::OPEN);
+      Drain();
+      states_.clear();
+    }
   }
 
-  void SendCommand(std::int64_t seq, const std::vector<std::int8_t>& valves) {
+  void SendCommand(std::int64_t seq, const std::vector<std::int8_t>& valves,
+                   std::int64_t session = kSession) {
     valve_command_t cmd;
     cmd.utime = 0;
+    cmd.session = session;
     cmd.seq = seq;
     cmd.state_seq = 0;
     cmd.num_valves = static_cast<std::int8_t>(valves.size());
@@ -56,9 +67,11 @@ class PlantNodeTest : public ::testing::Test {
     lcm_.publish(channels_.command, &cmd);
   }
 
-  void SendControl(std::int64_t seq, std::int8_t command, std::int64_t operating_step = 0) {
+  void SendControl(std::int64_t seq, std::int8_t command, std::int64_t operating_step = 0,
+                   std::int64_t session = kSession) {
     plant_control_t msg;
     msg.utime = 0;
+    msg.session = session;
     msg.seq = seq;
     msg.command = command;
     msg.operating_step = operating_step;
@@ -87,6 +100,8 @@ class PlantNodeTest : public ::testing::Test {
   }
 
   static constexpr const char* kPrefix = "TEST_";
+  static constexpr std::int64_t kSession = 0x5e55104a5e55104a;
+  static constexpr std::int64_t kOther = -77;
   lcm::LCM lcm_{"memq://"};
   Channels channels_{kPrefix};
   Plant plant_{FaultScenario{}, 0};
@@ -103,12 +118,14 @@ class PlantNodeTest : public ::testing::Test {
 TEST_F(PlantNodeTest, LockstepCommandStepsOnceAndIsAnsweredWithItsSeq) {
   StartNode(RunMode::kLockstep);
   const plant_state_t initial = ExchangeOne([&] { node_->PublishState(); });
-  EXPECT_EQ(initial.seq, 1);
+  EXPECT_EQ(initial.seq, 2);  // the first answered the fixture's OPEN
+  EXPECT_EQ(initial.session, kSession);
   EXPECT_EQ(initial.command_seq, 0);
   EXPECT_EQ(initial.step, 0);
 
   const plant_state_t first = ExchangeOne([&] { SendCommand(1, kAllOpen); });
-  EXPECT_EQ(first.seq, 2);
+  EXPECT_EQ(first.seq, 3);
+  EXPECT_EQ(first.session, kSession);
   EXPECT_EQ(first.command_seq, 1);
   EXPECT_EQ(first.step, 1);
   EXPECT_EQ(first.operating_steps, 1);
@@ -198,6 +215,7 @@ TEST_F(PlantNodeTest, InvalidAndUndecodableMessagesAreCountedNotApplied) {
   EXPECT_TRUE(Exchange([&] {
                 valve_command_t cmd;
                 cmd.utime = 0;
+                cmd.session = kSession;
                 cmd.seq = 4;
                 cmd.state_seq = 0;
                 cmd.num_valves = 6;
@@ -353,10 +371,111 @@ TEST_F(PlantNodeTest, RealtimeRepeatedControlIsAnsweredAgainButActsOnce) {
   EXPECT_EQ(again.duplicate_commands, 1);
 }
 
-TEST_F(PlantNodeTest, StartWithANegativeStepIsRejected) {
+TEST_F(PlantNodeTest, StartOutsideTheCommandLinesStepBoundIsRejected) {
+  // a copy: lcm-gen declares the constant without defining it
+  const std::int64_t max_step = plant_control_t::MAX_OPERATING_STEP;
+  EXPECT_EQ(max_step, 9'000'000'000'000'000);  // the plant's --start-step bound
   StartNode(RunMode::kRealtime);
   EXPECT_TRUE(Exchange([&] { SendControl(1, plant_control_t::START, -1); }).empty());
   EXPECT_EQ(node_->counters().rejected_commands, 1);
+  // INT64_MAX overflowed the step counter (the age went to -1.8e16)
+  EXPECT_TRUE(Exchange([&] {
+                SendControl(2, plant_control_t::START, std::numeric_limits<std::int64_t>::max());
+              }).empty());
+  EXPECT_TRUE(Exchange([&] {
+                SendControl(3, plant_control_t::START, max_step + 1);
+              }).empty());
+  EXPECT_EQ(node_->counters().rejected_commands, 3);
+  EXPECT_EQ(plant_.operating_steps(), 0);
+  const plant_state_t at_bound = ExchangeOne(
+      [&] { SendControl(4, plant_control_t::START, max_step); });
+  EXPECT_EQ(at_bound.operating_steps, max_step);
+  Exchange([&] { SendCommand(5, kAllOpen); });
+  const plant_state_t stepped = ExchangeOne([&] { node_->Tick(now_); });
+  EXPECT_EQ(stepped.operating_steps, max_step + 1);
+  EXPECT_GT(stepped.age, 0.0);
+}
+
+// --- Sessions ------------------------------------------------------------------
+
+TEST_F(PlantNodeTest, CommandsOfAnotherSessionAreRefusedAndCounted) {
+  StartNode(RunMode::kLockstep);
+  ExchangeOne([&] { SendCommand(1, kAllOpen); });
+  // a neighbour's command with a seq far ahead (the wall clock in us) and a
+  // RESET, SHUTDOWN and CLOSE: none is applied or answered, each is counted
+  EXPECT_TRUE(Exchange([&] { SendCommand(1'700'000'000'000'000, kAllClosed, kOther); }).empty());
+  EXPECT_TRUE(Exchange([&] { SendCommand(2, kAllClosed, 0); }).empty());
+  EXPECT_TRUE(Exchange([&] { SendControl(9, plant_control_t::RESET, 0, kOther); }).empty());
+  EXPECT_TRUE(Exchange([&] { SendControl(9, plant_control_t::SHUTDOWN, 0, kOther); }).empty());
+  EXPECT_TRUE(Exchange([&] { SendControl(9, plant_control_t::CLOSE, 0, kOther); }).empty());
+  EXPECT_FALSE(node_->shutdown_requested());
+  EXPECT_EQ(node_->counters().other_session, 5);
+  // the session's own next command is neither stale nor preceded
+  const plant_state_t next = ExchangeOne([&] { SendCommand(2, kAllOpen); });
+  EXPECT_EQ(next.step, 2);
+  EXPECT_EQ(next.valve, kAllOpen);
+  EXPECT_EQ(next.other_session, 5);
+  EXPECT_EQ(next.stale_commands, 0);
+  // a HELLO of anyone is answered, in the session the plant follows
+  const plant_state_t hello =
+      ExchangeOne([&] { SendControl(3, plant_control_t::HELLO, 0, kOther); });
+  EXPECT_EQ(hello.session, kSession);
+  EXPECT_EQ(hello.command_seq, 3);
+}
+
+TEST_F(PlantNodeTest, ANewSessionOpensOnlyWhenTheFollowedOneIsIdleOrClosed) {
+  StartNode(RunMode::kLockstep, SafeState::kClosed, /*open=*/false);
+  // no session yet: commands are refused, an OPEN of 0 too
+  EXPECT_TRUE(Exchange([&] { SendCommand(1, kAllOpen); }).empty());
+  EXPECT_TRUE(Exchange([&] { SendControl(1, plant_control_t::OPEN, 0, 0); }).empty());
+  EXPECT_EQ(node_->counters().other_session, 2);
+  const plant_state_t opened = ExchangeOne([&] { SendControl(1, plant_control_t::START, 5); });
+  EXPECT_EQ(opened.session, kSession);
+  EXPECT_EQ(opened.operating_steps, 5);
+  // another START while the session is active: refused
+  now_ += std::chrono::milliseconds(1900);
+  EXPECT_TRUE(Exchange([&] { SendControl(1, plant_control_t::START, 0, kOther); }).empty());
+  EXPECT_EQ(plant_.operating_steps(), 5);
+  // the session's own traffic keeps it active
+  ExchangeOne([&] { SendCommand(2, kAllOpen); });
+  now_ += std::chrono::milliseconds(1900);
+  EXPECT_TRUE(Exchange([&] { SendControl(1, plant_control_t::OPEN, 0, kOther); }).empty());
+  EXPECT_EQ(node_->counters().other_session, 4);
+  // silent for longer than --session-timeout: its controller is gone
+  now_ += std::chrono::milliseconds(2100);
+  const plant_state_t taken = ExchangeOne([&] { SendControl(1, plant_control_t::OPEN, 0, kOther); });
+  EXPECT_EQ(taken.session, kOther);
+  EXPECT_EQ(taken.command_seq, 1);  // its seq counts from its own start
+  EXPECT_EQ(taken.step, 1);         // OPEN changes nothing
+  EXPECT_TRUE(Exchange([&] { SendCommand(3, kAllOpen); }).empty());  // the old session's
+  EXPECT_EQ(ExchangeOne([&] { SendCommand(2, kAllClosed, kOther); }).step, 2);
+  // CLOSE releases at once; the old session opens again
+  EXPECT_EQ(ExchangeOne([&] { SendControl(3, plant_control_t::CLOSE, 0, kOther); }).session,
+            kOther);
+  EXPECT_EQ(ExchangeOne([&] { SendControl(7, plant_control_t::OPEN); }).session, kSession);
+}
+
+TEST_F(PlantNodeTest, ShutdownWithoutASessionIsObeyedOnlyWhileNobodyIsInControl) {
+  StartNode(RunMode::kLockstep, SafeState::kClosed, /*open=*/false);
+  EXPECT_EQ(ExchangeOne([&] { SendControl(1, plant_control_t::SHUTDOWN, 0, 0); }).session, 0);
+  EXPECT_TRUE(node_->shutdown_requested());
+}
+
+TEST_F(PlantNodeTest, HostileLengthsAreCountedAsUndecodable) {
+  StartNode(RunMode::kLockstep);
+  valve_command_t cmd{};
+  cmd.session = kSession;
+  cmd.seq = 1;
+  cmd.num_valves = 6;
+  cmd.valve = kAllOpen;
+  std::vector<std::uint8_t> buf(static_cast<std::size_t>(cmd.getEncodedSize()));
+  cmd.encode(buf.data(), 0, static_cast<int>(buf.size()));
+  buf[8 + 8 * 4] = 0xff;  // num_valves = -1
+  EXPECT_TRUE(Exchange([&] {
+                lcm_.publish(channels_.command, buf.data(), static_cast<unsigned>(buf.size()));
+              }).empty());
+  EXPECT_EQ(node_->counters().decode_errors, 1);
+  EXPECT_EQ(ExchangeOne([&] { SendCommand(1, kAllOpen); }).step, 1);
 }
 
 TEST_F(PlantNodeTest, ShutdownEndsTheLoopAfterAFinalState) {

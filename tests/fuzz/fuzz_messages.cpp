@@ -1,5 +1,6 @@
 // libFuzzer target: the plant's message decoding (what OnCommand and OnControl
-// run on every received buffer). Properties checked on every input:
+// run on every received buffer) and its command validation; each type's own
+// target is fuzz_<type>.cpp. Properties checked on every input:
 //   * decoding never crashes, throws or reads out of bounds (ASan/UBSan);
 //   * a buffer that decodes fully re-encodes to the same bytes (these two
 //     types have no booleans, so the wire form is canonical);
@@ -14,6 +15,7 @@
 #include <vector>
 
 #include "plant/lcm/lcm_bridge.h"
+#include "plant/lcm/wire.h"
 
 namespace {
 
@@ -30,10 +32,9 @@ void CheckRoundTrip(const std::uint8_t* data, std::size_t size, const T& msg) {
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   if (size > (1u << 16)) return 0;  // an LCM datagram is far smaller
-  const int n = static_cast<int>(size);
-
+  std::string why;
   ftc::valve_command_t cmd;
-  if (ftc::DecodeMessage(data, n, &cmd)) {
+  if (ftc::wire::Decode(data, size, &cmd, &why)) {
     CheckRoundTrip(data, size, cmd);
     ftc::Valves u = ftc::Valves::Constant(-1);
     std::string reason;
@@ -46,10 +47,10 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
 
   ftc::plant_control_t control{};
-  if (ftc::DecodeMessage(data, n, &control)) CheckRoundTrip(data, size, control);
+  if (ftc::wire::Decode(data, size, &control, &why)) CheckRoundTrip(data, size, control);
 
   // The controller side decodes states; the C++ decoder must be as robust.
   ftc::plant_state_t state;
-  (void)ftc::DecodeMessage(data, n, &state);
+  (void)ftc::wire::Decode(data, size, &state, &why);
   return 0;
 }

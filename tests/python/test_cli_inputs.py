@@ -111,3 +111,22 @@ def test_bad_value_exits_2_with_one_line_naming_the_flag(tool, flag, value, tmp_
     assert "Traceback" not in err.getvalue()
     # the line names the option (argparse's own messages name it as "argument --x")
     assert flag in lines[0] or flag.lstrip("-") in lines[0], lines[0]
+
+
+def test_the_base_class_names_only_its_own_run_local_fields():
+    """RUN_LOCAL_FIELDS names RunConfig's fields; a subclass marks its own
+    (metadata run_local), and every config gets the same set as before they
+    were marked, so checkpoints' configuration stamps are unchanged."""
+    from dataclasses import fields
+
+    from ftc.control.config import RUN_LOCAL_FIELDS, RunConfig, run_local_fields
+    from ftc.control.guided_ppo import GuidedConfig
+    from ftc.control.mpc_config import MPCConfig
+    from ftc.control.ppo_agent import ControllerConfig
+
+    assert set(RUN_LOCAL_FIELDS) <= {f.name for f in fields(RunConfig)}
+    own = set(RUN_LOCAL_FIELDS)
+    assert run_local_fields(RunConfig()) == own
+    for cls in (ControllerConfig, GuidedConfig):
+        assert run_local_fields(cls()) == own | {"pretrain_cache", "push_policy", "push_url"}
+    assert run_local_fields(MPCConfig()) == own | {"pretrain_cache"}

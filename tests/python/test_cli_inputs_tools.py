@@ -135,7 +135,7 @@ PLANT_CASES = [(flag, value) for flag in _plant_options() for value in BAD_VALUE
 def test_every_plant_option_is_walked():
     assert {f for f, _ in PLANT_CASES} == {
         "--scenario", "--lcm-url", "--prefix", "--seed", "--mode", "--rate", "--watchdog",
-        "--safe-state", "--steps-per-interval", "--start-step"}
+        "--safe-state", "--steps-per-interval", "--start-step", "--session-timeout", "--key-file"}
 
 
 @pytest.mark.parametrize("flag,value", PLANT_CASES, ids=[f"plant{f}={v!r}" for f, v in PLANT_CASES])

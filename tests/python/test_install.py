@@ -2,18 +2,24 @@
 virtual environment outside the checkout builds the C++ parts (the bindings,
 the plant and its tools, the message classes) into the package, and a user
 who never saw the checkout runs the registered Gymnasium environment on a real
-plant process and the benchmark through its console script.
+plant process (and its batched pool through ``gym.make_vec``), and the README's
+install commands (the benchmark, the controller with its default scenario, the
+MPC with a scenario's name: no file of the checkout needed) through the console
+scripts.
 
 One test, minutes long: it builds the package (CMake, scikit-build-core) in
 build/pip/ of the checkout, incrementally after the first time."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from doc_commands import marked
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -28,6 +34,12 @@ while not done:
     obs, reward, terminal, truncated, _ = env.step(env.action_space.sample())
     steps, done = steps + 1, terminal or truncated
 env.close()
+pool = gym.make_vec("ftc/FuelTransferCore-v0", num_envs=8, vectorization_mode="vector_entry_point",
+                    scenario="multiple")
+pool.reset(seed=0)
+for _ in range(100):
+    pool_obs = pool.step(pool.action_space.sample())[0]
+assert type(pool).__name__ == "FuelTransferVectorEnv" and pool_obs.shape == (8, 6)
 print(plant, steps, ftc.__file__)
 """
 
@@ -58,17 +70,41 @@ def test_pip_install_into_a_fresh_venv_gives_a_working_package(tmp_path):
     assert Path(module).is_relative_to(site) and Path(plant).is_relative_to(site)
     assert Path(plant).parent.name == "bin" and int(steps) > 0
 
-    out = work / "bench"
-    (work / "single.toml").write_bytes((REPO / "scenarios" / "single.toml").read_bytes())
-    _run(["ftc-experiments", "benchmark", "--methods", "closed", "--scenarios", "single.toml",
-          "--intervals", "1", "--steps-per-interval", "64", "--seeds", "0", "--link", "lcm",
-          "--jobs", "1", "--out", str(out)], work, env, 300)
-    rows = (out / "results.csv").read_text().splitlines()
+    # the README's install commands, as written, beside the venv (myenv), outside the
+    # checkout: scenario names and the tools' default scenario from the installed package
+    (work / "myenv").symlink_to(venv)
+    for doc, command in marked("install"):
+        _run(["bash", "-euo", "pipefail", "-c", command], work, env, 300)
+    rows = (work / "bench" / "results.csv").read_text().splitlines()
     assert len(rows) > 1 and any(",closed," in r for r in rows[1:])
+    for run in ("run", "mpc"):
+        assert (work / run / "done.json").is_file()
+        scenario = json.loads((work / run / "config.json").read_text())
+        scenario = next(v["scenario"] for v in scenario.values() if isinstance(v, dict)
+                        and "scenario" in v)
+        assert Path(scenario).is_relative_to(site) and Path(scenario).parent.name == "scenarios"
+    assert Path(scenario).name == "multiple.toml"  # ftc-mpc --scenario multiple
 
     version = _run(["ftc", "--version"], work, env, 60).strip()
     assert version.startswith("ftc ") and version.split()[1][0].isdigit()
-    assert "--scenario" in _run(["ftc-plant", "--help"], work, env, 60)
     for tool in ("ftc-controller", "ftc-mpc"):
         assert "--realtime" in _run([tool, "--help"], work, env, 120)
     print(f"fresh-venv install: {installed:.0f} s")
+
+
+def test_cmake_on_a_fresh_clone_works_or_says_what_to_run_first(tmp_path):
+    """``cmake -B build`` in a copy of the tracked files (no .venv, no build/):
+    where a dependency is missing, one line names it and scripts/setup.sh."""
+    files = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True,
+                           check=True).stdout.decode().split("\0")
+    clone = tmp_path / "clone"
+    for rel in filter(None, files):
+        if (REPO / rel).is_file() and not rel.startswith("tests/data/"):
+            (clone / rel).parent.mkdir(parents=True, exist_ok=True)
+            (clone / rel).write_bytes((REPO / rel).read_bytes())
+    done = subprocess.run(["cmake", "-B", "build"], cwd=clone, capture_output=True, text=True,
+                          timeout=300)
+    if done.returncode != 0:
+        said = [line.strip() for line in done.stderr.splitlines()
+                if "not found: run `bash scripts/setup.sh` first" in line]
+        assert len(said) == 1, done.stderr[-3000:]

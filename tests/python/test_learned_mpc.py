@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ftc.common.errors import CheckpointError
-from ftc.control.learned_agent import LearnedEvaluator, LearnedMPCAgent, planning_reward
+from ftc.control.learned_agent import LearnedEvaluator, LearnedMPCAgent
 from ftc.control.mpc_cli import main
 from ftc.control.mpc_config import MPCConfig
 from ftc.control.planners import hold_candidates
@@ -86,15 +86,6 @@ def test_the_model_state_round_trips_and_a_mismatch_is_refused():
     assert other.pending == model.pending == 1
     with pytest.raises(CheckpointError, match="gram: shape"):
         FeatureModel(features=8).load_state_dict(model.state_dict())
-
-
-def test_the_planning_reward_is_the_plants_reward():
-    rng = np.random.default_rng(0)
-    level = rng.uniform(-0.01, 1.0, (640, 6))
-    level[:5], level[5:10] = 0.0, 1e-8  # empty plants and nearly empty ones
-    valves = rng.integers(0, 2, (640, 6))
-    # the spread as E[m^2] - cg^2 instead of E[(m - cg)^2]: only rounding differs
-    assert np.abs(planning_reward(level, valves) - reward(level, valves)).max() < 1e-12
 
 
 class _Still:

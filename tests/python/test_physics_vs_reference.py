@@ -324,6 +324,29 @@ def test_core_reward_matches_ftc_reward_and_reference() -> None:
             assert getattr(py, field)[k] == pytest.approx(r[key], abs=1e-12), (key, x[k], u[k])
 
 
+@needs_core
+def test_every_form_of_the_reward_is_the_definition() -> None:
+    """The reward's forms (plant/reward.py's module doc) against its definition,
+    reward_terms, on the same levels: empty, nearly empty, one-arm and negative
+    (sensor noise) plants among random ones. NumPy's form is the definition
+    itself; torch's runs the same expression (float64: equal to rounding);
+    the moments form and C++ sum in another order (only rounding differs)."""
+    torch = pytest.importorskip("torch")
+    x, u = reward_cases(np.random.default_rng(7), 640)
+    x[4:8] -= 0.01  # negative levels count as empty tanks
+    x[8:12] = 1e-8
+    defined = ftc_reward.reward_terms(x, u)
+    np.testing.assert_array_equal(defined.reward, defined.balance - defined.activity)
+    np.testing.assert_allclose(ftc_reward.reward_moments(x, u), defined.reward, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ftc_reward.reward_torch(torch.tensor(x), torch.tensor(u)).numpy(),
+                               defined.reward, rtol=0, atol=1e-12)
+    core = [dict(_core.reward(list(map(float, x[k])), list(map(int, u[k]))))
+            for k in range(len(x))]
+    for key in ("reward", "cg", "spread", "activity"):
+        np.testing.assert_allclose([c[key] for c in core], getattr(defined, key),
+                                   rtol=0, atol=1e-12, err_msg=key)
+
+
 def test_ftc_reward_matches_reference_without_core() -> None:
     x, u = reward_cases(np.random.default_rng(6), 200)
     py = ftc_reward.reward(x, u)

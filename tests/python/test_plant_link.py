@@ -133,7 +133,7 @@ def test_duplicate_and_stale_commands_are_ignored_and_counted():
 
         def send(seq):
             msg = valve_command_t()
-            msg.seq, msg.num_valves, msg.valve = seq, 6, [0] * 6
+            msg.session, msg.seq, msg.num_valves, msg.valve = link.session, seq, 6, [0] * 6
             lc.publish(prefix + "COMMAND", msg.encode())
 
         base = link._seq + 10
@@ -162,7 +162,8 @@ def test_invalid_valve_values_are_rejected_and_counted():
         plant.reset()
         lc = _raw_lcm(plant.url)
         msg = valve_command_t()
-        msg.seq, msg.num_valves, msg.valve = plant._seq + 100, 6, [0, 2, 0, 0, 0, 0]
+        msg.session, msg.seq = plant.session, plant._seq + 100
+        msg.num_valves, msg.valve = 6, [0, 2, 0, 0, 0, 0]
         lc.publish(plant.prefix + "COMMAND", msg.encode())
         lc.publish(plant.prefix + "COMMAND", b"garbage bytes")
         time.sleep(0.2)  # no answer is expected for either; give the plant time to count
@@ -222,8 +223,12 @@ def test_realtime_mode_free_runs_and_watchdog_closes_valves():
         while not states and time.monotonic() < deadline:
             lc.handle_timeout(20)
         assert states and states[-1].watchdog_tripped  # no command yet: safe state
+        from ftc.plant_control_t import plant_control_t
+        opening = plant_control_t()
+        opening.session, opening.seq, opening.command = 99, 1, plant_control_t.OPEN
+        lc.publish(prefix + "CONTROL", opening.encode())
         msg = valve_command_t()
-        msg.seq, msg.num_valves, msg.valve = time.time_ns() // 1000, 6, [1] * 6
+        msg.session, msg.seq, msg.num_valves, msg.valve = 99, 2, 6, [1] * 6
         lc.publish(prefix + "COMMAND", msg.encode())
         deadline = time.monotonic() + 0.2
         while time.monotonic() < deadline:

@@ -135,10 +135,12 @@ def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path,
             assert time.monotonic() < deadline, "no commands from the node on the bus"
             time.sleep(0.02)
         pushed_at = max(bus.states)
-        pw.push(url, prefix, pw.policy_message(*second, version=2))
+        outcomes = [pw.push(url, prefix, pw.policy_message(*second, version=2))]
         time.sleep(0.3)
-        pw.push(url, prefix, pw.policy_message(*first, version=3, checksum_value=12345))
-        pw.push(url, prefix, pw.policy_message(*first, version=1))  # not above the running 2
+        outcomes.append(pw.push(url, prefix, pw.policy_message(*first, version=3,
+                                                               checksum_value=12345)))
+        # not above the running 2
+        outcomes.append(pw.push(url, prefix, pw.policy_message(*first, version=1)))
         out, err = node.communicate(timeout=30)
     finally:
         node.kill()
@@ -150,6 +152,10 @@ def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path,
     assert "policy version 2 in use" in err
     assert "rejected policy version 3: checksum mismatch" in err
     assert "rejected policy version 1: version 1 is not above the running 2" in err
+    # each push was answered on the ack channel with what the node did
+    assert [(o.version, o.accepted) for o in outcomes] == [(2, True), (3, False), (1, False)]
+    assert outcomes[1].reason.startswith("checksum mismatch")
+    assert outcomes[2].reason == "version 1 is not above the running 2"
     # every command is the action of the policy in use for the state it answers:
     # the first up to the push, the second after it, never a mixture within a step
     switched = None
@@ -212,6 +218,12 @@ def test_a_learning_run_pushes_its_policy_to_a_running_node_after_every_interval
     policy.load_state_dict(checkpoint["agent"]["ppo"]["policy"])
     widths, params = pw.actor_layers(policy)
     assert [m.version for m in pushed] == [int(v) for v in taken]
+    # metrics.csv records each push's outcome, as the node answered it
+    import csv
+    with open(tmp_path / "run" / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(int(r["push_version"]), r["push_accepted"], r["push_reason"]) for r in rows] == \
+        [(int(v), "1", "") for v in taken]
     assert list(pushed[-1].widths) == widths
     assert np.array_equal(np.array(pushed[-1].params, np.float32), params)
     assert not np.array_equal(np.array(pushed[0].params, np.float32), params)  # it learned
@@ -225,3 +237,27 @@ def test_push_policy_refuses_a_method_without_a_policy(tmp_path):
     assert run.returncode == 2
     assert "--push-policy has no effect with --method closed" in run.stderr
     assert not (tmp_path / "run" / "config.json").exists()
+
+
+def test_the_push_tool_exits_non_zero_on_a_rejection_or_no_answer(tmp_path):
+    url, prefix = private_lcm_url(), private_prefix()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, *_policy(1), version=5)
+    push = [sys.executable, "-m", "ftc.tools.policy_weights", "push", str(path), "--lcm-url", url,
+            "--prefix", prefix, "--timeout", "0.5"]
+    nobody = subprocess.run(push, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert nobody.returncode == 1 and "no answer from a policy node" in nobody.stderr
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(0.5)  # subscribed
+        stale = subprocess.run(push, cwd=REPO, capture_output=True, text=True, timeout=60)
+        newer = subprocess.run(push + ["--version", "6"], cwd=REPO, capture_output=True,
+                               text=True, timeout=60)
+    finally:
+        node.send_signal(signal.SIGINT)
+        node.wait(timeout=10)
+    assert stale.returncode == 1
+    assert stale.stderr.strip().endswith("rejected: version 5 is not above the running 5")
+    assert newer.returncode == 0 and "accepted" in newer.stdout, newer.stderr

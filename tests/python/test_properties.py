@@ -53,6 +53,7 @@ def _same_float(a: float, b: float) -> bool:
 def state_messages(draw) -> plant_state_t:
     m = plant_state_t()
     m.utime, m.seq, m.command_seq, m.operating_steps = (draw(i64) for _ in range(4))
+    m.session, m.other_session = draw(i64), draw(i64)
     m.episode, m.step = draw(i32), draw(i32)
     m.age = draw(f64)
     m.num_tanks, m.num_engines = draw(st.integers(0, 8)), draw(st.integers(0, 3))
@@ -70,7 +71,7 @@ def state_messages(draw) -> plant_state_t:
 @st.composite
 def command_messages(draw) -> valve_command_t:
     m = valve_command_t()
-    m.utime, m.seq, m.state_seq = draw(i64), draw(i64), draw(i64)
+    m.utime, m.seq, m.state_seq, m.session = draw(i64), draw(i64), draw(i64), draw(i64)
     m.num_valves = draw(st.integers(0, 127))
     m.valve = draw(st.lists(i8, min_size=m.num_valves, max_size=m.num_valves))
     return m
@@ -80,6 +81,7 @@ def command_messages(draw) -> valve_command_t:
 def control_messages(draw) -> plant_control_t:
     m = plant_control_t()
     m.utime, m.seq, m.command = draw(i64), draw(i64), draw(i8)
+    m.session, m.operating_step = draw(i64), draw(i64)
     return m
 
 
@@ -88,7 +90,11 @@ def control_messages(draw) -> plant_control_t:
 def test_plant_state_round_trip(m):
     data = m.encode()
     d = plant_state_t.decode(data)
-    for name in ("utime", "seq", "command_seq", "episode", "step", "operating_steps",
+    from ftc.plant.wire import check_state
+
+    assert check_state(data) is None  # the receivers' bounded check passes every real state
+    for name in ("utime", "session", "other_session", "seq", "command_seq", "episode", "step",
+                 "operating_steps",
                  "num_tanks", "num_engines", "terminal", "truncated", "evaluation",
                  "watchdog_tripped", "duplicate_commands", "stale_commands",
                  "rejected_commands", "decode_errors"):
@@ -106,8 +112,8 @@ def test_plant_state_round_trip(m):
 def test_valve_command_round_trip(m):
     data = m.encode()
     d = valve_command_t.decode(data)
-    assert (d.utime, d.seq, d.state_seq, d.num_valves) == (m.utime, m.seq, m.state_seq,
-                                                           m.num_valves)
+    assert (d.utime, d.session, d.seq, d.state_seq, d.num_valves) == (
+        m.utime, m.session, m.seq, m.state_seq, m.num_valves)
     assert list(d.valve) == list(m.valve)
     assert d.encode() == data
 
@@ -117,7 +123,8 @@ def test_valve_command_round_trip(m):
 def test_plant_control_round_trip(m):
     data = m.encode()
     d = plant_control_t.decode(data)
-    assert (d.utime, d.seq, d.command) == (m.utime, m.seq, m.command)
+    assert (d.utime, d.session, d.seq, d.command, d.operating_step) == (
+        m.utime, m.session, m.seq, m.command, m.operating_step)
     assert d.encode() == data
 
 

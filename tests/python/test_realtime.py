@@ -110,6 +110,17 @@ def bus(scenarios):
     plant.wait()
 
 
+def _deadline_counts_are_steps(row: dict, steps_per_interval: int) -> None:
+    """The two miss counts of an interval are counts of its steps. Neither bounds
+    the other: the plant also counts the ticks between the run's phases, and a
+    late answer to an older state, applied because nothing newer came, is fresh
+    to the plant but a miss to the controller (seen on a loaded machine: 2
+    misses, 1 missed tick). How many there are is timing: bench_realtime.py."""
+    steps = steps_per_interval + int(row["eval_steps"] or 0)
+    assert 0 <= int(row["deadline_misses"]) <= steps, row
+    assert int(row["plant_missed_ticks"]) >= 0, row
+
+
 def test_a_learning_run_on_a_realtime_plant_reports_its_deadlines(tmp_path):
     out = tmp_path / "rt"
     # launched by the controller itself; PPO updates every 32 steps and the
@@ -127,9 +138,7 @@ def test_a_learning_run_on_a_realtime_plant_reports_its_deadlines(tmp_path):
         p50, p99, worst = (float(r[c]) for c in ("latency_p50_ms", "latency_p99_ms",
                                                   "latency_max_ms"))
         assert 0 < p50 <= p99 <= worst
-        # the controller counts the steps it controlled; the plant counts every
-        # step, also in the moments between the run's phases: never fewer
-        assert int(r["deadline_misses"]) <= int(r["plant_missed_ticks"])
+        _deadline_counts_are_steps(r, 64)
         assert int(r["eval_steps"]) > 0
     # the offline phase of interval 0 ran in the background and was reported late
     assert rows[0]["offline_reward_per_step"] != ""
@@ -230,4 +239,4 @@ def test_a_guided_methods_fits_run_off_the_loop_and_report_late(tmp_path):
     assert [r["interval"] for r in rows] == ["0", "1"]
     for r in rows:  # each interval's fit reported, after the interval had moved on
         assert float(r["teach_seconds"]) > 0 and int(r["teacher_labels"]) > 0
-        assert int(r["deadline_misses"]) <= int(r["plant_missed_ticks"])
+        _deadline_counts_are_steps(r, 128)

@@ -8,6 +8,7 @@ changed byte, one run for every seed of a scenario)."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -152,11 +153,23 @@ def test_the_cache_hits_on_the_same_bytes_and_misses_on_a_changed_byte(tmp_path)
         "--method", "reference"]
 
 
-def test_the_code_digests_cover_the_planners_and_the_native_core():
-    digests = run_cache.code_digests()
-    assert {"ftc/control/planners.py", "ftc/control/episode_planner.py",
-            "ftc/control/mpc_agent.py", "ftc/control/registry.py", "_core"} <= set(digests)
-    assert all(len(v) == 64 for v in digests.values())
+def test_the_code_digest_changes_with_any_module_of_the_package(tmp_path):
+    """The key covers what a cached run imports: a byte changed in the lockstep
+    loop (which computes the reward and the episode ends), in the reward itself,
+    or in a module added to the package misses; the same bytes elsewhere hit."""
+    package = Path(run_cache.__file__).resolve().parents[1]
+    copy = tmp_path / "ftc"
+    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__", "*.so", "bin"))
+    digests = run_cache.code_digests(copy)
+    assert digests["ftc"] == run_cache.code_digests()["ftc"]  # same bytes, other place
+    assert len(digests["_core"]) == 64
+    seen = {digests["ftc"]}
+    for edit in (next(copy.rglob("lockstep.py")), copy / "plant" / "reward.py",
+                 copy / "common" / "new_module.py"):
+        with open(edit, "a") as f:
+            f.write("# changed\n")
+        seen.add(run_cache.code_digests(copy)["ftc"])
+    assert len(seen) == 4
 
 
 def _benchmark(out: Path, scenario: Path, cache: Path) -> subprocess.CompletedProcess:
@@ -187,7 +200,7 @@ def test_the_benchmark_runs_the_reference_once_per_scenario_and_then_from_the_ca
     sources = meta["run_cache"]["sources"]
     assert sources["single/t00/reference/s0"]["from"] == "ran"
     assert sources["single/t00/reference/s1"]["from"] == "single/t00/reference/s0"
-    assert set(meta["run_cache"]["code"]) >= {"ftc/control/planners.py", "_core"}
+    assert set(meta["run_cache"]["code"]) == {"ftc", "_core", "plant"}
     rows = _reference_rows(first)
     assert [s for s, _ in rows] == ["0", "1"] and rows[0][1] == rows[1][1]
     # the same bytes: nothing of the reference runs

@@ -1,6 +1,8 @@
 // LCM echo responder: answers every valve command and control message with a
 // plant_state_t carrying its seq, exactly as the plant does, but with no
 // physics. The lockstep benchmark measures the plant against this floor.
+// It follows no session (it answers each message in the message's own) but
+// decodes as the plant does: a malformed buffer is counted, never fatal.
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
@@ -8,6 +10,7 @@
 #include <iostream>
 
 #include "plant/lcm/lcm_bridge.h"
+#include "plant/lcm/wire.h"
 
 namespace {
 
@@ -23,15 +26,28 @@ class Echo final {
   bool shutdown() const { return shutdown_; }
 
  private:
-  void OnCommand(const lcm::ReceiveBuffer*, const std::string&, const ftc::valve_command_t* cmd) {
-    Answer(cmd->seq);
+  void OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftc::valve_command_t cmd{};
+    if (Decoded(rbuf, channel, &cmd)) Answer(cmd.session, cmd.seq);
   }
-  void OnControl(const lcm::ReceiveBuffer*, const std::string&, const ftc::plant_control_t* msg) {
-    if (msg->command == ftc::plant_control_t::SHUTDOWN) shutdown_ = true;
-    Answer(msg->seq);
+  void OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftc::plant_control_t msg{};
+    if (!Decoded(rbuf, channel, &msg)) return;
+    if (msg.command == ftc::plant_control_t::SHUTDOWN) shutdown_ = true;
+    Answer(msg.session, msg.seq);
   }
-  void Answer(std::int64_t seq) {
-    const auto msg = ftc::ToStateMessage(outcome_, ++state_seq_, seq, 0, counters_);
+  template <typename T>
+  bool Decoded(const lcm::ReceiveBuffer* rbuf, const std::string& channel, T* out) {
+    std::string why;
+    if (ftc::wire::Decode(rbuf->data, rbuf->data_size, out, &why)) return true;
+    ++counters_.decode_errors;
+    refusals_.Refused("undecodable message on " + channel + " (" +
+                      std::to_string(rbuf->data_size) + " bytes): " + why);
+    return false;
+  }
+  void Answer(std::int64_t session, std::int64_t seq) {
+    auto msg = ftc::ToStateMessage(outcome_, ++state_seq_, seq, 0, counters_);
+    msg.session = session;
     lcm_->publish(channels_.state, &msg);
   }
 
@@ -39,6 +55,7 @@ class Echo final {
   ftc::Channels channels_;
   ftc::StepOutcome outcome_;
   ftc::LinkCounters counters_;
+  ftc::wire::RateLimitedLog refusals_{"lcm_echo"};
   std::int64_t state_seq_ = 0;
   bool shutdown_ = false;
 };

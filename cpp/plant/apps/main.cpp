@@ -8,6 +8,7 @@
 #include <cmath>
 #include <csignal>
 #include <cstdint>
+#include <cstdlib>
 #include <iostream>
 #include <map>
 #include <sstream>
@@ -35,7 +36,12 @@ struct Options {
   int steps_per_interval = 0;  // 0: from the scenario
   std::int64_t start_step = 0;
   bool allow_network = false;
+  std::string key_file;  // the bus key (signing.h); else FTC_BUS_KEY, else unsigned
 };
+
+// The environment variable a launching controller passes a fresh per-run key
+// in (hex), so it never shows on the command line; removed once read.
+constexpr const char* kKeyVariable = "FTC_BUS_KEY";
 
 // True when a udpm URL leaves the machine: a ttl other than 0 (LCM's default is 0
 // only when the option is absent, but we require it to be explicit and zero).
@@ -147,9 +153,30 @@ int Run(const Options& options) {
     return kExitRuntime;
   }
 
+  ftc::NodeOptions node_options = options.node;
+  const char* key_hex = std::getenv(kKeyVariable);
+  if (key_hex != nullptr && !options.key_file.empty()) {
+    std::cerr << "plant: error: both --key-file and " << kKeyVariable << " give a key\n";
+    return kExitUsage;
+  }
+  if (key_hex != nullptr) {
+    const std::string why = ftc::signing::KeyFromHex(key_hex, &node_options.key);
+    unsetenv(kKeyVariable);
+    if (!why.empty()) {
+      std::cerr << "plant: error: " << kKeyVariable << ": " << why << "\n";
+      return kExitUsage;
+    }
+  } else if (!options.key_file.empty()) {
+    const std::string why = ftc::signing::LoadKey(options.key_file, &node_options.key);
+    if (!why.empty()) {
+      std::cerr << "plant: error: --key-file " << why << "\n";
+      return kExitUsage;
+    }
+  }
+
   ftc::Plant plant(scenario, options.seed);
   if (options.start_step > 0) plant.SetOperatingSteps(options.start_step);
-  ftc::PlantNode node(&lcm, &plant, options.node);
+  ftc::PlantNode node(&lcm, &plant, node_options);
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
   if (options.node.verbose)
@@ -207,6 +234,15 @@ int main(int argc, char** argv) {
       ->transform(CLI::CheckedTransformer(safe, CLI::ignore_case).description("{hold,closed}"))
       ->transform(NameOf(safe))
       ->default_str("closed");
+  app.add_option("--session-timeout", options.node.session_timeout_s,
+                 "Seconds without a message of the followed control session after which "
+                 "another may open it (START/OPEN)")
+      ->check(Number("POSITIVE", 0.0, true, kMaxWatchdogS))
+      ->capture_default_str();
+  app.add_option("--key-file", options.key_file,
+                 "Sign and check every message with the key in this file (hex, mode 600); "
+                 "a launching controller passes one in FTC_BUS_KEY instead")
+      ->check(NonEmpty());
   app.add_option("--steps-per-interval", options.steps_per_interval,
                  "Override the scenario's control steps per degradation interval")
       ->check(Number("POSITIVE", 0.0, true, 2147483647.0));

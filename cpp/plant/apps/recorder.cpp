@@ -7,8 +7,11 @@
 // controller in lockstep exchange thousands of messages a second, so a
 // recorder descheduled for ~10 ms on a loaded 2-core machine dropped plant
 // states (measured: 2 to 752 of ~5,000 per run). This recorder lifts the
-// queue limit and writes from the handler, so only the kernel's socket buffer
-// (raised by scripts/setup.sh) bounds what a stall can absorb.
+// queue limit to kQueueCapacity messages (tens of seconds of lockstep traffic)
+// and writes from the handler, so a stall is absorbed by the queue and the
+// kernel's socket buffer (raised by scripts/setup.sh), while a flood from a
+// neighbour cannot grow the queue without bound. It never decodes what it
+// records (raw bytes in, raw bytes out), so no content can crash it.
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
@@ -22,6 +25,8 @@
 namespace {
 
 volatile std::sig_atomic_t g_stop = 0;
+// ~50 MB of plant states (250 bytes each); beyond it LCM drops, as its default 30 did
+constexpr int kQueueCapacity = 200000;
 void OnSignal(int) { g_stop = 1; }
 
 struct EventLogDestroy {
@@ -104,7 +109,7 @@ int main(int argc, char** argv) {
     }
     Recorder recorder(log.get());
     lcm::Subscription* sub = lcm.subscribe(channel, &Recorder::OnMessage, &recorder);
-    sub->setQueueCapacity(0);  // unbounded: see the file comment
+    sub->setQueueCapacity(kQueueCapacity);  // see the file comment
     std::signal(SIGINT, OnSignal);
     std::signal(SIGTERM, OnSignal);
     using Clock = std::chrono::steady_clock;

@@ -16,11 +16,14 @@
 #include "plant/core/dynamics.h"
 #include "plant/core/integrator.h"
 #include "plant/core/plant.h"
+#include "plant/core/pool.h"
 #include "plant/core/reward.h"
 #include "plant/core/rollout.h"
 #include "plant/core/scenario.h"
 
 namespace py = pybind11;
+
+void BindPool(py::module_& m);  // pool_bindings.cpp
 
 namespace {
 
@@ -371,10 +374,18 @@ PYBIND11_MODULE(_core, m) {
         "Parse scenario TOML text; source_name is used in error messages.");
 
   py::class_<ftc::Plant>(m, "Plant", "The plant: episodes, degradation, noise, CVODE steps.")
-      .def(py::init([](const ftc::FaultScenario& s, std::uint64_t seed) {
-             return std::make_unique<ftc::Plant>(s, seed);
+      .def(py::init([](const ftc::FaultScenario& s, std::uint64_t seed, const std::string& method) {
+             ftc::StepMethod m = ftc::StepMethod::kCvode;
+             try {
+               m = ftc::ParseStepMethod(method);
+             } catch (const std::invalid_argument& e) {
+               throw py::value_error(e.what());
+             }
+             return std::make_unique<ftc::Plant>(s, seed, ftc::PlantParams{},
+                                                 ftc::IntegratorOptions{}, m);
            }),
-           py::arg("scenario"), py::arg("seed"))
+           py::arg("scenario"), py::arg("seed"), py::arg("method") = "cvode",
+           "method: 'cvode' (the plant process's) or 'closed_form' (plant.h StepMethod)")
       .def("reset", &ftc::Plant::Reset, "Start a new operating episode (full tanks).")
       .def("reset_evaluation", &ftc::Plant::ResetEvaluation,
            "Start an evaluation episode (age frozen, steps not counted).")
@@ -531,4 +542,5 @@ PYBIND11_MODULE(_core, m) {
       },
       py::arg("scenario"), py::arg("operating_steps"),
       "Age (intervals) in force during the step after `operating_steps` counted steps.");
+  BindPool(m);
 }

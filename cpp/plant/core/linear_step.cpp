@@ -57,15 +57,47 @@ class ModeSolution {
   // handled (a pinned tank upstream of a pump that cannot cover its engine's
   // demand) or M has no real, well-conditioned eigenbasis.
   bool Build(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
-    if (!(prepared_ && SameMode(mode) && u == valves_ && SameParams(p, params_))) {
-      prepared_ = false;
-      if (!Prepare(x, u, p, mode)) return false;
-      mode_ = mode;
-      valves_ = u;
-      params_ = p;
-      prepared_ = true;
+    psi_t_ = -1;  // the memo of Psi (below) is the last mode's
+    if (prepared_ && SameMode(mode) && u == valves_ && SameParams(p, params_)) {
+      Start(x, Derivative(x, u, p, mode), AsVector(RootFunctions(x, u, p, mode)));
+      return true;
     }
-    Start(x, u, p, mode);
+    prepared_ = false;
+    Vec6 f0;
+    RootVector g0;
+    if (!Prepare(x, u, p, mode, &f0, &g0)) return false;
+    mode_ = mode;
+    valves_ = u;
+    params_ = p;
+    prepared_ = true;
+    Start(x, f0, g0);  // the field and roots at x, as Prepare evaluated them
+    return true;
+  }
+
+  // Whether no root function can end the mode within [0, t] (checked on the
+  // grid in Step): each term of g(t) = g0 + L t + sum_k K_k psi_k(t) is monotone
+  // in t from 0 (psi_k' = e^{lambda_k t} > 0), so g lies between g0 plus the
+  // negative and g0 plus the positive terms at t. A watched function bounded
+  // above 0, or an unwatched one bounded below 0 (never armed), cannot be seen
+  // crossing at any grid time; the margin covers the rounding of g's
+  // evaluation (a few ulps of its terms' magnitude). Not finite: not proven.
+  bool NoCrossingWithin(double t) {
+    const NodeVector& psi = PsiAt(t);
+    for (int m = 0; m < kNumRoots; ++m) {
+      const double lin = linear_[m] * t;
+      double low = g0_[m] + std::min(0.0, lin), high = g0_[m] + std::max(0.0, lin);
+      double size = std::abs(g0_[m]) + std::abs(lin);
+      for (int k = 0; k < nodes_; ++k) {
+        const double term = roots_(m, k) * psi[k];
+        low += std::min(0.0, term);
+        high += std::max(0.0, term);
+        size += std::abs(term);
+      }
+      const double margin = 1e-10 * size;
+      const bool above = low > margin;
+      const bool below = watched_[m] == 0.0 && high < -margin;
+      if (!(above || below)) return false;
+    }
     return true;
   }
 
@@ -77,6 +109,13 @@ class ModeSolution {
   }
 
   bool Watched(int slot) const { return watched_[slot] != 0.0; }
+
+  // Watches the functions positive in g (values at a time before any crossing):
+  // as CVODE reactivates a root function that was 0 (or below) at a restart
+  // once it has moved above 0, a later downward crossing of it ends the mode
+  // too (e.g. a sink that left a tied group at its start and catches up with
+  // the group within the step).
+  void Arm(const RootVector& g) { watched_ = (g.array() > 0.0).cast<double>(); }
 
   Vec6 Levels(double t) const {
     const NodeVector moved = spread_ * Psi(t);
@@ -98,7 +137,8 @@ class ModeSolution {
 
   // What does not depend on x within the mode: the nodes, M's eigenvectors, the
   // root functions' gradients along the nodes and the tanks off the conduit.
-  bool Prepare(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
+  bool Prepare(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode,
+               Vec6* field, RootVector* roots) {
     nodes_ = 0;
     node_of_.fill(-1);
     // A pinned tank passes its inflow (affine in the group level) to its engine,
@@ -134,6 +174,8 @@ class ModeSolution {
     // The field along each node's direction (sources together, each sink alone).
     const Vec6 f0 = Derivative(x, u, p, mode);
     const RootVector g0 = AsVector(RootFunctions(x, u, p, mode));
+    *field = f0;
+    *roots = g0;
     auto direction = [&](int d) {
       Vec6 moved = x;
       for (int i = 0; i < kTanks; ++i)
@@ -213,11 +255,10 @@ class ModeSolution {
     return true;
   }
 
-  // The solution from x: the field and the root functions there.
-  void Start(const Vec6& x, const Valves& u, const PlantParams& p, const Mode& mode) {
+  // The solution from x: f0 and g0 are the field and the root functions there.
+  void Start(const Vec6& x, const Vec6& f0, const RootVector& g0) {
     x0_ = x;
-    const Vec6 f0 = Derivative(x, u, p, mode);
-    g0_ = AsVector(RootFunctions(x, u, p, mode));
+    g0_ = g0;
     rate_.setZero();
     for (int i = 0; i < kTanks; ++i)
       if (node_of_[i] < 0) rate_[i] = f0[i];
@@ -230,14 +271,26 @@ class ModeSolution {
     // As CVODE at a restart: a function not positive where the mode begins is
     // not watched (the level roots carry an offset so that an empty tank's is)
     watched_ = (g0_.array() > 0.0).cast<double>();
+    // A function exactly at 0 that rises at once (a member that leaves a tied
+    // group, its root x_lead - x_k at 0) is watched from the start: CVODE's first
+    // internal step, a fraction of the grid's, sees it above 0 and reactivates it,
+    // so its return to 0 (the member catching up with the group) is an event.
+    for (int m = 0; m < kNumRoots; ++m)
+      if (g0_[m] == 0.0 && linear_[m] + roots_.row(m).sum() > 0.0) watched_[m] = 1.0;
   }
 
  private:
-  NodeVector Psi(double t) const {
-    NodeVector out(nodes_);
-    for (int k = 0; k < nodes_; ++k) out[k] = ftc::Psi(lambda_[k], t);
-    return out;
+  // psi(t), kept for the last t asked (the grid's and the root search's times
+  // recur: the bracket's ends, the levels where the step stops)
+  const NodeVector& PsiAt(double t) const {
+    if (t != psi_t_) {
+      psi_.resize(nodes_);
+      for (int k = 0; k < nodes_; ++k) psi_[k] = ftc::Psi(lambda_[k], t);
+      psi_t_ = t;
+    }
+    return psi_;
   }
+  const NodeVector& Psi(double t) const { return PsiAt(t); }
 
   // the preparation and what it was for
   bool prepared_ = false;
@@ -256,6 +309,8 @@ class ModeSolution {
   NodeMatrix spread_;  // node displacement per psi
   RootVector g0_, linear_, watched_;
   RootMatrix roots_;
+  mutable double psi_t_ = -1;  // the time psi_ is for (-1: none)
+  mutable NodeVector psi_;
 };
 
 }  // namespace
@@ -284,16 +339,26 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
     const Mode mode = ComputeMode(r.x, u, p);
     if (!solution.Build(r.x, u, p, mode)) return r;  // the caller integrates the rest
     const double remaining = dt - r.t;
+    if (solution.NoCrossingWithin(remaining)) {  // the grid would find nothing
+      r.x = solution.Levels(remaining);
+      r.t = dt;
+      break;
+    }
     // The first grid interval in which a root function falls to <= 0.
     double lo = 0, hi = remaining;
+    RootVector at_lo, at_hi;  // the root functions at the bracket's ends
     bool found = false;
     for (int k = 1; k <= kGrid && !found; ++k) {
       const double t = remaining * k / kGrid;
-      if (solution.Crossed(t)) {
+      RootVector g;
+      if (solution.Crossed(t, &g)) {
         hi = t;
+        at_hi = g;
         found = true;
       } else {
         lo = t;
+        at_lo = g;
+        solution.Arm(g);
       }
     }
     if (!found) {
@@ -304,8 +369,7 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
     // The earliest crossing in (lo, hi]: each watched function that is <= 0 at
     // hi is located by the Illinois method (regula falsi that halves the value
     // kept at an end that stays put) to the bracket width; the earliest wins.
-    RootVector at_lo = solution.Roots(lo), at_hi;
-    solution.Crossed(hi, &at_hi);
+    if (lo == 0) at_lo = solution.Roots(0);
     double first_lo = lo, first_hi = hi;
     for (int m = 0; m < kNumRoots; ++m) {
       if (!solution.Watched(m) || at_hi[m] > 0.0) continue;

@@ -4,6 +4,10 @@
 // CVODE step.
 #include "plant/core/plant.h"
 
+#include <limits>
+
+#include "plant/core/rollout.h"
+
 namespace ftc {
 
 namespace {
@@ -12,8 +16,10 @@ constexpr double kTerminalMargin = 1e-6;  // m^3, in favour of ending (spec)
 }  // namespace
 
 Plant::Plant(const FaultScenario& scenario, std::uint64_t seed, const PlantParams& nominal,
-             const IntegratorOptions& options)
-    : scenario_(scenario), nominal_(nominal), integrator_(options), rng_(seed) {
+             const IntegratorOptions& options, StepMethod method)
+    : scenario_(scenario), nominal_(nominal), options_(options), method_(method), rng_(seed) {
+  if (method_ == StepMethod::kCvode) integrator_ = std::make_unique<StepIntegrator>(options_);
+  if (method_ == StepMethod::kClosedForm) linear_ = std::make_unique<LinearStepper>();
   if (scenario_.steps_per_interval <= 0)
     throw std::invalid_argument("Plant: steps_per_interval must be > 0");
   if (!(scenario_.noise_std >= 0)) throw std::invalid_argument("Plant: noise_std must be >= 0");
@@ -23,6 +29,10 @@ Plant::Plant(const FaultScenario& scenario, std::uint64_t seed, const PlantParam
   last_.observed = nominal_.height;
   last_.episode = -1;  // no episode yet
 }
+
+Plant::~Plant() = default;
+Plant::Plant(Plant&&) noexcept = default;
+Plant& Plant::operator=(Plant&&) noexcept = default;
 
 void Plant::Reset() { StartEpisode(false); }
 
@@ -51,7 +61,7 @@ const StepOutcome& Plant::Step(const Valves& u) {
   const double age = AgeAt(scenario_, at);
   const PlantParams p = ParamsAtStep(at);
   const Valves applied = StuckValvesAtStep(scenario_, at).Apply(u);
-  const StepResult r = integrator_.Step(last_.level, applied, p, kControlStep);
+  const StepResult r = Integrate(last_.level, applied, p);
 
   last_.level = r.x;
   last_.observed = Observe(r.x);
@@ -67,6 +77,31 @@ const StepOutcome& Plant::Step(const Valves& u) {
         !last_.terminal && operating_steps_ % scenario_.steps_per_interval == 0;
   }
   return last_;
+}
+
+StepIntegrator& Plant::Cvode() {
+  if (!integrator_) integrator_ = std::make_unique<StepIntegrator>(options_);
+  return *integrator_;
+}
+
+StepResult Plant::Integrate(const Vec6& x, const Valves& u, const PlantParams& p) {
+  if (method_ == StepMethod::kCvode) return Cvode().Step(x, u, p, kControlStep);
+  if ((u.array() != 0).count() < 2) return IdleConduitStep(x, u, p, kControlStep);
+  const LinearStepResult linear = linear_->Step(x, u, p, kControlStep, options_.max_events);
+  if (linear.t >= kControlStep) {
+    StepResult r;
+    r.x = linear.x;
+    r.events = linear.events;
+    r.supplied.setConstant(std::numeric_limits<double>::quiet_NaN());
+    r.deficit.setConstant(std::numeric_limits<double>::quiet_NaN());
+    return r;
+  }
+  // the rest of the step, from where the closed form stopped
+  StepResult r = Cvode().Step(linear.x, u, p, kControlStep - linear.t);
+  r.events += linear.events;
+  r.supplied.setConstant(std::numeric_limits<double>::quiet_NaN());
+  r.deficit.setConstant(std::numeric_limits<double>::quiet_NaN());
+  return r;
 }
 
 bool Plant::IsTerminal(const Vec6& x, const PlantParams& p, double dt) {

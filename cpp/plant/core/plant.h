@@ -4,18 +4,30 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <random>
 
 #include "plant/core/degradation.h"
 #include "plant/core/integrator.h"
+#include "plant/core/linear_step.h"
 
 namespace ftc {
+
+// How a step is integrated. kCvode: CVODE with root finding (the plant process's
+// and the reference). kClosedForm: a step with fewer than two valves open in
+// closed form (IdleConduitStep, exact), the conduit's affine modes in closed
+// form (linear_step.h, exact where CVODE is within its tolerances), CVODE for
+// the rest of a step from where the closed form stops (a pinned tank upstream
+// of a pump that cannot cover its engine): results differ from kCvode at the
+// level of CVODE's tolerances (docs/benchmarks.md quotes the measured error).
+enum class StepMethod { kCvode, kClosedForm };
 
 struct StepOutcome {
   Vec6 level = Vec6::Zero();       // true levels after the step, m
   Vec6 observed = Vec6::Zero();    // published levels (true + sensor noise), m
   Valves valves = Valves::Zero();  // valves applied (the command with stuck valves replaced)
-  Vec2 deficit = Vec2::Zero();     // unmet engine demand over the step, m^3
+  Vec2 deficit = Vec2::Zero();     // unmet engine demand over the step, m^3 (NaN where
+                                   // a kClosedForm step ran the conduit's closed form)
   double age = 0;                  // age in force during the step, intervals
   int step = 0;                    // steps taken in this episode (1 after the first)
   std::int64_t episode = 0;
@@ -27,7 +39,13 @@ struct StepOutcome {
 class Plant final {
  public:
   Plant(const FaultScenario& scenario, std::uint64_t seed,
-        const PlantParams& nominal = PlantParams{}, const IntegratorOptions& options = {});
+        const PlantParams& nominal = PlantParams{}, const IntegratorOptions& options = {},
+        StepMethod method = StepMethod::kCvode);
+  ~Plant();
+  Plant(Plant&&) noexcept;
+  Plant& operator=(Plant&&) noexcept;
+  Plant(const Plant&) = delete;
+  Plant& operator=(const Plant&) = delete;
 
   // Ends the current episode and starts a new operating episode at the current age.
   void Reset();
@@ -62,6 +80,7 @@ class Plant final {
   }
   const FaultScenario& scenario() const { return scenario_; }
   const PlantParams& nominal() const { return nominal_; }
+  StepMethod method() const { return method_; }
 
   // Terminal test: total volume < total engine demand over one step + 1e-6 m^3.
   static bool IsTerminal(const Vec6& x, const PlantParams& p, double dt = 1.0);
@@ -69,10 +88,15 @@ class Plant final {
  private:
   void StartEpisode(bool evaluation);
   Vec6 Observe(const Vec6& x);
+  StepResult Integrate(const Vec6& x, const Valves& u, const PlantParams& p);
+  StepIntegrator& Cvode();
 
   FaultScenario scenario_;
   PlantParams nominal_;
-  StepIntegrator integrator_;
+  IntegratorOptions options_;
+  StepMethod method_;
+  std::unique_ptr<StepIntegrator> integrator_;  // made on first use (a pool holds thousands)
+  std::unique_ptr<LinearStepper> linear_;       // kClosedForm only
   std::mt19937_64 rng_;
   StepOutcome last_;
   std::int64_t operating_steps_ = 0;

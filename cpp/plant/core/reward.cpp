@@ -1,4 +1,4 @@
-// Reward of plant-model.md, "Reward"; mirrors python/ftc/reward.py.
+// Reward of plant-model.md, "Reward"; mirrors python/ftc/plant/reward.py.
 #include "plant/core/reward.h"
 
 #include <algorithm>

@@ -1,5 +1,6 @@
-// Reward of plant-model.md, "Reward". The Python definition (ftc/reward.py) is
-// the reference; tests check that both agree.
+// Reward of plant-model.md, "Reward", for the C++ batch rollouts. The Python
+// definition (python/ftc/plant/reward.py) is the reference;
+// tests/python/test_physics_vs_reference.py checks that both agree.
 #pragma once
 
 #include "plant/core/params.h"

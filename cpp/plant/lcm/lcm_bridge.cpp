@@ -35,6 +35,11 @@ plant_state_t ToStateMessage(const StepOutcome& outcome, std::int64_t seq, std::
   msg.stale_commands = counters.stale_commands;
   msg.rejected_commands = counters.rejected_commands;
   msg.decode_errors = counters.decode_errors;
+  msg.other_session = counters.other_session;
+  msg.bad_signature = counters.bad_signature;
+  msg.replayed = counters.replayed;
+  msg.stale_signed = counters.stale_signed;
+  msg.session = 0;  // the node sets the session it follows
   msg.watchdog_tripped = false;
   msg.rate_hz = 0.0;  // lockstep; the real-time node sets these three
   msg.missed_ticks = 0;

@@ -3,7 +3,6 @@
 #pragma once
 
 #include <cstdint>
-#include <exception>
 #include <string>
 
 #include "ftc/plant_control_t.hpp"
@@ -28,6 +27,10 @@ struct LinkCounters {
   std::int64_t stale_commands = 0;
   std::int64_t rejected_commands = 0;
   std::int64_t decode_errors = 0;
+  std::int64_t other_session = 0;  // commands and control messages of a session not followed
+  std::int64_t bad_signature = 0;  // with a key: bad or missing MAC
+  std::int64_t replayed = 0;       // with a key: timestamp not above the link's last
+  std::int64_t stale_signed = 0;   // with a key: timestamp older than the window
 };
 
 std::int64_t NowMicros();
@@ -38,19 +41,5 @@ plant_state_t ToStateMessage(const StepOutcome& outcome, std::int64_t seq, std::
 // Validates a command; on success writes the valves and returns true, else
 // writes the reason and returns false.
 bool ValvesFromCommand(const valve_command_t& command, Valves* valves, std::string* reason);
-
-// Decodes a raw LCM buffer into T; false on a wrong fingerprint, truncation or
-// a bad array count. lcm-gen's decoders resize an array to the count read from
-// the wire before checking it, so a negative int8 count (e.g. num_valves = -1)
-// throws std::length_error: caught here, or one crafted datagram would end the
-// plant (found by tests/fuzz/fuzz_messages.cpp).
-template <typename T>
-bool DecodeMessage(const void* data, int size, T* out) {
-  try {
-    return out->decode(data, 0, size) == size;
-  } catch (const std::exception&) {
-    return false;
-  }
-}
 
 }  // namespace ftc

@@ -30,6 +30,10 @@ PlantNode::PlantNode(lcm::LCM* lcm, Plant* plant, const NodeOptions& options, No
   command_sub_ = lcm_->subscribe(channels_.command, &PlantNode::OnCommand, this);
   control_sub_ = lcm_->subscribe(channels_.control, &PlantNode::OnControl, this);
   for (auto* sub : {command_sub_, control_sub_}) sub->setQueueCapacity(kQueueCapacity);
+  if (!options_.key.empty()) {
+    verifier_.emplace(options_.key);
+    signer_.emplace(options_.key, /*link_id=*/0);
+  }
 }
 
 PlantNode::~PlantNode() {
@@ -43,12 +47,34 @@ void PlantNode::PublishState(std::int64_t command_seq) {
   auto msg = ToStateMessage(plant_->last(), ++state_seq_, command_seq, plant_->operating_steps(),
                             counters_);
   msg.watchdog_tripped = watchdog_tripped_;
+  msg.session = session_;
   if (options_.mode == RunMode::kRealtime) {
     msg.rate_hz = options_.rate_hz;
     msg.missed_ticks = missed_ticks_;
     msg.watchdog_trips = watchdog_trips_;
   }
-  lcm_->publish(channels_.state, &msg);
+  if (!signer_) {
+    lcm_->publish(channels_.state, &msg);
+    return;
+  }
+  std::vector<unsigned char> buf(static_cast<std::size_t>(msg.getEncodedSize()));
+  msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+  const auto signed_msg = signer_->Sign(channels_.state, buf.data(), buf.size(), NowMicros());
+  lcm_->publish(channels_.state, signed_msg.data(), static_cast<unsigned>(signed_msg.size()));
+}
+
+bool PlantNode::Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel,
+                          std::size_t* size) {
+  *size = rbuf->data_size;
+  if (!verifier_) return true;
+  const auto verdict = verifier_->Verify(channel, rbuf->data, rbuf->data_size, NowMicros(), size);
+  if (verdict == signing::Verdict::kOk) return true;
+  ++(verdict == signing::Verdict::kBadSignature ? counters_.bad_signature
+     : verdict == signing::Verdict::kReplay     ? counters_.replayed
+                                                 : counters_.stale_signed);
+  refusals_.Refused("refused a message on " + channel + " (" +
+                    std::to_string(rbuf->data_size) + " bytes): " + signing::Describe(verdict));
+  return false;
 }
 
 void PlantNode::Tick(Clock::time_point now) {
@@ -122,17 +148,25 @@ bool PlantNode::Admit(std::int64_t seq) {
 
 void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
   valve_command_t cmd{};
-  if (!DecodeMessage(rbuf->data, static_cast<int>(rbuf->data_size), &cmd)) {
-    ReportDecodeError(channel, rbuf->data_size);
+  std::string why;
+  std::size_t size = 0;
+  if (!Authentic(rbuf, channel, &size)) return;
+  if (!wire::Decode(rbuf->data, size, &cmd, &why)) {
+    ReportDecodeError(channel, rbuf->data_size, why);
     return;
   }
+  if (session_ == 0 || cmd.session != session_) {
+    RefuseSession("command", cmd.session, cmd.seq);
+    return;
+  }
+  session_heard_ = now_();
   if (!Admit(cmd.seq)) return;
   Valves u;
   std::string reason;
   if (!ValvesFromCommand(cmd, &u, &reason)) {
     ++counters_.rejected_commands;
-    std::cerr << "plant: rejected command seq " << cmd.seq << " on " << channel << ": " << reason
-              << "\n";
+    refusals_.Refused("rejected command seq " + std::to_string(cmd.seq) + " on " + channel +
+                      ": " + reason);
     return;
   }
   answered_seq_ = cmd.seq;
@@ -148,16 +182,44 @@ void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& cha
 
 void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
   plant_control_t msg{};  // zeroed: GCC cannot see that decode fills it
-  if (!DecodeMessage(rbuf->data, static_cast<int>(rbuf->data_size), &msg)) {
-    ReportDecodeError(channel, rbuf->data_size);
+  std::string why;
+  std::size_t size = 0;
+  if (!Authentic(rbuf, channel, &size)) return;
+  if (!wire::Decode(rbuf->data, size, &msg, &why)) {
+    ReportDecodeError(channel, rbuf->data_size, why);
     return;
   }
+  HandleControl(msg, channel);
+}
+
+bool PlantNode::SessionIdle() const {
+  return session_ == 0 || !session_heard_ ||
+         now_() - *session_heard_ > std::chrono::duration<double>(options_.session_timeout_s);
+}
+
+void PlantNode::HandleControl(const plant_control_t& msg, const std::string& channel) {
   if (msg.command == plant_control_t::HELLO) {
-    // A handshake is answered whatever its seq (so a new client can attach)
-    // and changes nothing, so a repeated HELLO is harmless.
+    // A handshake is answered whatever its session and seq (so a new client
+    // can attach) and changes nothing, so a repeated HELLO is harmless.
     PublishState(msg.seq);
     return;
   }
+  const bool opens = msg.command == plant_control_t::START || msg.command == plant_control_t::OPEN;
+  if (session_ == 0 || msg.session != session_) {
+    if (opens && msg.session != 0 && SessionIdle()) {
+      session_ = msg.session;  // a new session: its seq counts from here
+      answered_seq_ = 0;
+      fresh_command_ = false;
+      if (options_.verbose)
+        std::cerr << "plant: following session " << session_ << " (" << channel << ")\n";
+    } else if (!(msg.command == plant_control_t::SHUTDOWN && session_ == 0 && msg.session == 0)) {
+      // (a SHUTDOWN without a session is obeyed only while nobody is in control)
+      RefuseSession(std::string("control ") + std::to_string(static_cast<int>(msg.command)),
+                    msg.session, msg.seq);
+      return;
+    }
+  }
+  session_heard_ = now_();
   if (!Admit(msg.seq)) {
     // A control message sent again (its answer was lost): in real-time mode
     // too it gets one, the current state (lockstep's Admit re-sent it already).
@@ -174,11 +236,17 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
     case plant_control_t::SHUTDOWN:
       shutdown_ = true;
       break;
+    case plant_control_t::OPEN:
+    case plant_control_t::CLOSE:
+      break;
     case plant_control_t::START:
-      if (msg.operating_step < 0) {
+      // the command line's --start-step bound: the step counter and the age
+      // computed from it stay far from overflow
+      if (msg.operating_step < 0 || msg.operating_step > plant_control_t::MAX_OPERATING_STEP) {
         ++counters_.rejected_commands;
-        std::cerr << "plant: rejected START seq " << msg.seq << ": operating_step "
-                  << msg.operating_step << " is negative\n";
+        refusals_.Refused("rejected START seq " + std::to_string(msg.seq) + ": operating_step " +
+                          std::to_string(msg.operating_step) + " is outside 0.." +
+                          std::to_string(plant_control_t::MAX_OPERATING_STEP));
         return;
       }
       plant_->SetOperatingSteps(msg.operating_step);
@@ -186,20 +254,34 @@ void PlantNode::OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& cha
       break;
     default:
       ++counters_.rejected_commands;
-      std::cerr << "plant: rejected control seq " << msg.seq << ": unknown command "
-                << static_cast<int>(msg.command) << "\n";
+      refusals_.Refused("rejected control seq " + std::to_string(msg.seq) + ": unknown command " +
+                        std::to_string(static_cast<int>(msg.command)));
       return;
   }
   answered_seq_ = msg.seq;
   fresh_command_ = false;  // a new episode: its first step needs a command answering it
   PublishState();
+  if (msg.command == plant_control_t::CLOSE) {
+    session_ = 0;
+    session_heard_.reset();
+  }
 }
 
-void PlantNode::ReportDecodeError(const std::string& channel, std::uint32_t size) {
+void PlantNode::RefuseSession(const std::string& what, std::int64_t session, std::int64_t seq) {
+  ++counters_.other_session;
+  refusals_.Refused("refused " + what + " seq " + std::to_string(seq) + " of session " +
+                    std::to_string(session) + ": following " +
+                    (session_ == 0 ? std::string("no session (open one with START or OPEN)")
+                                   : "session " + std::to_string(session_)) +
+                    "; counted (" + std::to_string(counters_.other_session) + " so far)");
+}
+
+void PlantNode::ReportDecodeError(const std::string& channel, std::uint32_t size,
+                                  const std::string& why) {
   ++counters_.decode_errors;
-  std::cerr << "plant: undecodable message on " << channel << " (" << size
-            << " bytes): wrong type or corrupt; counted (" << counters_.decode_errors
-            << " so far)\n";
+  refusals_.Refused("undecodable message on " + channel + " (" + std::to_string(size) +
+                    " bytes): " + why + "; counted (" + std::to_string(counters_.decode_errors) +
+                    " so far)");
 }
 
 }  // namespace ftc

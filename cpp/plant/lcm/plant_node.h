@@ -8,6 +8,16 @@
 // step and is answered by one state carrying the command's seq. A command with
 // the seq already applied is a retry: the last state is sent again without
 // stepping. Older seqs are stale and ignored. Both are counted in the state.
+// Sessions: a controller opens a control session with START or OPEN carrying a
+// random 64-bit id; the node follows one session at a time and refuses (and
+// counts, other_session) commands and control messages of any other, so a
+// neighbour's stray command cannot take the valves. A new session may open
+// when none is followed, or when the followed one has sent nothing for
+// session_timeout_s (its controller is gone); CLOSE ends one. Sequence numbers
+// count within a session. Every received buffer is checked before decoding
+// (plant/lcm/wire.h); refusals are counted and logged rate-limited, never fatal.
+// With a key (options.key), every received message must carry a valid MAC
+// with a rising timestamp (plant/lcm/signing.h) and every state is signed.
 // Real-time mode: the plant steps at rate_hz with zero-order hold on the last
 // valid command; a watchdog puts the valves into the safe state when no valid
 // command arrives for watchdog_s seconds. The tick after an episode's last
@@ -30,6 +40,8 @@
 
 #include "plant/core/plant.h"
 #include "plant/lcm/lcm_bridge.h"
+#include "plant/lcm/signing.h"
+#include "plant/lcm/wire.h"
 
 namespace ftc {
 
@@ -43,6 +55,10 @@ struct NodeOptions {
   double watchdog_s = 1.0;   // real-time mode: s without a valid command before the safe state
   SafeState safe_state = SafeState::kClosed;  // real-time mode: valves while tripped
   bool verbose = false;      // log watchdog events to stderr
+  // s without a message of the followed session after which another session
+  // may open (a controller killed without CLOSE leaves its session behind)
+  double session_timeout_s = 2.0;
+  signing::Key key;  // empty: messages are neither signed nor checked
 };
 
 class PlantNode final {
@@ -81,7 +97,13 @@ class PlantNode final {
   bool Admit(std::int64_t seq);
   void OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
   void OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
-  void ReportDecodeError(const std::string& channel, std::uint32_t size);
+  void HandleControl(const plant_control_t& msg, const std::string& channel);
+  bool SessionIdle() const;
+  void RefuseSession(const std::string& what, std::int64_t session, std::int64_t seq);
+  void ReportDecodeError(const std::string& channel, std::uint32_t size, const std::string& why);
+  // With a key: verifies the trailer and sets *size to the payload's; false
+  // (counted) if refused. Without: true.
+  bool Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel, std::size_t* size);
 
   lcm::LCM* lcm_;
   Plant* plant_;
@@ -92,6 +114,11 @@ class PlantNode final {
   lcm::Subscription* command_sub_ = nullptr;
   lcm::Subscription* control_sub_ = nullptr;
   LinkCounters counters_;
+  wire::RateLimitedLog refusals_{"plant"};
+  std::optional<signing::Verifier> verifier_;
+  std::optional<signing::Signer> signer_;
+  std::int64_t session_ = 0;  // the session followed; 0: none
+  std::optional<Clock::time_point> session_heard_;  // its last message
   std::int64_t state_seq_ = 0;
   std::int64_t answered_seq_ = 0;
   bool shutdown_ = false;

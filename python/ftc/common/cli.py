@@ -74,10 +74,15 @@ class Check:
             if not math.isfinite(v):
                 return f"must be a finite number, got {v}"
             if self.low is not None and (v < self.low or (self.low_open and v == self.low)):
-                return f"must be {'>' if self.low_open else '>='} {self.low:g}, got {v}"
+                return f"must be {'>' if self.low_open else '>='} {_number(self.low)}, got {v}"
             if self.high is not None and v > self.high:
-                return f"must be <= {self.high:g}, got {v}"
+                return f"must be <= {_number(self.high)}, got {v}"
         return None
+
+
+def _number(x: float) -> str:
+    """A bound as written: whole numbers in full (2147483647, not 2.14748e+09)."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
 def at_least(n: int, high: float | None = None) -> Check:

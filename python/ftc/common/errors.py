@@ -3,7 +3,8 @@
     0  success
     1  a failure at run time not covered below
     2  bad input: a flag, a scenario file, a --resume directory whose config or
-       checkpoint is corrupt or from another configuration
+       checkpoint is corrupt or from another configuration, a plug-in's action
+       that is not six valves of 0 or 1
     3  the plant stopped answering
     4  a non-finite number (observation, loss, gradient, weights)
     5  storage: a file could not be written (disk full, unwritable path)

@@ -23,7 +23,7 @@ import torch
 from ftc.common.atomic import atomic_torch_save
 from ftc.common.errors import CheckpointError, NonFiniteError
 from ftc.control import registry
-from ftc.control.config import EXTENSIBLE_FIELDS, RUN_LOCAL_FIELDS
+from ftc.control.config import EXTENSIBLE_FIELDS, run_local_fields
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
@@ -37,8 +37,9 @@ def config_stamp(configs: dict[str, Any]) -> dict[str, dict[str, Any]]:
     raise (its intervals), as plain JSON values."""
     stamp = {}
     for part, cfg in configs.items():
+        local = run_local_fields(cfg)
         values = {k: v for k, v in dataclasses.asdict(cfg).items()
-                  if k not in RUN_LOCAL_FIELDS and k not in EXTENSIBLE_FIELDS}
+                  if k not in local and k not in EXTENSIBLE_FIELDS}
         stamp[part] = json.loads(json.dumps(values, default=str))
     return stamp
 
@@ -53,7 +54,8 @@ def read(path: Path) -> dict[str, Any]:
     raises CheckpointError saying why not."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint (the run stopped before its first "
-                              "interval finished; start it again without --resume)")
+                              "interval finished: nothing to resume; start it again with "
+                              "--overwrite in place of --resume)")
     try:
         state = torch.load(path, weights_only=True)
     except Exception as e:  # noqa: BLE001 - any failure to read means corrupt

@@ -16,11 +16,12 @@ from ftc.common.cli import (add_dataclass_options, check_config, flag, given_opt
                             out_dir_problem)
 from ftc.common.errors import CheckpointError, RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
+from ftc.common.paths import scenario_file
 from ftc.common.replacing import STASH
 from ftc.common.run_lock import InUse, check_free
 from ftc.control import registry
-from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RUN_LOCAL_FIELDS, RunConfig
-from ftc.control.runner import replacement
+from ftc.control.config import EXTENSIBLE_FIELDS, RUN_FILES, RunConfig, run_local_fields
+from ftc.control.runner import held_advice, replacement
 
 # RunConfig's fields before and after the tool's own in --help
 RUN_HEAD = ("scenario", "seed", "out", "intervals", "steps_per_interval")
@@ -63,6 +64,11 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
     the output directory; bad input exits 2 with one line before anything exists.
     parts: other configs by option prefix (e.g. {"ppo-": PPOConfig(...)})."""
     try:
+        if cfg.scenario:  # a packaged scenario's name: its file
+            try:
+                cfg.scenario = scenario_file(cfg.scenario)
+            except ValueError as e:
+                raise ValueError(f"--scenario: {e}") from None
         check_config(cfg)
         for prefix, part in (parts or {}).items():
             check_config(part, prefix)
@@ -87,8 +93,7 @@ def check_or_exit(parser: argparse.ArgumentParser, cfg: RunConfig,
         parser.error(str(e))
     held = run_held(cfg.out)
     if not cfg.resume and held and not cfg.overwrite:
-        parser.error(f"--out {cfg.out} already holds a run ({held}): --resume {cfg.out} "
-                     "continues it, --overwrite replaces it")
+        parser.error(f"--out {held_advice(Path(cfg.out), held)}")
     problem = out_dir_problem(cfg.tensorboard) if cfg.tensorboard else None
     if problem:
         parser.error(f"--tensorboard {cfg.tensorboard}: cannot write there ({problem})")
@@ -155,10 +160,11 @@ def resume_configs(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
                      "directory (give only --resume)")
     for part, (cfg, prefix) in given.items():
         run = stored[part]
+        local = run_local_fields(run)
         for f in fields(run):
             value, theirs = getattr(cfg, f.name), getattr(run, f.name)
             dest = prefix.replace("-", "_") + f.name
-            if f.name in RUN_LOCAL_FIELDS:
+            if f.name in local:
                 setattr(run, f.name, value)
             elif dest not in named or value == theirs or _same_file(f.name, value, theirs):
                 continue
@@ -226,13 +232,22 @@ def _without_retired(cls: type, values: dict[str, Any], path: Path) -> dict[str,
     return {k: v for k, v in values.items() if k not in retired}
 
 
+def _kept(out: str | None) -> str:
+    """What a stopped run left in ``out``, said after the stop: its finished
+    intervals (a checkpoint) and how to go on, or that none finished."""
+    if not out:
+        return ""
+    if (Path(out) / "checkpoint.pt").is_file():
+        return f"; the finished intervals are in {out}, --resume {out} continues"
+    return f"; no interval had finished, so nothing was kept in {out} (run it again)"
+
+
 def run_or_report(tool: str, run: Callable[[], Any], out: str | None = None) -> int:
     """Run; a RunError is one line on stderr and its exit code. SIGINT, SIGTERM
     and SIGHUP stop the run through its clean-up: one line ("stopped by
     SIGTERM", and with ``out``, the run directory, where the finished
     intervals are and how to go on) and exit 128 + the signal's number (130,
     143, 129), as a shell reports it."""
-    kept = f"; the finished intervals are in {out}, --resume {out} continues" if out else ""
     try:
         with stop_signals():
             run()
@@ -240,7 +255,7 @@ def run_or_report(tool: str, run: Callable[[], Any], out: str | None = None) -> 
         print(f"{tool}: error: {e}", file=sys.stderr, flush=True)
         return e.exit_code
     except (KeyboardInterrupt, Stopped) as e:
-        line, code = stopped_line(tool, e, kept)
+        line, code = stopped_line(tool, e, _kept(out))
         print(f"\n{line}", file=sys.stderr, flush=True)
         return code
     return 0

@@ -4,7 +4,9 @@ controller's and the MPC's configs extend :class:`RunConfig`."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 from ftc.common.cli import Check, at_least, positive
 from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX
@@ -12,6 +14,7 @@ from ftc.common.errors import PlantLostError, RunError, UsageError
 from ftc.plant.lcm_link import LcmPlant, LinkConfig, check_loopback_url, launch
 from ftc.plant.link import CorePlant, PlantError, PlantGoneError, PlantLink
 from ftc.plant.realtime_link import RealtimeLink
+from ftc.plant.signing import load_key
 
 LINKS = ("lcm", "core")
 MAX_INTERVALS = 10_000
@@ -22,8 +25,9 @@ MAX_STEPS_PER_INTERVAL = 10_000_000
 class RunConfig:
     """Options of every interval run (the controller's and the MPC's)."""
 
-    scenario: str | None = field(default="scenarios/single.toml", metadata={"help": (
-        "fault scenario TOML given to the plant (empty string: nominal plant)")})
+    scenario: str | None = field(default="single", metadata={"help": (
+        "fault scenario given to the plant: a packaged one's name (single, "
+        "multiple, nominal, abrupt) or a TOML file (empty string: nominal plant)")})
     seed: int = field(default=0, metadata={"check": at_least(0, 2**31 - 1), "help": (
         "seeds the policy, the world model, model rollouts and the random baseline")})
     out: str = field(default="runs/controller", metadata={"help": "output directory"})
@@ -54,6 +58,10 @@ class RunConfig:
     allow_network: bool = field(default=False, metadata={"help": (
         "accept an --lcm-url whose traffic may leave this machine (ttl != 0, tcpq://); "
         "with --attach only, as launched plants are kept on loopback")})
+    key_file: str | None = field(default=None, metadata={"help": (
+        "with --attach: sign and check every message with the bus key in this file (hex, "
+        "mode 600; the plant's --key-file). A launched plant gets a fresh key per run "
+        "(docs/deploy.md)")})
     prefix: str | None = field(default=None, metadata={"help": (
         f"LCM channel prefix (None: a private one when launching; {DEFAULT_PREFIX} with "
         "--attach)")})
@@ -96,6 +104,8 @@ class RunConfig:
                              "and no --attach (an attached plant's own mode is used)")
         if self.prefix is not None and not self.prefix.strip():
             raise ValueError("--prefix must not be empty (None: a private one)")
+        if self.key_file is not None and not (self.attach and self.link == "lcm"):
+            raise ValueError("--key-file is for --attach (a launched plant gets a fresh key)")
         if not self.link_retry_timeout <= self.link_give_up_timeout:
             raise ValueError("--link-retry-timeout must be > 0 and <= --link-give-up-timeout")
         if self.lcm_url is not None and self.link == "lcm":
@@ -114,13 +124,21 @@ class RunConfig:
                           give_up_timeout=self.link_give_up_timeout, backoff=self.link_backoff)
 
 
-# Fields that do not change a run's results: a checkpoint written under other
-# values of these may be resumed (everything else must match), and a resumed
-# run takes them from its own command line.
+# RunConfig's fields that do not change a run's results: a checkpoint written
+# under other values of these may be resumed (everything else must match), and
+# a resumed run takes them from its own command line. A subclass or another
+# config part marks its own such fields with metadata {"run_local": True}.
 RUN_LOCAL_FIELDS = ("out", "resume", "overwrite", "lcm_url", "prefix", "attach", "allow_network",
-                    "realtime", "watchdog", "push_policy", "push_url",
-                    "quiet", "link_retry_timeout", "link_backoff", "link_give_up_timeout",
-                    "pretrain_cache", "tensorboard")
+                    "key_file",
+                    "realtime", "watchdog", "quiet", "link_retry_timeout", "link_backoff",
+                    "link_give_up_timeout", "tensorboard")
+
+
+def run_local_fields(cfg: Any) -> frozenset[str]:
+    """The fields of config dataclass ``cfg`` that do not change results
+    (:data:`RUN_LOCAL_FIELDS` and those whose metadata says ``run_local``)."""
+    return frozenset(f.name for f in dataclasses.fields(cfg)
+                     if f.name in RUN_LOCAL_FIELDS or f.metadata.get("run_local"))
 # Fields a resumed run may raise: more intervals extend it.
 EXTENSIBLE_FIELDS = ("intervals",)
 # The files that make a run directory hold a run (what --overwrite replaces).
@@ -139,11 +157,16 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
                              start_step=start_step)
         if cfg.attach:
             url, prefix = cfg.lcm_url or DEFAULT_LCM_URL, cfg.prefix or DEFAULT_PREFIX
-            link = LcmPlant(url, prefix, config=cfg.link_config(), allow_network=cfg.allow_network)
+            try:
+                key = load_key(cfg.key_file) if cfg.key_file else None
+            except ValueError as e:
+                raise UsageError(f"--key-file {e}") from None
+            link = LcmPlant(url, prefix, config=cfg.link_config(), allow_network=cfg.allow_network,
+                            key=key)
             if link.last_state.rate_hz > 0:  # real time: the run STARTs it at its own age
                 link.close()
                 return RealtimeLink(url, prefix, config=cfg.link_config(),
-                                    allow_network=cfg.allow_network)
+                                    allow_network=cfg.allow_network, key=key)
             at = link.hello().operating_steps
             if at != start_step:
                 link.close()
@@ -156,9 +179,10 @@ def open_plant(cfg: RunConfig, start_step: int) -> PlantLink:
         if cfg.realtime is not None:
             extra += ["--mode", "realtime", "--rate", repr(cfg.realtime),
                       "--watchdog", repr(cfg.watchdog)]
+        # a fresh key per run: a process without it changes nothing (docs/deploy.md)
         return launch(scenario, cfg.seed, lcm_url=cfg.lcm_url, prefix=cfg.prefix,
                       extra_args=extra, config=cfg.link_config(),
-                      link_class=RealtimeLink if cfg.realtime is not None else None)
+                      link_class=RealtimeLink if cfg.realtime is not None else None, sign=True)
     except PlantGoneError as e:
         raise PlantLostError(f"plant gone before the first step: {e}") from None
     except PlantError as e:  # refused to start; its exit code 2 means bad input

@@ -27,8 +27,9 @@ class MPCConfig(RunConfig):
         "observed data (assumes the plant's structure, never told the faults); learned-mpc: "
         "plans on a model learned from the observed steps alone, updated after every step "
         "(no plant equations, never told the faults)")})
-    scenario: str | None = field(default="scenarios/single.toml", metadata={"help": (
-        "fault scenario TOML given to the plant and read by the oracle ('' = nominal)")})
+    scenario: str | None = field(default="single", metadata={"help": (
+        "fault scenario given to the plant and read by the oracle: a packaged one's name "
+        "(single, multiple, nominal, abrupt) or a TOML file ('' = nominal)")})
     seed: int = field(default=0, metadata={"check": at_least(0, 2**31 - 1), "help": (
         "seeds the plant, the world model and the cross-entropy search")})
     out: str = field(default="runs/mpc", metadata={"help": "output directory"})
@@ -83,7 +84,8 @@ class MPCConfig(RunConfig):
         "rounding differs (docs/benchmarks.md)")})
     model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
         "model-mpc: nominal random-valve episodes for world-model pretraining (paper: 50)")})
-    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
+    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={
+        "run_local": True, "help": (
         "model-mpc: directory of pretrained world models keyed by a hash of everything "
         "pretraining depends on (episodes, seed, model config, code); a hit skips the "
         "pretraining with the same weights ('' disables)")})

@@ -22,7 +22,8 @@ from typing import Sequence
 
 from ftc.common.cli import OneLineParser, config_from_namespace
 from ftc.control.cli import add_run_options, check_or_exit, resume_configs, run_or_report
-from ftc.control.plugins import PluginConfig, PluginError, is_plugin, load_agent
+from ftc.control.plugins import (PluginConfig, PluginError, guard_actions, is_plugin,
+                                 load_agent)
 from ftc.control.runner import IntervalRunner
 
 TOOL = "ftc.plugin"
@@ -34,7 +35,7 @@ class PluginController(IntervalRunner):
     tool = TOOL
 
     def __init__(self, cfg: PluginConfig, agent) -> None:
-        super().__init__(cfg, agent, {"plugin": cfg})
+        super().__init__(cfg, guard_actions(agent, cfg.agent), {"plugin": cfg})
 
 
 def build_parser() -> argparse.ArgumentParser:

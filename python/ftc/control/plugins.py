@@ -28,10 +28,12 @@ from typing import Any, Callable
 import numpy as np
 
 from ftc.common.constants import NUM_TANKS, TANK_HEIGHT
+from ftc.common.errors import RunError, UsageError
 from ftc.control.agent import Agent, StepContext
 from ftc.control.config import RunConfig
 from ftc.control.sb3_agent import SB3Agent
 from ftc.plant.link import PlantObservation
+from ftc.plant.valves import valves_problem
 
 API_VERSION = 1  # the Agent protocol a plug-in is written against
 KINDS = ("module.path:factory", "sb3:PATH.zip", "onnx:PATH.onnx")
@@ -39,6 +41,39 @@ KINDS = ("module.path:factory", "sb3:PATH.zip", "onnx:PATH.onnx")
 
 class PluginError(ValueError):
     """A spec that does not give a controller; the message says what and where."""
+
+
+class PluginActionError(UsageError):
+    """A plug-in answered with something other than six valves of 0 or 1 (exit 2)."""
+
+
+class PluginFailedError(RunError):
+    """A plug-in raised while acting (exit 1)."""
+
+
+def guard_actions(agent: Agent, spec: str) -> Agent:
+    """``agent`` with every action checked before the plant sees it: a plug-in's
+    invalid action (another shape, NaN, 2, -1, 0.5) or its exception ends the
+    run with one line naming the plug-in, the interval and the step."""
+    act = agent.act
+
+    def checked(obs: PlantObservation, ctx: StepContext) -> np.ndarray:
+        where = (f"plug-in {spec} at interval {ctx.interval}, "
+                 f"{'evaluation ' if ctx.evaluation else ''}step {ctx.step}")
+        try:
+            u = act(obs, ctx)
+        except PluginError as e:  # a policy's own check (_checked), which names the spec
+            raise PluginActionError(f"{where}: {str(e).removeprefix(spec + ': ')}") from None
+        except Exception as e:  # noqa: BLE001 - the plug-in's own failure, named
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else ""
+            raise PluginFailedError(f"{where} raised {type(e).__name__}: {reason[:200]}") from None
+        problem = valves_problem(u)
+        if problem is not None:
+            raise PluginActionError(f"{where}: the action {problem} (six valves, each 0 or 1)")
+        return np.asarray(u).astype(np.int8)
+
+    agent.act = checked  # type: ignore[method-assign]
+    return agent
 
 
 @dataclass
@@ -164,6 +199,10 @@ def _onnx_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
         raise PluginError(f"onnx:{path}: {len(inputs)} inputs; the policy takes one, the "
                           "levels [N, 6]")
     name, output = inputs[0].name, "valves" if "valves" in outputs else outputs[0]
+    shape = inputs[0].shape or []
+    if len(shape) != 2 or (isinstance(shape[-1], int) and shape[-1] != NUM_TANKS):
+        raise PluginError(f"onnx:{path}: input {name!r} has shape {list(shape)}; the policy "
+                          f"takes the levels [N, {NUM_TANKS}]")
     return lambda levels: session.run([output], {name: levels[None]})[0][0]
 
 
@@ -172,9 +211,9 @@ def _checked(policy: Callable[[np.ndarray], np.ndarray], spec: str
     """The policy, as 0/1 int8 valves, once it answered full tanks with six of them."""
     def valves(levels: np.ndarray) -> np.ndarray:
         u = np.asarray(policy(levels)).reshape(-1)
-        if u.shape != (NUM_TANKS,) or not np.isin(u, (0, 1)).all():
-            raise PluginError(f"{spec}: the policy answered {u!r}, not {NUM_TANKS} valves of 0 "
-                              "or 1")
+        problem = valves_problem(u)
+        if problem is not None:
+            raise PluginError(f"{spec}: the policy's action {problem} (six valves, each 0 or 1)")
         return u.astype(np.int8)
 
     try:
@@ -182,5 +221,7 @@ def _checked(policy: Callable[[np.ndarray], np.ndarray], spec: str
     except PluginError:
         raise
     except Exception as e:  # noqa: BLE001 - the model's own failure on a valid input
-        raise PluginError(f"{spec}: the policy fails on full tanks: {type(e).__name__}: {e}")
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise PluginError(f"{spec}: the policy fails on full tanks: {type(e).__name__}: "
+                          f"{reason[:200]}")
     return valves

@@ -24,11 +24,14 @@ row-major) then b. ``checksum``: FNV-1a 64 of the widths (int32
 little-endian) then the params (float32 little-endian), in hex; the node
 refuses a file or push whose checksum differs, a version not above its own,
 or widths that are not 6 -> ... -> 6, naming the reason, and keeps its policy.
+It answers every push on ``<prefix>POLICY_ACK`` (accepted, or rejected with
+the reason): :func:`push` waits for that answer.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -37,6 +40,8 @@ import numpy as np
 from ftc.common.atomic import atomic_write_text
 from ftc.common.errors import UsageError
 from ftc.plant.lcm_link import check_loopback_url
+from ftc.plant.signing import Auth
+from ftc.plant.wire import decode_ack
 
 FORMAT = "ftc-policy 1"
 FNV_OFFSET, FNV_PRIME, MASK = 1469598103934665603, 1099511628211, (1 << 64) - 1
@@ -141,18 +146,65 @@ def policy_message(widths: Sequence[int], params: np.ndarray, version: int,
     return msg
 
 
-def push(lcm_url: str, prefix: str, message) -> None:
-    """Publish ``message`` once on ``<prefix>POLICY``."""
+# metrics.csv's columns of a run that pushes its policy (--push-policy)
+PUSH_COLUMNS = ("push_version", "push_accepted", "push_reason")
+
+
+@dataclass(frozen=True)
+class PushOutcome:
+    """The node's answer to a push: ``accepted`` None when none came in time."""
+
+    version: int
+    accepted: bool | None
+    reason: str = ""
+
+    def describe(self) -> str:
+        if self.accepted is None:
+            return f"version {self.version}: no answer from a policy node ({self.reason})"
+        return (f"version {self.version} " + ("accepted" if self.accepted
+                                              else f"rejected: {self.reason}"))
+
+
+def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
+         key: bytes | None = None) -> PushOutcome:
+    """Publish ``message`` once on ``<prefix>POLICY`` and wait up to ``timeout``
+    s for the node's answer on ``<prefix>POLICY_ACK`` (matched by version and
+    utime; other answers and undecodable buffers are ignored). With ``key``
+    the push is signed and only a signed answer counts (ftc.plant.signing)."""
     import lcm
 
+
     check_loopback_url(lcm_url)
-    lcm.LCM(lcm_url).publish(prefix + "POLICY", message.encode())
+    lc = lcm.LCM(lcm_url)
+    answers: list = []
+
+    auth = Auth(key) if key else None
+
+    def on_ack(channel: str, data: bytes) -> None:
+        if auth is not None and (data := auth.verify(channel, data)[0]) is None:
+            return
+        ack, _ = decode_ack(data)
+        if ack is not None and (ack.version, ack.push_utime) == (message.version, message.utime):
+            answers.append(ack)
+
+    sub = lc.subscribe(prefix + "POLICY_ACK", on_ack)
+    try:
+        data = message.encode()
+        lc.publish(prefix + "POLICY", auth.sign(prefix + "POLICY", data) if auth else data)
+        deadline = time.monotonic() + timeout
+        while not answers and time.monotonic() < deadline:
+            lc.handle_timeout(max(1, int(1000 * (deadline - time.monotonic()))))
+    finally:
+        lc.unsubscribe(sub)
+    if not answers:
+        return PushOutcome(message.version, None, f"nothing on {prefix}POLICY_ACK within "
+                                                  f"{timeout:g} s")
+    return PushOutcome(message.version, bool(answers[0].accepted), answers[0].reason)
 
 
-def push_policy(policy, lcm_url: str, prefix: str) -> int:
+def push_policy(policy, lcm_url: str, prefix: str) -> PushOutcome:
     """Push ``policy``'s actor (an ActorCritic) to the node on ``lcm_url``/``prefix``
     as the version of the time in milliseconds (above any earlier push and any
-    file's); returns the version."""
+    file's); returns the node's answer."""
     version = time.time_ns() // 1_000_000
-    push(lcm_url, prefix, policy_message(*actor_layers(policy), version=version))
-    return version
+    return push(lcm_url, prefix, policy_message(*actor_layers(policy), version=version))

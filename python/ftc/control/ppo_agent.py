@@ -119,19 +119,20 @@ class ControllerConfig(RunConfig):
     pretrain_minibatch: int = field(default=256, metadata={"check": at_least(1, 1_000_000), "help": (
         "PPO minibatch size while pretraining (large batches of cheap simulated steps)")})
     pretrain_rollout: int = field(default=64, metadata={"check": at_least(1, 1_000_000), "help": "steps per plant between updates"})
-    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"help": (
+    pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={
+        "run_local": True, "help": (
         "directory of pretrained policies and world models, keyed by a hash of everything "
         "pretraining depends on (seed, pretrain, PPO and model settings, code); a hit skips "
         "pretraining with the same result ('' disables)")})
     fresh_optimizer: bool = field(default=True, metadata={"help": (
         "reset Adam's state when adaptation starts, after pretraining (narrows the spread "
         "across seeds)")})
-    push_policy: str | None = field(default=None, metadata={"help": (
+    push_policy: str | None = field(default=None, metadata={"run_local": True, "help": (
         "after every interval, push the acting policy's weights (policy_t, the version "
         "the time in ms) to a policy node (build/policy_node) listening on this channel "
         "prefix at --push-url: learn here, fly there (docs/deploy.md). PPO methods only "
         "(None: no push)")})
-    push_url: str = field(default=DEFAULT_LCM_URL, metadata={"help": (
+    push_url: str = field(default=DEFAULT_LCM_URL, metadata={"run_local": True, "help": (
         "with --push-policy: the node's LCM URL (ttl=0)")})
 
     def ignored(self) -> dict[str, str]:

@@ -23,8 +23,21 @@ Deadlines are measured per interval (metrics.csv, TensorBoard):
     deadline_misses     plant steps taken without a command answering the state before them
     latency_*_ms        from a state's arrival to its command's send (p50, p99, max)
     watchdog_trips      times the plant's watchdog put the valves in the safe state
-    plant_missed_ticks  the plant's own count of deadline_misses (a cross-check)
+    plant_missed_ticks  the plant's own count: steps with no command newer than the state
+                        before them (it counts between the run's phases too, and a late
+                        answer it applied is a miss above but not here)
     lost_states         states that never arrived (their steps are not learned from)
+
+and so is foreign traffic (a neighbour's messages on the run's channels):
+
+    refused_*           states the link refused, by cause: bad_decode, other_session,
+                        stale (no newer than the last), seq_jump (implausibly far ahead),
+                        and with a key bad_signature, replay, old_timestamp
+    plant_other_session the plant's count of commands of other sessions it refused
+    foreign_commands    plant steps taken on a command of this session the run never
+                        sent (someone holding the session id commands the plant)
+
+A run that saw any of it says so in a warning at its end (:meth:`RealtimeLoop.foreign_note`).
 """
 
 from __future__ import annotations
@@ -41,8 +54,13 @@ from ftc.control.telemetry import Telemetry
 from ftc.plant.realtime_link import RealtimeLink, observation
 from ftc.plant.reward import reward
 
+# RealtimeLink.refused's keys
+REFUSALS = ("bad decode", "other session", "stale", "seq jump", "bad signature", "replay",
+            "old timestamp")
 REALTIME_COLUMNS = ("deadline_misses", "latency_p50_ms", "latency_p99_ms", "latency_max_ms",
-                    "watchdog_trips", "plant_missed_ticks", "lost_states")
+                    "watchdog_trips", "plant_missed_ticks", "lost_states",
+                    *(f"refused_{r.replace(' ', '_')}" for r in REFUSALS),
+                    "plant_other_session", "foreign_commands")
 KEPT_COMMANDS = 256  # sent commands remembered to tell which one the plant applied
 
 
@@ -59,6 +77,10 @@ class RealtimeLoop:
         self.obs = None  # its observation
         self.opened = False  # the next interval's episode is open and acted on
         self.where = ""
+        self.sent_max = 0  # the highest seq this run sent in its session
+        self.foreign_total = 0  # steps on commands this run never sent
+        self._run_refused = dict(link.refused)
+        self._first_other: int | None = None  # the plant's refusal count when the run began
         self._restart_counts()
 
     # -- deadlines ----------------------------------------------------------------
@@ -66,21 +88,43 @@ class RealtimeLoop:
         self.latencies_ns: list[int] = []
         self.misses = 0
         self.lost = 0  # states that never arrived (a gap in the plant's state counter)
+        self.foreign = 0
         self._plant_counts = self._counts(self.msg)
+        self._refused = dict(self.link.refused)
 
     @staticmethod
-    def _counts(msg) -> tuple[int, int]:
-        return (0, 0) if msg is None else (int(msg.missed_ticks), int(msg.watchdog_trips))
+    def _counts(msg) -> tuple[int, int, int]:
+        return (0, 0, 0) if msg is None else (int(msg.missed_ticks), int(msg.watchdog_trips),
+                                              int(msg.other_session))
+
+    def foreign_note(self) -> str:
+        """'' or one line on the foreign traffic the whole run saw."""
+        refused = {r: self.link.refused[r] - self._run_refused.get(r, 0) for r in REFUSALS}
+        other = (0 if self.msg is None or self._first_other is None
+                 else int(self.msg.other_session) - self._first_other)
+        parts = [f"{n} {r}" for r, n in refused.items() if n]
+        text = []
+        if parts:
+            text.append(f"the link refused states ({', '.join(parts)})")
+        if other > 0:
+            text.append(f"the plant refused {other} commands of other sessions")
+        if self.foreign_total:
+            text.append(f"the plant took {self.foreign_total} steps on commands this run never "
+                        "sent: results may differ from an undisturbed run")
+        return ("foreign traffic on the run's channels: " + "; ".join(text)) if text else ""
 
     def deadline_row(self) -> dict[str, Any]:
-        """The deadline columns of the interval so far."""
-        missed, trips = np.subtract(self._counts(self.msg), self._plant_counts)
+        """The deadline and foreign-traffic columns of the interval so far."""
+        missed, trips, other = np.subtract(self._counts(self.msg), self._plant_counts)
+        refused = {f"refused_{r.replace(' ', '_')}": self.link.refused[r] - self._refused.get(r, 0)
+                   for r in REFUSALS}
         lat = np.array(self.latencies_ns, dtype=np.float64) / 1e6
         p50, p99, worst = (np.percentile(lat, [50, 99]).tolist() + [float(lat.max())]
                            if len(lat) else (None, None, None))
         return {"deadline_misses": self.misses, "latency_p50_ms": p50, "latency_p99_ms": p99,
                 "latency_max_ms": worst, "watchdog_trips": int(trips),
-                "plant_missed_ticks": int(missed), "lost_states": self.lost}
+                "plant_missed_ticks": int(missed), "lost_states": self.lost, **refused,
+                "plant_other_session": int(other), "foreign_commands": self.foreign}
 
     # -- decisions ----------------------------------------------------------------
     def _act(self, ctx: StepContext) -> None:
@@ -89,6 +133,7 @@ class RealtimeLoop:
         sent = time.monotonic_ns()
         self.latencies_ns.append(sent - self.link.arrival_ns.get(self.msg.seq, sent))
         self.commands[seq] = u.copy()
+        self.sent_max = max(self.sent_max, seq)
         if len(self.commands) > KEPT_COMMANDS:
             del self.commands[min(self.commands)]
         self.awaited = seq
@@ -98,6 +143,9 @@ class RealtimeLoop:
         """Open an episode (START / RESET / EVALUATE) and act on it at once;
         ``new_interval``: the deadline counts start from its state."""
         self.msg = self.link.control(command, operating_step)
+        self.sent_max = max(self.sent_max, int(self.msg.command_seq))
+        if self._first_other is None:
+            self._first_other = int(self.msg.other_session)
         if new_interval:
             self._restart_counts()
         self.obs = finite_observation(observation(self.msg), self.where)
@@ -116,6 +164,9 @@ class RealtimeLoop:
         """Account for one plant step: its observation and the valves applied."""
         if self.awaited is None or s.command_seq != self.awaited:
             self.misses += 1
+        if s.command_seq > self.sent_max:  # a command of this session this run never sent
+            self.foreign += 1
+            self.foreign_total += 1
         u = self.commands.get(int(s.command_seq))
         if u is None or s.watchdog_tripped:
             u = np.array(s.valve, dtype=np.int8)  # the safe state, or held from before

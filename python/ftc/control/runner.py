@@ -29,6 +29,7 @@ interval and --resume continues from it.
 from __future__ import annotations
 
 import contextlib
+import csv
 import dataclasses
 import json
 import sys
@@ -48,7 +49,7 @@ from ftc.control.agent import Agent
 from ftc.control.config import RUN_FILES, RunConfig, open_plant
 from ftc.control.lockstep import LockstepLoop
 from ftc.control.metrics import format_cell, metric_columns, progress_line
-from ftc.control.policy_weights import push_policy
+from ftc.control.policy_weights import PUSH_COLUMNS, push_policy
 from ftc.control.realtime import REALTIME_COLUMNS, RealtimeLoop
 from ftc.control.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
@@ -99,8 +100,7 @@ def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
         if fresh:
             held = run_files_held(out)
             if held and not cfg.overwrite:
-                raise UsageError(f"{out} already holds a run ({held}): --resume {out} "
-                                 "continues it, --overwrite replaces it")
+                raise UsageError(held_advice(out, held))
             replacement(out).stash_old()
         try:
             yield
@@ -115,6 +115,37 @@ def _owning(out: Path, cfg: RunConfig, tool: str) -> Iterator[None]:
             raise
     finally:
         lock.release()
+
+
+def held_advice(out: Path, held: str) -> str:
+    """Why a new run (no --overwrite, no --resume) refuses ``out``, which holds
+    ``held``, and the command that goes on: a run that never finished an
+    interval (one killed there, an --overwrite among them) has nothing to
+    resume, so --overwrite starts it again."""
+    if _checkpointed(out):
+        return f"{out} already holds a run ({held}): --resume {out} continues it, " \
+               "--overwrite replaces it"
+    return (f"{out} holds a run that stopped before its first interval finished ({held}): "
+            "nothing to resume; --overwrite starts it again")
+
+
+def settle_metrics(path: Path, rows: list[dict[str, Any]], columns: list[str],
+                   tool: str) -> None:
+    """A finished run's metrics.csv made its checkpoint's ``rows`` again where
+    they disagree (a stray or a missing row), saying so: the checkpoint is
+    what the run did. The file's own header is kept (a real-time run's columns)."""
+    try:
+        with open(path, newline="") as f:
+            table = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        table = []
+    header = table[0] if table and table[0][:1] == ["interval"] else columns
+    if [r[:1] for r in table[1:]] == [[str(row["interval"])] for row in rows]:
+        return
+    atomic_write_csv(path, header, [[format_cell(row.get(c)) for c in header] for row in rows],
+                     lineterminator="\n")
+    print(f"{tool}: {path} did not match the run's checkpoint ({max(len(table) - 1, 0)} rows "
+          f"for {len(rows)} intervals): rewritten from the checkpoint", flush=True)
 
 
 def run_files_held(out: Path) -> str | None:
@@ -185,6 +216,7 @@ class IntervalRunner:
             if cfg.resume:
                 self.restore()
                 if self.interval >= cfg.intervals:
+                    settle_metrics(self.out / "metrics.csv", self.rows, self.columns, self.tool)
                     print(f"{self.tool}: {self.out} has finished its {self.interval} intervals; "
                           f"nothing to do (--intervals N above {self.interval} extends it)",
                           flush=True)
@@ -236,6 +268,8 @@ class IntervalRunner:
             self._merge_late_metrics()
             self.checkpoint()
             self.write_metrics()
+            if isinstance(self.loop, RealtimeLoop) and (note := self.loop.foreign_note()):
+                print(f"{self.tool}: warning: {note}", file=sys.stderr, flush=True)
 
     def _one_interval(self, plant: PlantLink, start: float) -> None:
         k = self.interval
@@ -265,10 +299,18 @@ class IntervalRunner:
     def _save(self) -> None:
         """The finished intervals' checkpoint and metrics.csv (and the policy pushed)."""
         self._merge_late_metrics()
+        if getattr(self.cfg, "push_policy", None):  # the controller's option
+            pushed = push_policy(self.agent.exported_policy(), self.cfg.push_url,
+                                 self.cfg.push_policy)
+            self.rows[self.interval - 1].update(  # 1 accepted, 0 rejected, '' no answer
+                push_version=pushed.version, push_reason=pushed.reason,
+                push_accepted=None if pushed.accepted is None else int(pushed.accepted))
+            self.columns += [c for c in PUSH_COLUMNS if c not in self.columns]
+            if not pushed.accepted:
+                print(f"warning: policy push after interval {self.interval - 1} to "
+                      f"{self.cfg.push_policy}POLICY: {pushed.describe()}", file=sys.stderr)
         self.checkpoint()
         self.write_metrics()
-        if getattr(self.cfg, "push_policy", None):  # the controller's option
-            push_policy(self.agent.exported_policy(), self.cfg.push_url, self.cfg.push_policy)
 
     def _merge_late_metrics(self) -> None:
         for interval, metrics in self.agent.late_metrics():

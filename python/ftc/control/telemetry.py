@@ -35,7 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ftc.common.errors import StorageError
-from ftc.plant.reward import MOMENT_ARMS, reward_terms
+from ftc.plant.reward import reward_terms
 
 
 class Telemetry:
@@ -128,8 +128,7 @@ class TensorBoardTelemetry(Telemetry):
                 self._scalar(f"interval/{name}", value, step)
         if self._levels:
             terms = reward_terms(np.array(self._levels), np.array(self._valves))
-            balance = (1.0 - np.abs(terms.cg) / np.abs(MOMENT_ARMS).max()) * terms.spread
-            for name, values in (("reward", terms.reward), ("balance", balance),
+            for name, values in (("reward", terms.reward), ("balance", terms.balance),
                                  ("activity", terms.activity), ("abs_cg", np.abs(terms.cg)),
                                  ("spread", terms.spread)):
                 self._scalar(f"reward/{name}", float(np.mean(values)), step)

@@ -145,8 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
                            formatter_class=argparse.RawDescriptionHelpFormatter,
                            epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("--scenarios", type=checked(Path, nonempty=True), nargs="+",
-                        default=None, metavar="FILE",
-                        help="scenario TOML files, named in the results by their stem "
+                        default=None, metavar="SCENARIO",
+                        help="scenario TOML files or packaged scenarios' names (single, "
+                             "multiple, nominal, abrupt), named in the results by their stem "
                              "(default: the suite's 22, see ftc.experiments.suite)")
     parser.add_argument("--methods", nargs="+", default=None, metavar="NAME",
                         help="methods to run, or plug-ins, NAME=SPEC with SPEC "

@@ -2,14 +2,15 @@
 but the scenario (``cached=True`` in :mod:`ftc.control.registry`: the
 ``reference`` planner on the true physics). The benchmark runs such a method
 once per scenario, copies the run to every seed, and keeps it here, so a
-later benchmark of the same scenario bytes with the same planning code runs
+later benchmark of the same scenario bytes with the same code runs
 nothing.
 
 A run's key is the SHA-256 of: the scenario file's text, the method's command
 line arguments, the run settings (intervals, steps per interval, link), the
 seed when the scenario's plant draws random numbers (sensor noise, a random
-start; otherwise none) and the digests of the code that plans (:data:`CODE`
-and the built native core). A changed byte of any of them misses.
+start; otherwise none) and the digests of the code that runs (every Python
+source of the package, the built native core and the plant executable:
+:func:`code_digests`). A changed byte of any of them misses.
 
 Layout: ``DIR/<key>/run/`` (the run directory as the benchmark wrote it) and
 ``DIR/<key>/key.json`` (what the key was made of). An entry is written in a
@@ -32,18 +33,11 @@ from pathlib import Path
 from typing import TextIO
 
 from ftc.common.atomic import atomic_write_json
+from ftc.common.build_info import BuildMissingError, plant_binary
 from ftc.experiments.method_args import method_args
 from ftc.experiments.methods import METHODS
 from ftc.experiments.runs import RunSpec, is_finished
 
-# The Python files, relative to the ftc package's parent, whose bytes decide a
-# cached method's results besides the native core: the planners and their
-# configuration, the method's spelling, the MPC tool and the interval runner.
-CODE = ("ftc/control/planners.py", "ftc/control/physics_evaluators.py",
-        "ftc/control/episode_planner.py", "ftc/control/mpc_config.py",
-        "ftc/control/true_physics.py", "ftc/control/balance.py",
-        "ftc/control/mpc_agent.py", "ftc/control/mpc_cli.py", "ftc/control/registry.py",
-        "ftc/control/runner.py", "ftc/control/agent.py", "ftc/plant/reward.py")
 ENV = "FTC_RUN_CACHE"  # overrides the default directory ('' disables the cache)
 DEFAULT_DIR = "~/.cache/ftc/reference"
 
@@ -62,15 +56,31 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def code_digests() -> dict[str, str]:
-    """SHA-256 of each file of :data:`CODE` and of the built native core (``_core``,
-    whose bytes carry the C++ physics and batch rollouts)."""
+def package_digest(package: Path) -> str:
+    """SHA-256 over every Python source of the package directory ``package``
+    (each file's path relative to it and its bytes, in sorted order): every module
+    a cached run can import, whichever it does (the interval runner, the lockstep
+    loop that computes the reward and the episode ends, the planners, the reward)."""
+    h = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        h.update(path.relative_to(package).as_posix().encode() + b"\0")
+        h.update(_sha256(path).encode())
+    return h.hexdigest()
+
+
+def code_digests(package: Path | None = None) -> dict[str, str]:
+    """The digests of the code a cached run executes: every Python source of the
+    ftc package (:func:`package_digest`; ``package`` defaults to this one), the
+    built native core (``_core``, whose bytes carry the C++ physics and batch
+    rollouts) and the plant executable (the LCM link's plant; absent: '')."""
     from ftc import _core  # native: its shared library is hashed, not run
 
-    root = Path(__file__).resolve().parents[2]  # the ftc package's parent
-    digests = {rel: _sha256(root / rel) for rel in CODE}
-    digests["_core"] = _sha256(Path(_core.__file__))
-    return digests
+    try:
+        plant = _sha256(plant_binary())
+    except BuildMissingError:
+        plant = ""
+    return {"ftc": package_digest(package or Path(__file__).resolve().parents[1]),
+            "_core": _sha256(Path(_core.__file__)), "plant": plant}
 
 
 def scenario_is_random(path: Path) -> bool:

@@ -18,6 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from ftc.common.constants import NUM_ENGINES, NUM_TANKS
+from ftc.common.paths import scenario_file
 from ftc.experiments.methods import DEFAULT_METHODS
 
 EXPERIMENTS = ("single", "multiple", "aggregate")
@@ -139,13 +140,14 @@ def experiment_scenarios(config: ExperimentConfig) -> dict[str, list[Scenario]]:
 
 
 def scenario_texts(files: Sequence[Path]) -> dict[str, tuple[str, str]]:
-    """stem -> (source, TOML text) of scenario files, each read by the plant's own
+    """stem -> (source, TOML text) of scenario files (or packaged scenarios' names), each read by the plant's own
     parser so that a malformed file is refused before any run; ValueError naming
     the file (and key), or two files of one stem (results name a scenario by it)."""
     from ftc import _core  # the bindings: the plant's scenario parser
 
     texts: dict[str, tuple[str, str]] = {}
-    for path in files:
+    for given in files:
+        path = Path(scenario_file(str(given)))  # a packaged scenario's name: its file
         try:
             _core.load_scenario(str(path))
             text = path.read_text()

@@ -8,8 +8,11 @@ imports ftc itself.
 Observation: ``Box(0, 1, (6,))`` published tank levels in metres (tank heights
 are 1 m; noisy readings are clipped to the physical range, as a saturating
 sensor would). Action: ``MultiBinary(6)``, valve i open (1) or closed (0).
-Reward: :func:`ftc.plant.reward.reward_terms` of the published levels after the
-step; its components are in ``info``. ``terminated``: fuel exhausted;
+Reward: the plant's own reward (``ftc._core.reward``, cpp/plant/core/reward.cpp,
+which tests check against :func:`ftc.plant.reward.reward_terms`) of the
+published levels after the step and the commanded valves; its components are
+in ``info``. The batched pool (ftc.plant.vector) calls the same C++ function, so
+the two envs' rewards agree to the last bit. ``terminated``: fuel exhausted;
 ``truncated``: the plant's interval boundary (the plant then degrades).
 
 The plant ages across episodes: ``reset()`` starts a new episode from full tanks
@@ -27,16 +30,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ftc import PACKAGE_DIR, REPO_ROOT
 from ftc.common.constants import NUM_TANKS
+from ftc.common.paths import scenario_file
 from ftc.plant.lcm_link import launch
 from ftc.plant.link import CorePlant, PlantLink, PlantObservation
 from ftc.plant.render import draw_plant
 from ftc.plant.reward import reward_terms
+from ftc.plant.valves import checked_valves
 
-# the checkout's scenarios/, or the copy installed with the package
-SCENARIO_DIR = next((d for d in (REPO_ROOT / "scenarios", PACKAGE_DIR / "scenarios")
-                     if d.is_dir()), REPO_ROOT / "scenarios")
 LINKS = ("lcm", "core")
 MAX_SEED = 2**64  # the plant's --seed and the core's seed are uint64
 
@@ -55,14 +56,11 @@ def resolve_scenario(scenario: str | os.PathLike | None) -> str | None:
         raise TypeError(f"FuelTransferEnv: scenario must be a path, a scenario name or None, "
                         f"got {type(scenario).__name__}")
     text = os.fspath(scenario)
-    if isinstance(scenario, str) and os.sep not in text and not text.endswith(".toml"):
-        path = SCENARIO_DIR / f"{text}.toml"
-        if not path.is_file():
-            known = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
-            raise ValueError(f"FuelTransferEnv: unknown scenario name {text!r} (not a file "
-                             f"in {SCENARIO_DIR}; known: {', '.join(known)}); "
-                             "or give the path of a .toml file")
-        return str(path)
+    if isinstance(scenario, str):
+        try:
+            text = scenario_file(text)
+        except ValueError as e:
+            raise ValueError(f"FuelTransferEnv: {e}; or give the path of a .toml file") from None
     path = Path(text)
     if not path.is_file():
         raise FileNotFoundError(f"FuelTransferEnv: scenario file not found: {text} "
@@ -141,10 +139,9 @@ class FuelTransferEnv(gym.Env):
     def _obs(self, o: PlantObservation) -> np.ndarray:
         return np.clip(o.level, 0.0, 1.0).astype(np.float32)
 
-    def _info(self, o: PlantObservation, valves: np.ndarray) -> dict[str, Any]:
-        terms = reward_terms(o.level, valves)
-        return {"cg": float(terms.cg), "spread": float(terms.spread),
-                "activity": float(terms.activity), "deficit": o.deficit.copy(),
+    def _info(self, o: PlantObservation, terms: dict[str, float]) -> dict[str, Any]:
+        return {"cg": terms["cg"], "spread": terms["spread"],
+                "activity": terms["activity"], "deficit": o.deficit.copy(),
                 "age": o.age, "step": o.step,
                 "true_level": o.true_level.copy()}
 
@@ -165,17 +162,17 @@ class FuelTransferEnv(gym.Env):
         o = self._link.reset()
         valves = np.zeros(NUM_TANKS, dtype=np.int8)
         self._last = (o, valves)
-        return self._obs(o), self._info(o, valves)
+        return self._obs(o), self._info(o, _reward_terms(o.level, valves))
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._link is None:
             raise gym.error.ResetNeeded("FuelTransferEnv: call reset() before step()")
-        u = np.asarray(action, dtype=np.int8)
+        u = checked_valves(action, "FuelTransferEnv.step")
         o = self._link.step(u)
         self._last = (o, u.copy())
-        info = self._info(o, u)
-        r = float(reward_terms(o.level, u).reward)
-        return self._obs(o), r, o.terminal, o.truncated and not o.terminal, info
+        terms = _reward_terms(o.level, u)
+        info = self._info(o, terms)
+        return self._obs(o), terms["reward"], o.terminal, o.truncated and not o.terminal, info
 
     def render(self) -> np.ndarray | None:
         """(400, 640, 3) uint8 RGB of the last state with render_mode="rgb_array"; else None."""
@@ -192,6 +189,13 @@ class FuelTransferEnv(gym.Env):
     def close(self) -> None:
         """Stop the plant this env launched (safe to call twice)."""
         self._close_link()
+
+
+def _reward_terms(level: np.ndarray, valves: np.ndarray) -> dict[str, float]:
+    """The plant's reward and its terms (reward, cg, spread, activity), floats."""
+    from ftc import _core
+
+    return _core.reward(level, valves)
 
 
 def _check_seed(name: str, seed: Any) -> None:

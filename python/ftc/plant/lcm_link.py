@@ -1,13 +1,17 @@
 """The real plant process over LCM: :class:`LcmPlant` (lockstep with sequence
 checks, retries with back-off, plant-gone detection), :func:`launch` (a private
-plant process on a private loopback port and prefix) and :func:`attach`."""
+plant process on a private loopback port and prefix) and :func:`attach`.
+
+A link opens a control session of its own (a random 64-bit id, plant_control_t
+OPEN) right after its handshake: the plant then refuses commands of any other
+session, and the link ignores (and counts, ``refused``) states of any other
+session and buffers that do not decode (:mod:`ftc.plant.wire`)."""
 
 from __future__ import annotations
 
 import os
 import random
 import secrets
-import struct
 import subprocess
 import tempfile
 import threading
@@ -21,7 +25,10 @@ import numpy as np
 from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX, LCM_MULTICAST_GROUP, NUM_TANKS
 from ftc.common.build_info import plant_binary
 from ftc.common.lifetime import die_with_parent
-from ftc.plant.link import PlantError, PlantGoneError, PlantObservation, valves_array
+from ftc.plant.link import (ForeignTrafficError, PlantError, PlantGoneError, PlantObservation,
+                             valves_array)
+from ftc.plant.signing import KEY_VARIABLE, Auth, new_key
+from ftc.plant.wire import decode_state
 
 
 @dataclass(frozen=True)
@@ -86,20 +93,59 @@ def check_loopback_url(url: str, allow_network: bool = False) -> None:
     warnings.warn(f"LCM traffic may leave this machine ({url})", stacklevel=2)
 
 
+def new_session() -> int:
+    """A random non-zero session id (int64 on the wire)."""
+    while True:
+        session = secrets.randbits(64) - (1 << 63)
+        if session:
+            return session
+
+
+def exit_message(process, stderr_path: str | None) -> str | None:
+    """How a plant process this link started ended (its stderr's tail), or None."""
+    if process is None or process.poll() is None:
+        return None
+    tail = ""
+    if stderr_path:
+        try:
+            with open(stderr_path, errors="replace") as f:
+                tail = f.read()[-2000:].strip()
+        except OSError:
+            pass
+    return f"plant process exited with code {process.returncode}" + (f": {tail}" if tail else "")
+
+
+def foreign_note(refused: dict[str, int], seen, last) -> str:
+    """What a link saw besides its plant's answers: ``refused`` counts by
+    cause, ``seen`` the newest state of another session, ``last`` the newest
+    of its own (whose counters say what the plant refused)."""
+    notes = []
+    if seen is not None:
+        notes.append(f"it saw {refused['other session']} states of another session "
+                     f"(newest: session {seen.session}, state {seen.seq}, "
+                     f"operating step {seen.operating_steps}): the plant restarted "
+                     "or another controller took it over")
+    if last is not None and last.other_session:
+        notes.append(f"the plant refused {last.other_session} commands of other sessions")
+    if refused["bad decode"]:
+        notes.append(f"{refused['bad decode']} undecodable messages on its STATE channel")
+    return "; ".join(notes)
+
+
 class LcmPlant:
     """Lockstep link to a plant process over LCM (implements :class:`PlantLink`).
 
-    Every request carries a fresh sequence number (starting from the wall clock
-    in microseconds, so a later client always outranks an earlier one); the
-    plant's answer carries it back. Answers to other sequence numbers are
-    ignored. A request not answered within ``retry_timeout`` is re-sent with the
+    Every request carries the link's session and a fresh sequence number
+    within it (from 1); the plant's answer carries both back. Answers to other
+    sequence numbers are ignored; states of other sessions are counted in
+    ``refused`` and otherwise ignored. A request not answered within ``retry_timeout`` is re-sent with the
     same seq (the plant answers a repeat without stepping twice); after
     ``give_up_timeout`` without an answer, :class:`PlantGoneError` is raised.
     """
 
     def __init__(self, lcm_url: str, prefix: str, *, config: LinkConfig = LinkConfig(),
                  process: "subprocess.Popen | None" = None, stderr_path: str | None = None,
-                 allow_network: bool = False) -> None:
+                 allow_network: bool = False, key: bytes | None = None) -> None:
         import lcm
 
         from ftc.plant_control_t import plant_control_t
@@ -115,38 +161,54 @@ class LcmPlant:
         self.decode_errors = 0
         self.retries = 0
         self.last_state = None
+        self.session = new_session()
+        # states refused by cause; `seen` is the newest of another session
+        self.refused = {"bad decode": 0, "other session": 0, "stale": 0, "seq jump": 0,
+                        "bad signature": 0, "replay": 0, "old timestamp": 0}
+        self._auth = Auth(key) if key else None  # sign and check every message
+        self.seen = None
+        self._opened = False
         self._sub = self._lc.subscribe(prefix + "STATE", self._on_state)
-        self._seq = time.time_ns() // 1000
+        self._seq = 0
         self._closed = False
         self.hello(timeout=config.startup_timeout if process else config.give_up_timeout)
+        self._control(self._types[2].OPEN, "OPEN (this run's control session)")
+        self._opened = True
 
     # -- transport ---------------------------------------------------------
+    def _publish(self, channel: str, data: bytes) -> None:
+        self._lc.publish(channel, self._auth.sign(channel, data) if self._auth else data)
+
     def _on_state(self, channel: str, data: bytes) -> None:
-        try:
-            self._answers.append(self._types[0].decode(data))
-        except (ValueError, struct.error):  # wrong fingerprint / truncated: counted, not fatal
+        if self._auth is not None:
+            data, cause = self._auth.verify(channel, data)
+            if data is None:
+                self.refused[cause] += 1
+                return
+        msg, _ = decode_state(data)
+        if msg is None:  # wrong type, truncated, hostile lengths: counted, not fatal
             self.decode_errors += 1
+            self.refused["bad decode"] += 1
+        elif self._opened and msg.session != self.session:
+            self.refused["other session"] += 1
+            self.seen = msg
+        else:
+            self._answers.append(msg)
+
+    def foreign_note(self) -> str:
+        """What the link saw that was not its plant's answer ('' if nothing)."""
+        return foreign_note(self.refused, self.seen, self.last_state)
 
     def _next_seq(self) -> int:
         self._seq += 1
         return self._seq
 
     def _plant_exit_message(self) -> str | None:
-        if self._process is None or self._process.poll() is None:
-            return None
-        tail = ""
-        if self._stderr_path:
-            try:
-                with open(self._stderr_path, errors="replace") as f:
-                    tail = f.read()[-2000:].strip()
-            except OSError:
-                pass
-        return (f"plant process exited with code {self._process.returncode}"
-                + (f": {tail}" if tail else ""))
+        return exit_message(self._process, self._stderr_path)
 
     def _request(self, channel: str, msg, seq: int, timeout: float, what: str):
         data = msg.encode()
-        self._lc.publish(channel, data)
+        self._publish(channel, data)
         start = time.monotonic()
         last_send = start
         interval = self.config.retry_timeout  # grows by config.backoff per re-send
@@ -155,10 +217,11 @@ class LcmPlant:
             now = time.monotonic()
             if now - start > timeout:
                 exited = self._plant_exit_message()
+                seen = self.foreign_note()
                 raise PlantGoneError(
                     f"plant on {self.url} prefix '{self.prefix}' did not answer {what} "
                     f"(seq {seq}) within {timeout:.1f} s after {resent} re-sends"
-                    + (f"; {exited}" if exited else ""))
+                    + (f"; {exited}" if exited else "") + (f"; {seen}" if seen else ""))
             wait = max(0.0, min(interval - (now - last_send), timeout - (now - start)))
             try:
                 self._lc.handle_timeout(max(1, int(wait * 1000)))
@@ -169,7 +232,9 @@ class LcmPlant:
                 # Anything else ends as "did not answer" at the timeout.
                 time.sleep(min(wait, 0.005))
             for i, state in enumerate(self._answers):
-                if state.command_seq == seq:
+                # a HELLO is answered in whatever session the plant follows
+                if state.command_seq == seq and (state.session == msg.session
+                                                 or msg.command == self._types[2].HELLO):
                     del self._answers[:i + 1]  # a real-time plant's later ticks stay queued
                     self.last_state = state
                     return state
@@ -180,14 +245,15 @@ class LcmPlant:
                     raise PlantGoneError(f"plant gone while waiting for {what} (seq {seq}): {exited}")
                 self.retries += 1
                 resent += 1
-                self._lc.publish(channel, data)
+                self._publish(channel, data)
                 last_send = time.monotonic()
                 interval *= self.config.backoff
 
     def _control(self, command: int, what: str, timeout: float | None = None):
         msg = self._types[2]()
         seq = self._next_seq()
-        msg.utime, msg.seq, msg.command = self._seq, seq, command
+        msg.utime, msg.session, msg.seq, msg.command = time.time_ns() // 1000, self.session, seq, \
+            command
         return self._request(self.prefix + "CONTROL", msg, seq,
                              timeout or self.config.give_up_timeout, what)
 
@@ -206,13 +272,18 @@ class LcmPlant:
         u = valves_array(valves)
         msg = self._types[1]()
         seq = self._next_seq()
-        msg.utime = time.time_ns() // 1000
-        msg.seq = seq
+        msg.utime, msg.session, msg.seq = time.time_ns() // 1000, self.session, seq
         msg.state_seq = self.last_state.seq if self.last_state is not None else 0
         msg.num_valves = NUM_TANKS
         msg.valve = [int(v) for v in u]
-        return _from_message(self._request(self.prefix + "COMMAND", msg, seq,
-                                           self.config.give_up_timeout, "valve command"))
+        answer = self._request(self.prefix + "COMMAND", msg, seq, self.config.give_up_timeout,
+                               "valve command")
+        if list(answer.valve) != msg.valve:  # the plant stepped on someone else's valves
+            raise ForeignTrafficError(
+                f"foreign traffic: the plant on {self.url} prefix '{self.prefix}' answered valve "
+                f"command {seq} of this run's session with valves {list(answer.valve)}, not "
+                f"the {msg.valve} sent: another process commands it in this session")
+        return _from_message(answer)
 
     def shutdown(self, timeout: float = 2.0) -> None:
         """Ask the plant process to exit (best effort)."""
@@ -226,6 +297,11 @@ class LcmPlant:
         if self._closed:
             return
         self._closed = True
+        if self._process is None:  # an attached plant: the next controller may open at once
+            try:
+                self._control(self._types[2].CLOSE, "CLOSE", 1.0)
+            except PlantError:
+                pass
         if self._process is not None:
             if self._process.poll() is None:
                 self.shutdown(timeout=1.0)
@@ -270,7 +346,7 @@ def _from_message(msg) -> PlantObservation:
 def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = None,
            prefix: str | None = None, extra_args: Sequence[str] = (),
            config: LinkConfig = LinkConfig(), die_with_caller: bool | None = None,
-           link_class: type | None = None) -> LcmPlant:
+           link_class: type | None = None, sign: bool = False) -> LcmPlant:
     """Start ``build/plant`` on a private LCM port and prefix; the link owns it.
 
     die_with_caller: the plant gets SIGKILL when the calling thread ends (so a
@@ -281,6 +357,10 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
 
     link_class: the link to make (default LcmPlant, the lockstep link; a plant
         launched with ``--mode realtime`` takes ftc.plant.realtime_link.RealtimeLink).
+
+    sign: give the plant a fresh key of its own (in its environment, never on
+        its command line) and sign and check every message with it: a process
+        without the key can then change nothing.
 
     Raises PlantError with the plant's own message if it refuses to start
     (e.g. a malformed scenario file).
@@ -295,12 +375,14 @@ def launch(scenario: str | None = None, seed: int = 0, *, lcm_url: str | None = 
     if die_with_caller is None:
         die_with_caller = threading.current_thread() is threading.main_thread()
     preexec = die_with_parent() if die_with_caller else None
+    key = new_key() if sign else None
+    env = {**os.environ, KEY_VARIABLE: key.hex()} if key else None
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=stderr, preexec_fn=preexec)
+                            stderr=stderr, preexec_fn=preexec, env=env)
     stderr.close()
     try:
         return (link_class or LcmPlant)(url, prefix, config=config, process=proc,
-                                        stderr_path=stderr.name)
+                                        stderr_path=stderr.name, key=key)
     except PlantGoneError as e:
         if proc.poll() is None:
             proc.kill()

@@ -7,7 +7,12 @@ rewards (recomputed with :mod:`ftc.plant.reward` from the published levels, as
 the controller computed them) follow from the log alone. A plant re-sends its
 last state when a command is retried or a HELLO arrives; such repeats are
 counted and dropped, keyed by (episode, step). A truncated or corrupt log is a
-:class:`LogError` naming the file and the byte offset where reading stopped.
+:class:`LogError` naming the file and the byte offset where reading stopped. A
+well-framed event on the STATE channel that is not a plant state (another
+process's traffic on the bus, hostile lengths included) is checked before
+decoding (:mod:`ftc.plant.wire`), counted and skipped: ``undecodable`` and
+``first_undecodable`` say which. A signed state (a plant with a bus key) is
+read without its trailer (:mod:`ftc.plant.signing`; not verified: no key).
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from ftc.common.atomic import atomic_write_csv
 from ftc.common.constants import NUM_ENGINES, NUM_TANKS
 from ftc.plant import trajectory as schema
 from ftc.plant.reward import reward
+from ftc.plant.signing import TRAILER_BYTES
+from ftc.plant.wire import decode_state
 
 STATE_SUFFIX = "STATE"
 class LogError(RuntimeError):
@@ -63,6 +70,8 @@ class Trajectory:
     events: int = 0
     repeats: int = 0
     missing: int = 0
+    undecodable: int = 0
+    first_undecodable: str = ""
 
     def __len__(self) -> int:
         return len(self.step)
@@ -76,7 +85,8 @@ class Trajectory:
         """The rows where mask (n,) is true."""
         arrays = {k: getattr(self, k)[mask] for k in _ARRAY_FIELDS}
         return Trajectory(**arrays, initial_level=self.initial_level, channel=self.channel,
-                          events=self.events, repeats=self.repeats, missing=self.missing)
+                          events=self.events, repeats=self.repeats, missing=self.missing,
+                          undecodable=self.undecodable, first_undecodable=self.first_undecodable)
 
     def episode_rows(self, episode: int) -> "Trajectory":
         rows = self.select(self.episode == episode)
@@ -164,9 +174,8 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
     'STATE' (an error if the log holds several, e.g. two plants' traffic).
     Raises LogError on a truncated or corrupt log, with the file and byte offset.
     """
-    import lcm  # native: liblcm's Python binding and the generated type
+    import lcm  # native: liblcm's Python binding
 
-    from ftc.plant_state_t import plant_state_t
 
     path = Path(path)
     if not path.is_file():
@@ -177,6 +186,7 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
     except (OSError, ValueError) as e:
         raise LogError(f"{path}: cannot open as an LCM log: {e}") from None
     states: dict[str, list] = {}
+    bad: dict[str, list[str]] = {}  # channel -> where and why each undecodable event
     events = 0
     offset = 0
     lcm_said = _CStderr()  # liblcm prints its own complaints; they go into our one line
@@ -195,15 +205,15 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
                                f"{event.eventnum} where {events} was expected")
             events += 1
             if event.channel.endswith(STATE_SUFFIX) and (channel is None or event.channel == channel):
-                try:
-                    msg = plant_state_t.decode(event.data)
-                except (ValueError, struct.error) as e:
-                    raise LogError(f"{path}: event {event.eventnum} at byte offset {offset} on "
-                                   f"{event.channel} does not decode as plant_state_t: {e}") from None
-                if len(msg.encode()) != len(event.data):  # the decoder ignores a tail
-                    raise LogError(f"{path}: event {event.eventnum} at byte offset {offset} on "
-                                   f"{event.channel} does not decode as plant_state_t: "
-                                   f"{len(event.data)} bytes, {len(msg.encode())} expected")
+                msg, why = decode_state(event.data)
+                if msg is None and len(event.data) > TRAILER_BYTES:
+                    # a keyed plant's state carries a signature trailer: the log
+                    # is a record (the MAC was checked live, if at all)
+                    msg, _ = decode_state(event.data[:-TRAILER_BYTES])
+                if msg is None:
+                    bad.setdefault(event.channel, []).append(
+                        f"event {event.eventnum} at byte offset {offset}: {why}")
+                    continue
                 states.setdefault(event.channel, []).append(msg)
     finally:
         log.close()
@@ -213,14 +223,20 @@ def read_log(path: str | os.PathLike, channel: str | None = None) -> Trajectory:
                        f"{offset} of {size} (after {events} events)"
                        + (f" (lcm: {lcm_said.text})" if lcm_said.text else ""))
     if not states:
+        skipped = sum(len(v) for v in bad.values())
         raise LogError(f"{path}: no plant_state_t messages"
+                       + (f" ({skipped} undecodable, the first {next(iter(bad.values()))[0]})"
+                          if skipped else "")
                        + (f" on channel {channel}" if channel else " on any *STATE channel")
                        + f" among {events} events")
     if len(states) > 1:
         raise LogError(f"{path}: several STATE channels ({', '.join(sorted(states))}); "
                        "choose one with --channel")
     (name, msgs), = states.items()
-    return _trajectory(msgs, name, events)
+    traj = _trajectory(msgs, name, events)
+    traj.undecodable = len(bad.get(name, []))
+    traj.first_undecodable = bad[name][0] if traj.undecodable else ""
+    return traj
 
 
 def _trajectory(msgs: list, channel: str, events: int) -> Trajectory:

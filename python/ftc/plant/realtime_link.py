@@ -30,6 +30,10 @@ GONE_TICKS = 20
 # States LCM keeps for a controller that is late (LCM's default, 30, is 1.5 s
 # at 20 Hz: a controller stopped for longer would lose the oldest).
 QUEUE_CAPACITY = 100_000
+# A state further than this ahead of the newest one is refused: the plant
+# publishes one per tick and LCM queues QUEUE_CAPACITY of them, so only a
+# forged state jumps so far (one with seq 2**62 would end newest-wins).
+MAX_SEQ_JUMP = 1 << 20
 
 
 class RealtimeLink(LcmPlant):
@@ -41,11 +45,11 @@ class RealtimeLink(LcmPlant):
 
     def __init__(self, lcm_url: str, prefix: str, *, config: LinkConfig = LinkConfig(),
                  process=None, stderr_path: str | None = None,
-                 allow_network: bool = False) -> None:
+                 allow_network: bool = False, key: bytes | None = None) -> None:
         self.arrival_ns: dict[int, int] = {}  # state seq -> time.monotonic_ns() on arrival
         self._last_seq = 0  # newest state handed out
         super().__init__(lcm_url, prefix, config=config, process=process,
-                         stderr_path=stderr_path, allow_network=allow_network)
+                         stderr_path=stderr_path, allow_network=allow_network, key=key)
         self._sub.set_queue_capacity(QUEUE_CAPACITY)
         rate = float(self.last_state.rate_hz)
         if rate <= 0:
@@ -57,11 +61,12 @@ class RealtimeLink(LcmPlant):
         self.rate_hz = rate
         self.period = 1.0 / rate
         self._gone_after = max(config.give_up_timeout, GONE_TICKS * self.period)
+        self._last_seq = self.last_state.seq  # the answer to this link's OPEN
 
     def _on_state(self, channel: str, data: bytes) -> None:
         before = len(self._answers)
         super()._on_state(channel, data)
-        if len(self._answers) > before:
+        if len(self._answers) > before and len(self.arrival_ns) < QUEUE_CAPACITY:
             self.arrival_ns[self._answers[-1].seq] = time.monotonic_ns()
 
     def control(self, command: int, operating_step: int = 0):
@@ -70,7 +75,8 @@ class RealtimeLink(LcmPlant):
         for :meth:`next_states`."""
         msg = self._types[2]()
         seq = self._next_seq()
-        msg.utime, msg.seq, msg.command = time.time_ns() // 1000, seq, command
+        msg.utime, msg.session, msg.seq, msg.command = (time.time_ns() // 1000, self.session,
+                                                        seq, command)
         msg.operating_step = int(operating_step)
         names = {msg.START: "START", msg.RESET: "RESET", msg.EVALUATE: "EVALUATE"}
         answer = self._request(self.prefix + "CONTROL", msg, seq, self.config.give_up_timeout,
@@ -79,20 +85,23 @@ class RealtimeLink(LcmPlant):
         return answer
 
     def next_states(self) -> list:
-        """Every state published since the last one handed out, oldest first
-        (waits for at least one). Raises PlantGoneError when the plant stops
-        publishing or restarts (its state counter goes back)."""
+        """Every state of this run's session published since the last one
+        handed out, oldest first (waits for at least one). A state no newer
+        than the last, or implausibly far ahead (MAX_SEQ_JUMP), is counted in
+        ``refused`` and ignored: one message cannot end the run or poison
+        newest-wins. Raises PlantGoneError, saying what it saw instead, when
+        no state of the session comes (the plant stopped, restarted or was
+        taken over)."""
         start = time.monotonic()
         while True:
-            fresh = [s for s in self._answers if s.seq > self._last_seq]
-            restarted = [s for s in self._answers if s.seq < self._last_seq]
+            fresh, newest = [], self._last_seq
+            for s in self._answers:
+                if newest < s.seq <= newest + MAX_SEQ_JUMP:
+                    fresh.append(s)
+                    newest = s.seq
+                else:
+                    self.refused["stale" if s.seq <= newest else "seq jump"] += 1
             self._answers.clear()
-            if restarted:
-                raise PlantGoneError(
-                    f"plant on {self.url} prefix '{self.prefix}' restarted (its state counter "
-                    f"went back from {self._last_seq} to {restarted[0].seq}): a new plant "
-                    "at operating step "
-                    f"{restarted[-1].operating_steps}, not the one this run was controlling")
             if fresh:
                 self._last_seq = fresh[-1].seq
                 self.last_state = fresh[-1]
@@ -102,10 +111,12 @@ class RealtimeLink(LcmPlant):
             waited = time.monotonic() - start
             if waited > self._gone_after:
                 exited = self._plant_exit_message()
+                seen = self.foreign_note()
                 raise PlantGoneError(
-                    f"plant on {self.url} prefix '{self.prefix}' published no state for "
-                    f"{waited:.1f} s (it ticks every {self.period * 1000:.0f} ms)"
-                    + (f"; {exited}" if exited else ""))
+                    f"plant on {self.url} prefix '{self.prefix}' published no state of this "
+                    f"run's session for {waited:.1f} s (it ticks every "
+                    f"{self.period * 1000:.0f} ms)" + (f"; {exited}" if exited else "")
+                    + (f"; {seen}" if seen else ""))
             try:
                 self._lc.handle_timeout(max(1, int(1000 * min(self.period, self._gone_after))))
             except OSError:  # a signal interrupted the wait: its handler has run
@@ -117,11 +128,11 @@ class RealtimeLink(LcmPlant):
         """Publish the command answering state ``state_seq``; returns its seq."""
         msg = self._types[1]()
         msg.seq = self._next_seq()
-        msg.utime = time.time_ns() // 1000
+        msg.utime, msg.session = time.time_ns() // 1000, self.session
         msg.state_seq = int(state_seq)
         msg.num_valves = NUM_TANKS
         msg.valve = [int(v) for v in valves_array(valves)]
-        self._lc.publish(self.prefix + "COMMAND", msg.encode())
+        self._publish(self.prefix + "COMMAND", msg.encode())
         return msg.seq
 
     def step(self, valves):  # the lockstep protocol does not apply

@@ -2,6 +2,9 @@
 policy node (the format and the message: :mod:`ftc.control.policy_weights`).
 
     python -m ftc.tools.policy_weights push policy.txt --version 2 --lcm-url ... --prefix RT_
+
+It waits for the node's answer: exit 0 when the node flies the weights, 1
+with one line naming the reason when it rejected them or did not answer.
 """
 
 from __future__ import annotations
@@ -11,8 +14,9 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from ftc.common.cli import OneLineParser, at_least, checked
-from ftc.common.errors import UsageError
+from ftc.common.cli import OneLineParser, at_least, checked, positive
+from ftc.common.errors import EXIT_FAILURE, UsageError
+from ftc.plant.signing import load_key
 from ftc.control.policy_weights import (actions, actor_layers, checksum, format_weights,  # noqa: F401
                                         policy_message, push, read_weights, write_weights)
 
@@ -29,14 +33,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="the version to push as (default: the file's)")
     p.add_argument("--lcm-url", required=True, help="the node's LCM URL (ttl=0)")
     p.add_argument("--prefix", default="FTC_", help="the node's channel prefix")
+    p.add_argument("--timeout", type=checked(float, positive(3600.0)), default=2.0,
+                   help="seconds to wait for the node's answer")
+    p.add_argument("--key-file", type=checked(Path, nonempty=True), default=None,
+                   help="sign the push with the node's key (hex, mode 600)")
     args = parser.parse_args(argv)
     try:
+        key = load_key(args.key_file) if args.key_file else None
         widths, params, version = read_weights(args.weights)
-        push(args.lcm_url, args.prefix, policy_message(widths, params, args.version or version))
+        outcome = push(args.lcm_url, args.prefix,
+                       policy_message(widths, params, args.version or version), args.timeout,
+                       key=key)
     except (UsageError, ValueError) as e:
         parser.error(str(e))
-    print(f"policy_weights: pushed {args.weights} as version {args.version or version} "
-          f"on {args.prefix}POLICY")
+    if not outcome.accepted:
+        print(f"policy_weights: error: {args.weights} on {args.prefix}POLICY: "
+              f"{outcome.describe()}", file=sys.stderr)
+        return EXIT_FAILURE
+    print(f"policy_weights: pushed {args.weights} as version {outcome.version} "
+          f"on {args.prefix}POLICY: accepted")
     return 0
 
 

@@ -9,6 +9,8 @@ trajectory, the episodes and the rewards (recomputed with :mod:`ftc.reward`
 from the published levels, as the controller computed them) follow from the
 log alone. A plant re-sends its last state when a command is retried or a
 HELLO arrives; such repeats are counted and dropped, keyed by (episode, step).
+A message on that channel that is not a plant state (another process's
+traffic) is counted and skipped, with a warning naming the first.
 
 A truncated or corrupt log is an error naming the file and the byte offset
 where reading stopped (exit code 2).
@@ -39,6 +41,8 @@ def summary(traj: Trajectory) -> str:
              f"({traj.repeats} repeated states dropped)",
              *([f"WARNING: {traj.missing} plant states are missing from the log (sequence "
                 "gaps): rewards below cover only what was recorded"] if traj.missing else []),
+             *([f"WARNING: {traj.undecodable} messages on {traj.channel} are not plant states "
+                f"(skipped; the first: {traj.first_undecodable})"] if traj.undecodable else []),
              f"episodes: {len(operating)} operating, {len(evaluation)} evaluation; "
              f"terminal {int(traj.terminal.sum())}, truncated {int(traj.truncated.sum())}",
              f"mean reward per step over all operating steps: "

@@ -33,6 +33,7 @@ from ftc.common.atomic import atomic_write_csv
 from ftc.common.cli import OneLineParser, at_least, check_out_file, checked
 from ftc.common.errors import RunError
 from ftc.common.lifetime import Stopped, stop_signals, stopped_line
+from ftc.common.paths import scenario_file
 from ftc.common.run_lock import RunLock, refuse_existing
 from ftc.control.baselines import BASELINES, baseline_valves
 from ftc.control.config import MAX_STEPS_PER_INTERVAL
@@ -70,8 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m ftc.simulate", description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__.split("\n\n", 1)[1].rsplit("\n\nExit codes", 1)[0])
-    parser.add_argument("--scenario", type=checked(Path, nonempty=True), default=None,
-                        help="fault scenario TOML file (default: nominal plant)")
+    parser.add_argument("--scenario", type=checked(str, nonempty=True), default=None,
+                        help="fault scenario: a packaged one's name (single, multiple, nominal, "
+                             "abrupt) or a TOML file (default: nominal plant)")
     parser.add_argument("--policy", choices=POLICIES, default="closed",
                         help="valves all closed, all open, or uniformly random each step")
     parser.add_argument("--seed", type=checked(int, at_least(0, 2**63 - 1)), default=0,
@@ -95,6 +97,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.scenario is not None:
+        try:
+            args.scenario = Path(scenario_file(args.scenario))
+        except ValueError as e:
+            parser.error(f"--scenario: {e}")
         if not args.scenario.is_file():
             parser.error(f"--scenario: no such file: {args.scenario}")
         from ftc import _core  # native: the plant's own scenario parser

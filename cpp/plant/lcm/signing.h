@@ -1,0 +1,160 @@
+// Message authentication on the bus, MAVLink 2's signing idea done with a
+// real MAC. With a shared key configured, every message carries a trailer
+// after its LCM encoding:
+//
+//   payload | link id (1 byte) | timestamp (6 bytes, big-endian, 10 us units
+//   since the Unix epoch) | HMAC-SHA256(key, channel | 0x00 | payload | link id
+//   | timestamp), its first kMacBytes bytes
+//
+// A receiver refuses (and counts, by cause) a message whose MAC does not
+// verify or that carries none (bad signature), whose timestamp is not above
+// the last one it accepted from that link (replay), or older than its window
+// (stale). Python's side: python/ftc/plant/signing.py (the same bytes).
+//
+// Header-only over OpenSSL's libcrypto (the policy node includes it too).
+#pragma once
+
+#include <openssl/crypto.h>
+#include <openssl/evp.h>
+#include <openssl/hmac.h>
+#include <sys/stat.h>
+
+#include <array>
+#include <cctype>
+#include <cstdint>
+#include <cstring>
+#include <fstream>
+#include <iterator>
+#include <string>
+#include <vector>
+
+namespace ftc::signing {
+
+constexpr std::size_t kMacBytes = 16;  // 128 of HMAC-SHA256's 256 bits
+constexpr std::size_t kTrailerBytes = 1 + 6 + kMacBytes;
+constexpr std::int64_t kTickUs = 10;                   // the timestamp's unit
+constexpr std::size_t kMinKeyBytes = 16;
+constexpr std::int64_t kDefaultWindowUs = 30'000'000;  // older than this: stale
+
+using Key = std::vector<unsigned char>;
+using Digest = std::array<unsigned char, 32>;
+
+inline Digest HmacSha256(const Key& key, const unsigned char* data, std::size_t n) {
+  Digest out{};
+  unsigned int len = 0;
+  HMAC(EVP_sha256(), key.data(), static_cast<int>(key.size()), data, n, out.data(), &len);
+  return out;
+}
+
+// A key from hex text (whitespace around it ignored); "" or the reason.
+inline std::string KeyFromHex(const std::string& text, Key* key) {
+  std::string hex;
+  for (char c : text)
+    if (!std::isspace(static_cast<unsigned char>(c))) hex += c;
+  if (hex.size() % 2 != 0 || hex.size() < 2 * kMinKeyBytes)
+    return "a key is at least " + std::to_string(2 * kMinKeyBytes) +
+           " hex digits (an even number)";
+  key->clear();
+  for (std::size_t i = 0; i < hex.size(); i += 2) {
+    const std::string byte = hex.substr(i, 2);
+    if (!std::isxdigit(static_cast<unsigned char>(byte[0])) ||
+        !std::isxdigit(static_cast<unsigned char>(byte[1])))
+      return "not hex: '" + byte + "'";
+    key->push_back(static_cast<unsigned char>(std::stoi(byte, nullptr, 16)));
+  }
+  return {};
+}
+
+// The key in `path` (hex text). Refuses a file that others can read or
+// write: "" or the reason naming the file.
+inline std::string LoadKey(const std::string& path, Key* key) {
+  struct stat st {};
+  if (stat(path.c_str(), &st) != 0) return path + ": cannot read the key file";
+  if (st.st_mode & (S_IRWXG | S_IRWXO))
+    return path + ": the key file is readable or writable by others (chmod 600 it)";
+  std::ifstream in(path);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (!in && !in.eof()) return path + ": cannot read the key file";
+  const std::string why = KeyFromHex(text, key);
+  return why.empty() ? why : path + ": " + why;
+}
+
+inline std::vector<unsigned char> MacInput(const std::string& channel, const unsigned char* payload,
+                                           std::size_t n, const unsigned char* link_and_time) {
+  std::vector<unsigned char> in(channel.begin(), channel.end());
+  in.push_back(0);
+  in.insert(in.end(), payload, payload + n);
+  in.insert(in.end(), link_and_time, link_and_time + 7);
+  return in;
+}
+
+// Signs every message one sender publishes: timestamps rise strictly.
+class Signer final {
+ public:
+  Signer(Key key, std::uint8_t link_id) : key_(std::move(key)), link_id_(link_id) {}
+
+  std::vector<unsigned char> Sign(const std::string& channel, const void* payload, std::size_t n,
+                                  std::int64_t now_us) {
+    std::int64_t ts = now_us / kTickUs;
+    if (ts <= last_) ts = last_ + 1;
+    last_ = ts;
+    const auto* p = static_cast<const unsigned char*>(payload);
+    std::vector<unsigned char> out(p, p + n);
+    out.push_back(link_id_);
+    for (int i = 5; i >= 0; --i) out.push_back(static_cast<unsigned char>(ts >> (8 * i)));
+    const auto mac = HmacSha256(key_, MacInput(channel, p, n, out.data() + n).data(),
+                                channel.size() + 1 + n + 7);
+    out.insert(out.end(), mac.begin(), mac.begin() + kMacBytes);
+    return out;
+  }
+
+ private:
+  Key key_;
+  std::uint8_t link_id_;
+  std::int64_t last_ = 0;
+};
+
+enum class Verdict { kOk, kBadSignature, kReplay, kStale };
+
+inline const char* Describe(Verdict v) {
+  switch (v) {
+    case Verdict::kOk: return "ok";
+    case Verdict::kBadSignature: return "bad or missing signature";
+    case Verdict::kReplay: return "replayed (timestamp not above the link's last)";
+    case Verdict::kStale: return "stale (timestamp older than the window)";
+  }
+  return "?";
+}
+
+// Checks the trailer of every message one receiver takes.
+class Verifier final {
+ public:
+  explicit Verifier(Key key, std::int64_t window_us = kDefaultWindowUs)
+      : key_(std::move(key)), window_ticks_(window_us / kTickUs) {}
+
+  // kOk with the payload's size (the bytes before the trailer) in *payload_size.
+  Verdict Verify(const std::string& channel, const void* data, std::size_t size,
+                 std::int64_t now_us, std::size_t* payload_size) {
+    if (size < kTrailerBytes) return Verdict::kBadSignature;
+    const auto* p = static_cast<const unsigned char*>(data);
+    const std::size_t n = size - kTrailerBytes;
+    const auto mac = HmacSha256(key_, MacInput(channel, p, n, p + n).data(),
+                                channel.size() + 1 + n + 7);
+    if (CRYPTO_memcmp(mac.data(), p + n + 7, kMacBytes) != 0) return Verdict::kBadSignature;
+    std::int64_t ts = 0;
+    for (int i = 0; i < 6; ++i) ts = (ts << 8) | p[n + 1 + static_cast<std::size_t>(i)];
+    std::int64_t& last = last_[p[n]];
+    if (ts <= last) return Verdict::kReplay;
+    if (ts < now_us / kTickUs - window_ticks_) return Verdict::kStale;
+    last = ts;
+    *payload_size = n;
+    return Verdict::kOk;
+  }
+
+ private:
+  Key key_;
+  std::int64_t window_ticks_;
+  std::array<std::int64_t, 256> last_{};  // per link id: the newest timestamp accepted
+};
+
+}  // namespace ftc::signing

@@ -1,0 +1,7 @@
+// libFuzzer target: bounded decoding of plant_control_t (tests/fuzz/wire_harness.h).
+// Built only with -DFTC_FUZZ=ON (scripts/fuzz.sh).
+#include "wire_harness.h"
+
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+  return ftc::fuzz::One<ftc::plant_control_t>(data, size);
+}
