@@ -73,6 +73,16 @@ sundials_version="6.4.1+dfsg1"
 sundials_sha256="c61157f1d4be06c704bea40cb131eb63ba2dada161989071604d0a0959cdf04a"
 sundials_prefix="$root/build/sundials"
 sundials_dir="$sundials_prefix/lib/cmake/sundials"
+# A build made once on this machine is kept in the user's cache, keyed by the
+# source's checksum and the compiler, and copied into a fresh checkout's build/
+# (the copy, not a link: the checkout's build never depends on the cache).
+sundials_cache="${XDG_CACHE_HOME:-$HOME/.cache}/ftc/sundials-${sundials_sha256:0:16}-$(g++ -dumpfullversion 2>/dev/null || echo cc)"
+if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ] && [ -f "$sundials_cache/lib/cmake/sundials/SUNDIALSConfig.cmake" ]; then
+  echo "setup: CVODE (Release) from $sundials_cache"
+  mkdir -p build && rm -rf "$sundials_prefix" && cp -a "$sundials_cache" "$sundials_prefix"
+  # its CMake files name the prefix it was installed to: point them at the copy
+  grep -rlI --null "$sundials_cache" "$sundials_prefix" | xargs -0 -r sed -i "s#$sundials_cache#$sundials_prefix#g"
+fi
 if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ]; then
   mkdir -p build/sundials-src
   tarball="build/sundials-src/sundials_${sundials_version}.orig.tar.xz"
@@ -95,6 +105,10 @@ if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ]; then
        && cmake --build build/sundials-src/build -j"$(nproc)" >> build/sundials-src/build.log 2>&1 \
        && cmake --install build/sundials-src/build >> build/sundials-src/build.log 2>&1; then
       rm -rf build/sundials-src/src build/sundials-src/build
+      mkdir -p "$(dirname "$sundials_cache")" && rm -rf "$sundials_cache.part" \
+        && cp -a "$sundials_prefix" "$sundials_cache.part" \
+        && grep -rlI --null "$sundials_prefix" "$sundials_cache.part" | xargs -0 -r sed -i "s#$sundials_prefix#$sundials_cache#g" \
+        && rm -rf "$sundials_cache" && mv "$sundials_cache.part" "$sundials_cache" || true
     else
       echo "setup: note: building SUNDIALS failed (build/sundials-src/build.log); using Debian's" >&2
       rm -rf "$sundials_prefix"

@@ -130,6 +130,7 @@ def test_benchmark_on_ray_equals_the_local_executor(head, tmp_path):
     assert (remote / "report.md").read_text().count("on Ray at 127.0.0.1:") == 1
 
 
+@pytest.mark.slow  # tens of seconds; the default tier keeps the benchmark on Ray
 def test_experiment_with_lcm_plants_on_ray_equals_the_local_executor(head, tmp_path):
     local, remote = tmp_path / "local", tmp_path / "ray"
     a = _cli([*EXPERIMENT, "--jobs", "2", "--out", str(local)], _env())
@@ -167,6 +168,7 @@ def _task_processes() -> dict[int, str]:
     return found
 
 
+@pytest.mark.slow  # tens of seconds; the default tier keeps the benchmark on Ray
 def test_killed_driver_leaves_finished_runs_and_resume_on_ray_skips_them(head, tmp_path):
     out = tmp_path / "resume"
     args = [*EXPERIMENT[:2], "closed", "open", "--seeds", "0", "1", *EXPERIMENT[7:11],
@@ -205,6 +207,7 @@ def test_killed_driver_leaves_finished_runs_and_resume_on_ray_skips_them(head, t
     assert not any(d.exists() for d in left), "a later task removes a dead task's directory"
 
 
+@pytest.mark.slow  # tens of seconds; the default tier keeps the benchmark on Ray
 def test_a_failing_task_is_reported_like_a_failing_local_run(head, tmp_path):
     args = [*BENCH[:5], "--seeds", "0", *BENCH[8:], "--run-timeout", "0.001"]
     local = _cli([*args, "--out", str(tmp_path / "local")], _env())

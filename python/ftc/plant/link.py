@@ -133,6 +133,3 @@ class PlantGoneError(PlantError):
     """The plant stopped answering (killed, crashed, or not there)."""
 
 
-class ForeignTrafficError(PlantGoneError):
-    """The plant follows someone else: it applied a command this link did not
-    send (another process commands it in this run's session)."""
