@@ -81,7 +81,8 @@ if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ] && [ -f "$sundials_cache/lib/cm
   echo "setup: CVODE (Release) from $sundials_cache"
   mkdir -p build && rm -rf "$sundials_prefix" && cp -a "$sundials_cache" "$sundials_prefix"
   # its CMake files name the prefix it was installed to: point them at the copy
-  grep -rlI --null "$sundials_cache" "$sundials_prefix" | xargs -0 -r sed -i "s#$sundials_cache#$sundials_prefix#g"
+  { grep -rlI --null "$sundials_cache" "$sundials_prefix" || true; } \
+    | xargs -0 -r sed -i "s#$sundials_cache#$sundials_prefix#g"
 fi
 if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ]; then
   mkdir -p build/sundials-src
@@ -107,7 +108,8 @@ if [ ! -f "$sundials_dir/SUNDIALSConfig.cmake" ]; then
       rm -rf build/sundials-src/src build/sundials-src/build
       mkdir -p "$(dirname "$sundials_cache")" && rm -rf "$sundials_cache.part" \
         && cp -a "$sundials_prefix" "$sundials_cache.part" \
-        && grep -rlI --null "$sundials_prefix" "$sundials_cache.part" | xargs -0 -r sed -i "s#$sundials_prefix#$sundials_cache#g" \
+        && { grep -rlI --null "$sundials_prefix" "$sundials_cache.part" || true; } \
+             | xargs -0 -r sed -i "s#$sundials_prefix#$sundials_cache#g" \
         && rm -rf "$sundials_cache" && mv "$sundials_cache.part" "$sundials_cache" || true
     else
       echo "setup: note: building SUNDIALS failed (build/sundials-src/build.log); using Debian's" >&2
