@@ -377,6 +377,7 @@ def test_resume_skips_finished_runs_and_redoes_the_rest(bench):
     assert proc.returncode == 2 and "--intervals differs" in proc.stderr
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_another_reference_is_recorded_and_a_resume_with_a_different_one_refused(tmp_path):
     out = tmp_path / "quick"
     single = Path(__file__).parents[2] / "scenarios" / "single.toml"

@@ -85,6 +85,7 @@ def test_the_three_kinds_score_on_the_benchmark(policies, tmp_path, link):
     assert meta["methods"]["exported"]["args"] == ["--agent", f"onnx:{policies['onnx']}"]
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_a_benchmark_of_plugins_resumes(tmp_path):
     out = tmp_path / "bench"
     assert _benchmark(*SHORT, "--link", "core", "--out", str(out), "--methods",

@@ -107,6 +107,7 @@ def _digest(root: Path) -> dict[str, str]:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_benchmark_on_ray_equals_the_local_executor(head, tmp_path):
     local, remote = tmp_path / "local", tmp_path / "ray"
     started = time.monotonic()

@@ -149,6 +149,7 @@ def test_a_learning_run_on_a_realtime_plant_reports_its_deadlines(tmp_path):
         assert logged == pytest.approx([float(r[column]) for r in rows], rel=1e-5), column
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_a_stopped_controller_trips_the_watchdog_and_then_takes_control_back(bus, tmp_path):
     url, prefix, plant, listener = bus
     out = tmp_path / "run"
@@ -225,6 +226,7 @@ def test_a_plant_that_restarts_under_the_controller_ends_the_run_with_one_line(
     assert not any((out / name).exists() for name in RUN_FILES), list(out.iterdir())
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_a_guided_methods_fits_run_off_the_loop_and_report_late(tmp_path):
     out = tmp_path / "robust"
     # ppo-robust: after each interval the guided fit (DAgger with the planner, about

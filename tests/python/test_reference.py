@@ -191,6 +191,7 @@ def _reference_rows(out: Path) -> list[tuple[str, str]]:
                 if r["method"] == "reference"]
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_the_benchmark_runs_the_reference_once_per_scenario_and_then_from_the_cache(
         tmp_path, scenarios):
     scenario = tmp_path / "single.toml"

@@ -7,6 +7,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 # A native-engine PPO's life: built, acting, a native update (Adam's moments read from
 # and written to the torch optimiser), its optimiser reset, saved and loaded.
 NATIVE_ENGINE = """
@@ -57,6 +59,7 @@ def test_a_numpy_engine_ppo_never_imports_dynamo():
     assert _python(NATIVE_ENGINE) == ["False"]
 
 
+@pytest.mark.slow  # 10-30 s: the fresh-clone CI stays under its 10 minutes
 def test_torch_updates_are_bit_identical_with_and_without_the_marks():
     marked, marked_weights = _python(TORCH_UPDATE, "marked")
     unmarked, plain_weights = _python(TORCH_UPDATE, "dynamo-first")
