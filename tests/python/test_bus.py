@@ -239,6 +239,18 @@ def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
 
 
 @pytest.mark.slow
+def _run_session_state(lc, states: list, run: subprocess.Popen):
+    """Handle ``lc`` until ``states`` holds one of the run's own session (the
+    controller probes the plant with a link of its own first): its commands are
+    answered (command_seq above HELLO, OPEN, CLOSE). Returns the newest state."""
+    deadline = time.monotonic() + 60
+    while not any(s.session != 0 and s.command_seq > 10 and not s.watchdog_tripped
+                  for s in states):
+        assert time.monotonic() < deadline and run.poll() is None, run.communicate()
+        lc.handle_timeout(50)
+    return states[-1]
+
+
 def test_a_realtime_run_counts_foreign_traffic_by_cause_and_warns(tmp_path, scenarios):
     """A real-time run under a neighbour's commands (another session) and forged
     states: it completes; metrics.csv's refused counts are what was sent; the
@@ -264,14 +276,7 @@ def test_a_realtime_run_counts_foreign_traffic_by_cause_and_warns(tmp_path, scen
     lc.subscribe(prefix + "STATE", lambda _c, d: states.append(plant_state_t.decode(d)))
     sent = {"bad decode": 0, "stale": 0, "seq jump": 0, "other session": 0, "commands": 0}
     try:
-        deadline = time.monotonic() + 60
-        # the run's own session (the controller probes the plant with a link of its
-        # own first): its commands are answered (command_seq above HELLO, OPEN, CLOSE)
-        while not any(s.session != 0 and s.command_seq > 10 and not s.watchdog_tripped
-                      for s in states):
-            assert time.monotonic() < deadline and run.poll() is None, run.communicate()
-            lc.handle_timeout(50)
-        session = states[-1].session
+        session = _run_session_state(lc, states, run).session
         for k in range(5):
             cmd = valve_command_t()
             cmd.session, cmd.seq = session ^ 1, time.time_ns() // 1000
@@ -511,12 +516,8 @@ def test_with_a_key_a_realtime_run_refuses_everything_a_neighbour_sends(tmp_path
     lc.subscribe(prefix + "STATE", on_state)
     commands = 0
     try:
-        deadline = time.monotonic() + 60
-        while not any(s.session != 0 and s.command_seq > 10 and not s.watchdog_tripped
-                      for s in states):
-            assert time.monotonic() < deadline and run.poll() is None, run.communicate()
-            lc.handle_timeout(50)
-        session, seq = states[-1].session, states[-1].command_seq
+        last = _run_session_state(lc, states, run)
+        session, seq = last.session, last.command_seq
         for k in range(5):
             cmd = valve_command_t()
             cmd.session, cmd.seq, cmd.num_valves, cmd.valve = session, seq + 2 + k, 6, [1] * 6
