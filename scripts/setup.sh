@@ -58,6 +58,12 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   quiet_pip uninstall -q -y ftc >/dev/null 2>&1 || true  # an install of the package itself
   echo "$want" > "$stamp"
 fi
+# the lcm wheel, kept: tests/python/test_install.py installs it, with no index,
+# into a fresh venv beside the package (whose plant finds liblcm there)
+lcm_pin="$(grep -m1 '^lcm==' requirements.txt)"
+ls .venv/wheelhouse/"lcm-${lcm_pin#lcm==}"-*.whl >/dev/null 2>&1 \
+  || .venv/bin/pip download -q --no-deps "$lcm_pin" -d .venv/wheelhouse 2>&1 \
+     | { grep -v "^WARNING: Location .* is ignored" || true; }
 site_packages="$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 [ "$(cat "$site_packages/ftc-checkout.pth" 2>/dev/null)" = "$root/python" ] \
   || echo "$root/python" > "$site_packages/ftc-checkout.pth"

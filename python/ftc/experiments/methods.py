@@ -12,10 +12,9 @@ from pathlib import Path
 from typing import Sequence
 
 from ftc.control import registry
-
-
-
 from ftc.control.agents import plugins
+
+
 @dataclass(frozen=True)
 class MethodSpec:
     """A compared method: a module run with ``python -m`` and its method arguments.
@@ -62,6 +61,7 @@ for _m in registry.METHODS.values():
     if _m.compared:  # the experiments run each under its own name: --method NAME
         register_method(MethodSpec(_m.name, _m.label, _m.args, module=_m.tool, cost=_m.cost,
                                    learns=_m.learns, benchmark=_m.benchmark, cached=_m.cached))
+
 PLUGIN_MODULE = "ftc.plugin"  # the tool that runs a plug-in (ftc.tools.plugin)
 
 

@@ -34,12 +34,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ftc.common.cli import at_least
 from ftc.common.errors import CheckpointError
 from ftc.control.run import checkpoint
 from ftc.control.run.agent import Agent, StepContext, Transition
 from ftc.control.run.checkpoint import check_finite_state
-from ftc.control.run.config import MAX_INTERVALS
+from ftc.control.agents import world_model_options
 from ftc.control.run.metrics import PPO_COLUMNS, PPO_PROGRESS_KEYS
 from ftc.control.agents.ppo_online import OnlinePPO, PolicyConfig
 from ftc.learning.offline import (ModelWindow, OfflineResult, OfflineSettings, offline_phase,
@@ -73,15 +72,9 @@ class ControllerConfig(PolicyConfig):
         "process while online control continues with the current policy, the improved "
         "policy swapped in at the next update boundary after it is ready (not "
         "reproducible step for step: the swap point depends on timing)")})
-    model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
-        "intervals of real data each refit trains on: 1 = only the interval just run "
-        "(Algorithm 1: the cache is cleared after each refit); k > 1 keeps the last k")})
-    model_engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
-        "how the world model is trained: numpy (several times faster at this size) or "
-        "torch (autograd); the same algorithm, minibatches and stopping rule, float32 "
-        "rounding differs (docs/benchmarks.md)")})
-    model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
-        "nominal random-valve episodes for world-model pretraining (paper: 50)")})
+    model_window: int = world_model_options.model_window()
+    model_engine: str = world_model_options.model_engine()
+    model_episodes: int = world_model_options.model_episodes()
 
     def validate(self) -> None:
         super().validate()

@@ -51,7 +51,7 @@ from ftc.control.run import checkpoint
 from ftc.control.run.agent import Agent, StepContext
 from ftc.control.run.metrics import MODEL_COLUMNS
 from ftc.control.agents.mpc_config import PLANNERS, MPCConfig
-from ftc.control.run.config import MAX_INTERVALS
+from ftc.control.agents import world_model_options
 from ftc.control.planning.physics.episode_planner import EpisodePlanner
 from ftc.control.planning.physics.true_physics import TruePhysics
 from ftc.control.planning.physics.evaluators import OracleEvaluator
@@ -113,15 +113,9 @@ class ModelMPCConfig(MPCConfig):
     """A model-mpc run: the planner's options and the world model's."""
 
     method: str = field(default="model-mpc", metadata={"help": "the method"})
-    model_window: int = field(default=1, metadata={"check": at_least(1, MAX_INTERVALS), "help": (
-        "intervals of real data each refit trains on (1 = the interval just run, "
-        "as the controller's default)")})
-    model_engine: str = field(default="numpy", metadata={"choices": ("numpy", "torch"), "help": (
-        "how the world model is trained: numpy (several times faster at this size) or "
-        "torch (autograd); the same algorithm, minibatches and stopping rule, float32 "
-        "rounding differs (docs/benchmarks.md)")})
-    model_episodes: int = field(default=50, metadata={"check": at_least(1, 100_000), "help": (
-        "nominal random-valve episodes for world-model pretraining (paper: 50)")})
+    model_window: int = world_model_options.model_window()
+    model_engine: str = world_model_options.model_engine()
+    model_episodes: int = world_model_options.model_episodes()
     pretrain_cache: str = field(default="~/.cache/ftc/pretrain", metadata={"run_local": True, "help": (
         "directory of pretrained world models keyed by a hash of everything "
         "pretraining depends on (episodes, seed, model config, code); a hit skips the "
