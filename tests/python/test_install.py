@@ -90,6 +90,11 @@ def test_pip_install_into_a_fresh_venv_gives_a_working_package(tmp_path):
                                 120).split()
     assert Path(module).is_relative_to(site) and Path(plant).is_relative_to(site)
     assert Path(plant).parent.name == "bin" and int(steps) > 0
+    # the installed programs and modules load nothing from the checkout (its
+    # build/ may be gone): every shared library resolves outside it
+    for binary in [Path(plant), *Path(module).parent.glob("_*.so")]:
+        linked = _run(["ldd", str(binary)], work, env, 60)
+        assert "not found" not in linked and str(REPO) not in linked, (binary, linked)
 
     # the README's install commands, as written, beside the venv (myenv), outside the
     # checkout: scenario names and the tools' default scenario from the installed package
