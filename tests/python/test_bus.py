@@ -275,6 +275,62 @@ def _control(session: int, seq: int, command: int) -> bytes:
     return msg.encode()
 
 
+@pytest.mark.parametrize("attack", ["races the next seq", "runs ahead"])
+def test_without_a_key_a_same_session_sniffer_stops_a_lockstep_run_in_one_line(scenarios,
+                                                                                attack):
+    """A neighbour without a key that read the session off the bus (every state
+    carries it) sends a command in it: with the controller's next seq, before the
+    controller (the plant applies the first and rejects the second as a repeat
+    with other valves), or a seq ahead (the controller's become stale). The link
+    stops at its next request with one line naming foreign traffic, never going on
+    from a state it did not drive."""
+    from ftc.plant.link import ForeignTrafficError
+
+    with launch(scenarios / "single.toml", 3, extra_args=["--steps-per-interval", "40"]) as plant:
+        lc = lcm.LCM(plant.url)
+        plant.reset()
+        for _ in range(3):
+            plant.step([0] * 6)
+        ahead = 1 if attack == "races the next seq" else 5
+        lc.publish(plant.prefix + "COMMAND", _command(plant.session, plant._seq + ahead))
+        time.sleep(0.05)  # the neighbour's command is first at the plant
+        steps = 0
+        with pytest.raises(ForeignTrafficError) as e:
+            for _ in range(3):
+                plant.step([0] * 6)
+                steps += 1
+        assert steps == (1 if ahead == 1 else 0)  # the raced step was taken, no more
+    message = str(e.value)
+    assert "\n" not in message and message.startswith("foreign traffic in this run's control session")
+    assert ("repeat" in message) if ahead == 1 else ("never sent" in message), message
+
+
+def test_a_takeover_after_the_session_timeout_stops_a_lockstep_run_in_one_line(scenarios):
+    """The controller idles past the plant's --session-timeout; a neighbour opens a
+    session of its own, steps the plant, closes, and reopens the controller's
+    session (read off the bus): the controller's next step is applied, but its
+    answer does not follow from the last one by that step: the run stops."""
+    from ftc.plant.link import ForeignTrafficError
+
+    with launch(scenarios / "single.toml", 3, extra_args=[
+            "--steps-per-interval", "40", "--session-timeout", "0.2"]) as plant:
+        lc = lcm.LCM(plant.url)
+        plant.reset()
+        plant.step([0] * 6)
+        time.sleep(0.4)  # idle past the session timeout
+        mine = 4242
+        sent = [_control(mine, 1, plant_control_t.OPEN), _command(mine, 2), _command(mine, 3),
+                _control(mine, 4, plant_control_t.CLOSE),
+                _control(plant.session, 1, plant_control_t.OPEN)]
+        for data in sent:
+            lc.publish(plant.prefix + ("COMMAND" if data in sent[1:3] else "CONTROL"), data)
+            time.sleep(0.02)
+        with pytest.raises(ForeignTrafficError) as e:
+            plant.step([0] * 6)
+    message = str(e.value)
+    assert "\n" not in message and "after its step the plant is at episode" in message, message
+
+
 def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
     link = launch(None, 0, extra_args=["--mode", "realtime", "--rate", "50"],
                   link_class=RealtimeLink)
@@ -514,6 +570,7 @@ def test_with_a_key_the_policy_node_flies_only_signed_states_and_pushes(tmp_path
     assert refused.accepted is None
     assert signed.returncode == 0, signed.stderr
     assert node.returncode == 0 and re.match(r"^steps 150 ", out.strip()), err
+    assert float(re.search(r"auth_us_per_step ([\d.]+)", out).group(1)) > 0  # it signed
     assert "policy version 2 in use" in err and f"version {2**62}" not in err
     counts = re.search(r"bad signature (\d+), replay (\d+)", err)
     assert counts and int(counts.group(1)) == 3, err  # the push and the two states
