@@ -6,7 +6,11 @@ mode at rising rates, driven by
            exported as the node reads it) for --steps steps;
     node-signed  the same with a bus key (plant and node --key-file): every
            message signed and checked (HMAC-SHA256), for the signing's cost
-           side by side with node at the same rates;
+           side by side with node at the same rates (with both, each rate runs
+           --repeats pairs, node and node-signed alternating ABBA, and the
+           signing's cost is printed: the median p99 of each, their difference
+           against the budget, max(5% of the unsigned p99, 20 us), and the node's
+           own time in HMAC per step; --signing-results writes it);
     ppo    python -m ftc.controller --method ppo-offline --realtime RATE, learning
            on: 2 intervals of 256 steps, a PPO update every 128 steps and the
            offline phase (2048 model steps) after each interval, plus the
@@ -57,7 +61,8 @@ from ftc.plant import private_lcm_url, private_prefix  # noqa: E402
 from ftc.tools import policy_weights  # noqa: E402
 
 SUMMARY = re.compile(r"steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
-                     r"latency_p99_us (\d+) latency_max_us (\d+)")
+                     r"latency_p99_us (\d+) latency_max_us (\d+) auth_us_per_step ([\d.]+)")
+SIGNING_BUDGET = (0.05, 20.0)  # signing may cost the node 5% of its p99 latency, or 20 us
 MISS_LIMIT = 0.001  # the aim: fewer than 0.1% of the steps missed
 
 
@@ -80,8 +85,10 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
     m = SUMMARY.search(out.stdout)
     if out.returncode or not m:
         raise SystemExit(f"bench_realtime: the node failed at {rate} Hz: {out.stderr.strip()}")
-    n, misses, p50, p99, worst = map(int, m.groups())
-    return _row("node-signed" if key_file else "node", rate, n, misses, p50, p99, worst)
+    n, misses, p50, p99, worst = map(int, m.groups()[:5])
+    row = _row("node-signed" if key_file else "node", rate, n, misses, p50, p99, worst)
+    row["auth_us_per_step"] = m.group(6)
+    return row
 
 
 def _row(controller: str, rate: float, n: int, misses: int, p50: float, p99: float,
@@ -90,7 +97,7 @@ def _row(controller: str, rate: float, n: int, misses: int, p50: float, p99: flo
             "deadline_misses": str(misses), "miss_fraction": f"{misses / n:.4f}",
             "latency_p50_us": f"{p50:.0f}", "latency_p99_us": f"{p99:.0f}",
             "latency_max_us": f"{worst:.0f}",
-            "keeps_up": "yes" if misses / n < MISS_LIMIT else "no"}
+            "keeps_up": "yes" if misses / n < MISS_LIMIT else "no", "auth_us_per_step": ""}
 
 
 PYTHON_RUNS = {  # controller -> the run (2 intervals of 256 steps, the plant's rate added)
@@ -121,8 +128,52 @@ def run_python(controller: str, rate: float, out: Path) -> dict:
                 1000 * p50, 1000 * p99, 1000 * worst)
 
 
+def _node_runs(controllers: list[str], rates: list[float], repeats: int) -> list:
+    """(controller, rate) in the order to run: per rate, node and node-signed
+    alternating ABBA over ``repeats`` pairs when both are asked for (so a change
+    of the machine's load falls on both alike), else each once."""
+    nodes = [c for c in controllers if c.startswith("node")]
+    order = []
+    for rate in sorted(rates):
+        if set(nodes) == {"node", "node-signed"}:
+            for k in range(repeats):
+                pair = ["node", "node-signed"] if k % 2 == 0 else ["node-signed", "node"]
+                order += [(c, rate) for c in pair]
+        else:
+            order += [(c, rate) for c in dict.fromkeys(nodes)]
+    return order
+
+
+def signing_cost(rows: list[dict]) -> list[dict]:
+    """Per rate with both node and node-signed rows: the median p99 latency of
+    each, the difference, the budget (max(5% of the unsigned p99, 20 us)) and
+    whether it is met, and the signed node's median time in HMAC per step."""
+    out = []
+    for rate in dict.fromkeys(r["rate_hz"] for r in rows):
+        plain = [float(r["latency_p99_us"]) for r in rows
+                 if r["rate_hz"] == rate and r["controller"] == "node"]
+        signed = [float(r["latency_p99_us"]) for r in rows
+                  if r["rate_hz"] == rate and r["controller"] == "node-signed"]
+        if not plain or not signed:
+            continue
+        auth = [float(r["auth_us_per_step"]) for r in rows
+                if r["rate_hz"] == rate and r["controller"] == "node-signed"]
+        p_plain, p_signed = float(np.median(plain)), float(np.median(signed))
+        budget = max(SIGNING_BUDGET[0] * p_plain, SIGNING_BUDGET[1])
+        out.append({"rate_hz": rate, "pairs": str(min(len(plain), len(signed))),
+                    "p99_unsigned_us": f"{p_plain:.0f}", "p99_signed_us": f"{p_signed:.0f}",
+                    "p99_unsigned_runs": " ".join(f"{v:.0f}" for v in plain),
+                    "p99_signed_runs": " ".join(f"{v:.0f}" for v in signed),
+                    "difference_us": f"{p_signed - p_plain:.0f}",
+                    "budget_us": f"{budget:.0f}",
+                    "within_budget": "yes" if p_signed - p_plain <= budget else "no",
+                    "hmac_us_per_step": f"{float(np.median(auth)):.2f}"})
+    return out
+
+
 def measure(controllers: list[str], steps: int, rates: list[float],
-            python_rates: list[float], echo: bool = False) -> tuple[list[dict], Any]:
+            python_rates: list[float], echo: bool = False,
+            repeats: int = 1) -> tuple[list[dict], Any]:
     """Every controller at every rate: the table's rows, and the node's latencies
     at its lowest rate with that row (or None)."""
     torch.manual_seed(0)
@@ -133,19 +184,20 @@ def measure(controllers: list[str], steps: int, rates: list[float],
         key_file = Path(tmp) / "bus.key"
         key_file.write_text(new_key().hex())
         key_file.chmod(0o600)
-        for controller in controllers:
-            node = controller.startswith("node")
-            for rate in sorted(rates if node else python_rates):
-                if node:
-                    log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
-                    rows.append(run_rate(weights, rate, steps, log,
-                                         key_file if controller == "node-signed" else None))
-                    if first_log is None:
-                        first_log = (np.loadtxt(log), rows[-1])
-                else:
-                    rows.append(run_python(controller, rate, Path(tmp) / f"{controller}-{rate:g}"))
-                if echo:
-                    print(" ".join(f"{k} {v}" for k, v in rows[-1].items()), flush=True)
+        runs = _node_runs(controllers, rates, repeats)
+        runs += [(c, rate) for c in controllers if not c.startswith("node")
+                 for rate in sorted(python_rates)]
+        for controller, rate in runs:
+            if controller.startswith("node"):
+                log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
+                rows.append(run_rate(weights, rate, steps, log,
+                                     key_file if controller == "node-signed" else None))
+                if first_log is None:
+                    first_log = (np.loadtxt(log), rows[-1])
+            else:
+                rows.append(run_python(controller, rate, Path(tmp) / f"{controller}-{rate:g}"))
+            if echo:
+                print(" ".join(f"{k} {v}" for k, v in rows[-1].items()), flush=True)
     return rows, first_log
 
 
@@ -166,15 +218,42 @@ def main(argv: list[str] | None = None) -> int:
                    help="plant rates to try with the node, Hz")
     p.add_argument("--python-rates", type=float, nargs="+", default=[20, 50, 100, 200],
                    help="plant rates to try with the Python controllers, Hz")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="with node and node-signed: pairs per rate, alternating (default 1)")
     p.add_argument("--results", type=Path, help="write the table as a result file")
+    p.add_argument("--signing-results", type=Path,
+                   help="write the signing's cost per rate (node against node-signed) as a "
+                        "result file")
     p.add_argument("--figure", type=Path, help="draw the latency histogram at the lowest rate")
     args = p.parse_args(argv)
+    if args.repeats < 1:
+        p.error(f"--repeats must be at least 1, not {args.repeats}")
     rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
-                              echo=True)
-    for controller in args.controllers:
+                              echo=True, repeats=args.repeats)
+    for controller in dict.fromkeys(args.controllers):
         best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
               + (f"{best:g} Hz" if best else "none tried"))
+    cost = signing_cost(rows)
+    for c in cost:
+        print(f"bench_realtime: signing at {c['rate_hz']} Hz ({c['pairs']} pairs): p99 "
+              f"{c['p99_unsigned_us']} us unsigned, {c['p99_signed_us']} us signed (medians), "
+              f"+{c['difference_us']} us against a budget of {c['budget_us']} us: "
+              f"{'within' if c['within_budget'] == 'yes' else 'OVER'}; HMAC "
+              f"{c['hmac_us_per_step']} us per step")
+    if args.signing_results and cost:
+        from suite_results import write_result_file
+
+        write_result_file(args.signing_results, (
+            f"# what: the policy node's p99 latency (state arrival, before its check, to "
+            f"command sent) unsigned and signed (HMAC-SHA256 on every message, plant and node "
+            f"--key-file), {args.steps} steps a run, {args.repeats} pairs per rate alternating "
+            f"ABBA, single fault; budget max(5% of the unsigned p99, 20 us); hmac: the node's "
+            f"own time signing and checking, per step\n"
+            f"# command: scripts/bench_realtime.py --controllers node node-signed --steps "
+            f"{args.steps} --rates {' '.join(f'{r:g}' for r in args.rates)} --repeats "
+            f"{args.repeats}\n"
+            f"# commit: {git_revision()}\n"), cost)
     if args.results:
         from suite_results import write_result_file
 

@@ -4,7 +4,10 @@
 // and a pushed policy_t replaces the policy between two steps (or is rejected
 // with a logged reason). At exit it prints one line:
 //   steps N deadline_misses M latency_p50_us A latency_p99_us B latency_max_us C
-// A deadline miss is a plant step taken without the command answering the
+//   auth_us_per_step D
+// (latency: from a state's arrival, before its check and decode, to its
+// command's send; D: the time spent signing and checking messages per step,
+// 0 without a key). A deadline miss is a plant step taken without the command answering the
 // state before it (the next state's command_seq is older than that command).
 //
 // The node opens a control session of its own (OPEN with a random 64-bit id,
@@ -102,6 +105,12 @@ class Node {
   std::int64_t misses() const { return misses_; }
   std::int64_t watchdog_states() const { return watchdog_states_; }
   std::vector<double>& latencies_us() { return latencies_us_; }
+  // time spent signing and checking messages (HMAC), per step acted on
+  double auth_us_per_step() const {
+    return steps_ ? std::chrono::duration<double, std::micro>(auth_time_).count() /
+                        static_cast<double>(steps_)
+                  : 0.0;
+  }
   std::string refused() const {
     return "bad decode " + std::to_string(bad_decode_) + ", other session " +
            std::to_string(other_session_) + ", stale " + std::to_string(stale_) +
@@ -123,7 +132,9 @@ class Node {
     }
     std::vector<unsigned char> buf(static_cast<std::size_t>(msg.getEncodedSize()));
     msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    const auto t0 = Clock::now();
     const auto out = signer_->Sign(channel, buf.data(), buf.size(), WallMicros());
+    auth_time_ += Clock::now() - t0;
     lcm_->publish(channel, out.data(), static_cast<unsigned>(out.size()));
   }
 
@@ -131,7 +142,9 @@ class Node {
   bool Authentic(const lcm::ReceiveBuffer* rbuf, const std::string& channel, std::size_t* size) {
     *size = rbuf->data_size;
     if (!verifier_) return true;
+    const auto t0 = Clock::now();
     const auto v = verifier_->Verify(channel, rbuf->data, rbuf->data_size, WallMicros(), size);
+    auth_time_ += Clock::now() - t0;
     if (v == ftc::signing::Verdict::kOk) return true;
     ++(v == ftc::signing::Verdict::kBadSignature ? bad_signature_
        : v == ftc::signing::Verdict::kReplay     ? replay_
@@ -159,6 +172,7 @@ class Node {
   }
 
   void OnState(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    const auto arrived = Clock::now();  // the latency counts the check and the decode too
     ftc::plant_state_t m{};
     std::string why;
     std::size_t size = 0;
@@ -204,7 +218,7 @@ class Node {
     if (s->watchdog_tripped) ++watchdog_states_;
     last_state_seq_ = s->seq;
     pending_ = *s;
-    received_ = Clock::now();
+    received_ = arrived;
   }
 
   void OnPolicy(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
@@ -296,6 +310,7 @@ class Node {
   std::optional<ftc::signing::Signer> signer_;
   ftc::wire::RateLimitedLog log_{"policy_node"};
   std::vector<double> latencies_us_;
+  Clock::duration auth_time_{};
 };
 
 double Percentile(std::vector<double> v, double q) {
@@ -372,10 +387,11 @@ int main(int argc, char** argv) {
     std::fclose(f);
   }
   std::printf("steps %lld deadline_misses %lld latency_p50_us %.0f latency_p99_us %.0f "
-              "latency_max_us %.0f\n",
+              "latency_max_us %.0f auth_us_per_step %.2f\n",
               static_cast<long long>(node.steps()), static_cast<long long>(node.misses()),
               Percentile(lat, 0.50), Percentile(lat, 0.99),
-              lat.empty() ? 0.0 : *std::max_element(lat.begin(), lat.end()));
+              lat.empty() ? 0.0 : *std::max_element(lat.begin(), lat.end()),
+              node.auth_us_per_step());
   if (node.refused_total())
     std::cerr << "policy_node: refused messages: " << node.refused() << "\n";
   if (node.watchdog_states())

@@ -156,6 +156,30 @@ TEST_F(PlantNodeTest, RetryResendsTheLastStateWithoutStepping) {
   EXPECT_EQ(plant_.operating_steps(), 1);
 }
 
+TEST_F(PlantNodeTest, ARepeatOfTheAppliedSeqWithOtherValvesIsRejectedAndCounted) {
+  // two senders in one session (a neighbour raced the controller with its seq):
+  // the second command is neither applied nor taken for a retry, and the plant's
+  // answer counts it where the controller looks (rejected_commands)
+  StartNode(RunMode::kLockstep);
+  const plant_state_t first = ExchangeOne([&] { SendCommand(1, kAllOpen); });
+  const plant_state_t raced = ExchangeOne([&] { SendCommand(1, kAllClosed); });
+  EXPECT_EQ(raced.command_seq, 1);
+  EXPECT_EQ(raced.step, 1);
+  EXPECT_EQ(raced.true_level, first.true_level);
+  EXPECT_EQ(raced.rejected_commands, 1);
+  EXPECT_EQ(raced.duplicate_commands, 0);
+  EXPECT_EQ(plant_.operating_steps(), 1);
+  // the same valves again: a retry, as before
+  const plant_state_t retry = ExchangeOne([&] { SendCommand(1, kAllOpen); });
+  EXPECT_EQ(retry.duplicate_commands, 1);
+  EXPECT_EQ(retry.rejected_commands, 1);
+  // a command with the seq of the control message just applied: another sender too
+  ExchangeOne([&] { SendControl(2, plant_control_t::RESET); });
+  const plant_state_t after_reset = ExchangeOne([&] { SendCommand(2, kAllOpen); });
+  EXPECT_EQ(after_reset.rejected_commands, 2);
+  EXPECT_EQ(after_reset.step, 0);
+}
+
 TEST_F(PlantNodeTest, StaleSeqIsIgnoredAndCounted) {
   StartNode(RunMode::kLockstep);
   ExchangeOne([&] { SendCommand(5, kAllOpen); });

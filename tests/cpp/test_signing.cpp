@@ -44,6 +44,31 @@ TEST(Signing, HmacSha256MatchesRfc4231) {
             "773ea91e36800e46854db8ebd09181a72959098b3ef8c122d9635514ced565fe");
 }
 
+std::string KeyedMac(Hmac& hmac, const std::string& a, const std::string& b = "") {
+  const auto d = hmac.Of({{reinterpret_cast<const unsigned char*>(a.data()), a.size()},
+                          {reinterpret_cast<const unsigned char*>(b.data()), b.size()}});
+  return Hex(d.data(), d.size());
+}
+
+TEST(Signing, TheKeyedContextMatchesRfc4231MessageAfterMessage) {
+  // one context, keyed once, for several messages (what Signer and Verifier do),
+  // each given in pieces: the same MACs as RFC 4231's vectors
+  Hmac one(Key(20, 0x0b));
+  EXPECT_EQ(KeyedMac(one, "Hi There"),
+            "b0344c61d8db38535ca8afceaf0bf12b881dc200c9833da726e9376c2e32cff7");
+  EXPECT_EQ(KeyedMac(one, "Hi ", "There"),
+            "b0344c61d8db38535ca8afceaf0bf12b881dc200c9833da726e9376c2e32cff7");
+  Hmac jefe(Key{'J', 'e', 'f', 'e'});
+  EXPECT_EQ(KeyedMac(jefe, "what do ya want ", "for nothing?"),
+            "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843");
+  // Test Case 6: a key longer than SHA-256's block (hashed first)
+  Hmac large(Key(131, 0xaa));
+  EXPECT_EQ(KeyedMac(large, "Test Using Larger Than Block-Size Key - Hash Key First"),
+            "60e431591ee0b67f0d8a26aacbf5b77f8e0bc6213728c5140546040f0ee37f54");
+  EXPECT_EQ(KeyedMac(one, "Hi There"),  // the first context again, after the others
+            "b0344c61d8db38535ca8afceaf0bf12b881dc200c9833da726e9376c2e32cff7");
+}
+
 const Key kKey(32, 0x42);
 const std::string kChannel = "RUN_COMMAND";
 const std::vector<unsigned char> kPayload{1, 2, 3, 4, 5, 6, 7, 8, 9};

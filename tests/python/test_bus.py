@@ -168,6 +168,54 @@ def test_lcm_echo_survives_a_negative_valve_count():
     assert "num_valves is -1" in err
 
 
+def test_lcm_echo_with_a_key_answers_only_signed_messages_and_signs_its_answers(tmp_path):
+    from ftc.common.build_info import echo_binary
+    from ftc.plant.signing import Auth, new_key
+
+    url, prefix = private_lcm_url(), private_prefix()
+    key = new_key()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(key.hex())
+    key_file.chmod(0o600)
+    echo = subprocess.Popen([str(echo_binary()), "--lcm-url", url, "--prefix", prefix,
+                             "--key-file", str(key_file)], stderr=subprocess.PIPE, text=True)
+    lc, auth = lcm.LCM(url), Auth(key)
+    answers: list = []
+
+    def on_state(channel, data):
+        payload, cause = Auth(key).verify(channel, data)  # a fresh receiver: no replay state
+        answers.append(plant_state_t.decode(payload) if payload is not None else cause)
+
+    lc.subscribe(prefix + "STATE", on_state)
+
+    def command(seq: int) -> bytes:
+        cmd = valve_command_t()
+        cmd.session, cmd.seq, cmd.num_valves, cmd.valve = 7, seq, 6, [0] * 6
+        return cmd.encode()
+
+    try:
+        deadline = time.monotonic() + 10
+        while not answers:  # until the echo is up: a signed command is answered, signed
+            assert time.monotonic() < deadline and echo.poll() is None
+            lc.publish(prefix + "COMMAND", auth.sign(prefix + "COMMAND", command(1)))
+            lc.handle_timeout(100)
+        signed = auth.sign(prefix + "COMMAND", command(2))
+        for data in (command(3), signed, signed):  # unsigned, then signed, then replayed
+            lc.publish(prefix + "COMMAND", data)
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            lc.handle_timeout(50)
+    finally:
+        echo.terminate()
+        _, err = echo.communicate(timeout=5)
+    assert echo.returncode == 0
+    assert all(not isinstance(a, str) for a in answers)  # every answer verifies
+    assert 2 in [a.command_seq for a in answers] and 3 not in [a.command_seq for a in answers]
+    # the first signed command may have been sent before the echo listened: the
+    # unsigned one and the replay are the refusals
+    assert "bad signature 1, replay 1," in err, err
+
+
 def _foreign(lc, prefix: str, plant) -> int:
     """A neighbour's traffic in another session: commands with the seq a
     clock-based controller would use, START at INT64_MAX, RESET, SHUTDOWN,
@@ -215,6 +263,74 @@ def test_foreign_sessions_change_nothing_in_a_lockstep_run(scenarios):
         assert a.operating_steps == b.operating_steps
 
 
+def _command(session: int, seq: int, valves=(1, 1, 1, 1, 1, 1)) -> bytes:
+    cmd = valve_command_t()
+    cmd.session, cmd.seq, cmd.num_valves, cmd.valve = session, seq, 6, list(valves)
+    return cmd.encode()
+
+
+def _control(session: int, seq: int, command: int) -> bytes:
+    msg = plant_control_t()
+    msg.session, msg.seq, msg.command = session, seq, command
+    return msg.encode()
+
+
+@pytest.mark.parametrize("attack", ["races the next seq", "runs ahead"])
+def test_without_a_key_a_same_session_sniffer_stops_a_lockstep_run_in_one_line(scenarios,
+                                                                                attack):
+    """A neighbour without a key that read the session off the bus (every state
+    carries it) sends a command in it: with the controller's next seq, before the
+    controller (the plant applies the first and rejects the second as a repeat
+    with other valves), or a seq ahead (the controller's become stale). The link
+    stops at its next request with one line naming foreign traffic, never going on
+    from a state it did not drive."""
+    from ftc.plant.link import ForeignTrafficError
+
+    with launch(scenarios / "single.toml", 3, extra_args=["--steps-per-interval", "40"]) as plant:
+        lc = lcm.LCM(plant.url)
+        plant.reset()
+        for _ in range(3):
+            plant.step([0] * 6)
+        ahead = 1 if attack == "races the next seq" else 5
+        lc.publish(plant.prefix + "COMMAND", _command(plant.session, plant._seq + ahead))
+        time.sleep(0.05)  # the neighbour's command is first at the plant
+        steps = 0
+        with pytest.raises(ForeignTrafficError) as e:
+            for _ in range(3):
+                plant.step([0] * 6)
+                steps += 1
+        assert steps == (1 if ahead == 1 else 0)  # the raced step was taken, no more
+    message = str(e.value)
+    assert "\n" not in message and message.startswith("foreign traffic in this run's control session")
+    assert ("repeat" in message) if ahead == 1 else ("never sent" in message), message
+
+
+def test_a_takeover_after_the_session_timeout_stops_a_lockstep_run_in_one_line(scenarios):
+    """The controller idles past the plant's --session-timeout; a neighbour opens a
+    session of its own, steps the plant, closes, and reopens the controller's
+    session (read off the bus): the controller's next step is applied, but its
+    answer does not follow from the last one by that step: the run stops."""
+    from ftc.plant.link import ForeignTrafficError
+
+    with launch(scenarios / "single.toml", 3, extra_args=[
+            "--steps-per-interval", "40", "--session-timeout", "0.2"]) as plant:
+        lc = lcm.LCM(plant.url)
+        plant.reset()
+        plant.step([0] * 6)
+        time.sleep(0.4)  # idle past the session timeout
+        mine = 4242
+        sent = [_control(mine, 1, plant_control_t.OPEN), _command(mine, 2), _command(mine, 3),
+                _control(mine, 4, plant_control_t.CLOSE),
+                _control(plant.session, 1, plant_control_t.OPEN)]
+        for data in sent:
+            lc.publish(plant.prefix + ("COMMAND" if data in sent[1:3] else "CONTROL"), data)
+            time.sleep(0.02)
+        with pytest.raises(ForeignTrafficError) as e:
+            plant.step([0] * 6)
+    message = str(e.value)
+    assert "\n" not in message and "after its step the plant is at episode" in message, message
+
+
 def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
     link = launch(None, 0, extra_args=["--mode", "realtime", "--rate", "50"],
                   link_class=RealtimeLink)
@@ -238,7 +354,6 @@ def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
         link.close()
 
 
-@pytest.mark.slow
 def _run_session_state(lc, states: list, run: subprocess.Popen):
     """Handle ``lc`` until ``states`` holds one of the run's own session (the
     controller probes the plant with a link of its own first): its commands are
@@ -251,6 +366,7 @@ def _run_session_state(lc, states: list, run: subprocess.Popen):
     return states[-1]
 
 
+@pytest.mark.slow
 def test_a_realtime_run_counts_foreign_traffic_by_cause_and_warns(tmp_path, scenarios):
     """A real-time run under a neighbour's commands (another session) and forged
     states: it completes; metrics.csv's refused counts are what was sent; the
@@ -454,6 +570,7 @@ def test_with_a_key_the_policy_node_flies_only_signed_states_and_pushes(tmp_path
     assert refused.accepted is None
     assert signed.returncode == 0, signed.stderr
     assert node.returncode == 0 and re.match(r"^steps 150 ", out.strip()), err
+    assert float(re.search(r"auth_us_per_step ([\d.]+)", out).group(1)) > 0  # it signed
     assert "policy version 2 in use" in err and f"version {2**62}" not in err
     counts = re.search(r"bad signature (\d+), replay (\d+)", err)
     assert counts and int(counts.group(1)) == 3, err  # the push and the two states

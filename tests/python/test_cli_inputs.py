@@ -134,6 +134,7 @@ def test_the_base_class_names_only_its_own_run_local_fields():
     own = set(RUN_LOCAL_FIELDS)
     assert run_local_fields(RunConfig()) == own
     for cls in (ControllerConfig, GuidedConfig):
-        assert run_local_fields(cls()) == own | {"pretrain_cache", "push_policy", "push_url"}
+        assert run_local_fields(cls()) == own | {"pretrain_cache", "push_policy", "push_url",
+                                                 "push_key_file"}
     assert run_local_fields(MPCConfig()) == own
     assert run_local_fields(ModelMPCConfig()) == own | {"pretrain_cache"}

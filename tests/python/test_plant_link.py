@@ -16,6 +16,7 @@ import pytest
 from ftc.common.build_info import plant_binary
 from ftc.plant import (CorePlant, LinkConfig, PlantError, PlantGoneError, launch,
                        private_lcm_url, private_prefix)
+from ftc.plant.link import ForeignTrafficError
 from ftc.plant.reward import reward
 
 
@@ -167,8 +168,11 @@ def test_invalid_valve_values_are_rejected_and_counted():
         lc.publish(plant.prefix + "COMMAND", msg.encode())
         lc.publish(plant.prefix + "COMMAND", b"garbage bytes")
         time.sleep(0.2)  # no answer is expected for either; give the plant time to count
-        o = plant.step(np.zeros(6))
-        assert o.step == 1  # the bad command did not step the plant
+        # a command of the link's session it never sent (invalid, too): another
+        # sender holds the session id, and the link stops (ftc.plant.foreign)
+        with pytest.raises(ForeignTrafficError, match="the plant rejected 1 commands of it"):
+            plant.step(np.zeros(6))
+        assert plant.last_state.step == 1  # the bad command did not step the plant
         assert plant.last_state.rejected_commands == 1
         assert plant.last_state.decode_errors == 1
 

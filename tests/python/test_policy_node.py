@@ -30,7 +30,7 @@ from ftc.tools import policy_weights as pw
 
 REPO = Path(__file__).resolve().parents[2]
 SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
-                     r"latency_p99_us (\d+) latency_max_us (\d+)$")
+                     r"latency_p99_us (\d+) latency_max_us (\d+) auth_us_per_step ([\d.]+)$")
 
 
 def _policy(seed: int) -> tuple[list[int], np.ndarray]:
@@ -149,6 +149,7 @@ def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path,
         bus.stop = True
     summary = SUMMARY.match(out.strip())
     assert summary and int(summary.group(1)) == 150, out
+    assert float(summary.group(6)) == 0.0  # no key: no time in HMAC
     assert "policy version 2 in use" in err
     assert "rejected policy version 3: checksum mismatch" in err
     assert "rejected policy version 1: version 1 is not above the running 2" in err
@@ -177,26 +178,36 @@ def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path,
 @pytest.mark.subprocess
 def test_a_learning_run_pushes_its_policy_to_a_running_node_after_every_interval(
         tmp_path, scenarios):
+    # with a bus key (plant, node and the learner's pushes: --push-key-file), as
+    # docs/deploy.md sets it up; pw.push's unsigned path is tested above
+    from ftc.plant.signing import TRAILER_BYTES, new_key
+
     url, prefix = private_lcm_url(), private_prefix()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(new_key().hex())
+    key_file.chmod(0o600)
     path = tmp_path / "p.txt"
     pw.write_weights(path, *_policy(1), version=1)
     plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
                               "--mode", "realtime", "--rate", "50", "--watchdog", "1",
-                              "--lcm-url", url, "--prefix", prefix], stderr=subprocess.DEVNULL)
+                              "--lcm-url", url, "--prefix", prefix, "--key-file", str(key_file)],
+                             stderr=subprocess.DEVNULL)
     node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
-                             "--prefix", prefix], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                             "--prefix", prefix, "--key-file", str(key_file)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     from ftc.policy_t import policy_t
     pushed = []
     lc = lcm.LCM(url)
-    lc.subscribe(prefix + "POLICY", lambda _c, data: pushed.append(policy_t.decode(data)))
+    lc.subscribe(prefix + "POLICY",
+                 lambda _c, data: pushed.append(policy_t.decode(data[:-TRAILER_BYTES])))
     try:
         time.sleep(0.5)  # the node subscribed
         # the learner runs elsewhere (here in process, lockstep) and flies nothing itself
         run = subprocess.run(
             [sys.executable, "-m", "ftc.controller", "--link", "core", "--intervals", "2",
              "--steps-per-interval", "64", "--update-every", "32", "--no-offline", "--quiet",
-             "--push-policy", prefix, "--push-url", url, "--out", str(tmp_path / "run")],
+             "--push-policy", prefix, "--push-url", url, "--push-key-file", str(key_file),
+             "--out", str(tmp_path / "run")],
             cwd=REPO, capture_output=True, text=True, timeout=300)
         time.sleep(0.3)  # the last push reaches the node between two of its steps
         while lc.handle_timeout(10) > 0:
@@ -210,6 +221,7 @@ def test_a_learning_run_pushes_its_policy_to_a_running_node_after_every_interval
     assert run.returncode == 0, run.stderr[-2000:]
     taken = re.findall(r"policy version (\d+) in use", err)
     assert len(taken) == 2, err  # one push per interval, each newer than the last
+    assert "bad signature 0" in err or "refused messages" not in err, err  # all signed
     assert int(taken[0]) < int(taken[1])
     assert "rejected" not in err
     # the last push carries the run's final policy, as ftc.export writes it
@@ -227,6 +239,20 @@ def test_a_learning_run_pushes_its_policy_to_a_running_node_after_every_interval
     assert list(pushed[-1].widths) == widths
     assert np.array_equal(np.array(pushed[-1].params, np.float32), params)
     assert not np.array_equal(np.array(pushed[0].params, np.float32), params)  # it learned
+
+
+def test_push_key_file_needs_push_policy_and_a_private_key_file(tmp_path):
+    from ftc.control.agents.ppo import ControllerConfig
+
+    key = tmp_path / "bus.key"
+    key.write_text("ab" * 32)
+    key.chmod(0o600)
+    ControllerConfig(push_policy="RT_", push_key_file=str(key)).validate()
+    with pytest.raises(ValueError, match="--push-key-file signs --push-policy"):
+        ControllerConfig(push_key_file=str(key)).validate()
+    key.chmod(0o644)  # (a config's ValueError is the command line's one-line exit 2)
+    with pytest.raises(ValueError, match="--push-key-file .*readable or writable by others"):
+        ControllerConfig(push_policy="RT_", push_key_file=str(key)).validate()
 
 
 def test_push_policy_refuses_a_method_without_a_policy(tmp_path):

@@ -1,6 +1,7 @@
 """Reference scores as data (ftc.experiments.reference_scores): keyed by the
-plant's C++ sources and the run cache's source digests; a one-byte change of
-the plant code in a copy is refused; a benchmark with --reference-scores runs
+plant's C++ sources and the Python modules the reference's and closed's runs
+execute (their import closure); a one-byte change of the plant code in a copy
+is refused, a module outside the closure changes nothing; a benchmark with --reference-scores runs
 neither the reference nor closed and scores a method from the file's rewards."""
 
 from __future__ import annotations
@@ -59,6 +60,91 @@ def test_a_new_plant_file_changes_the_key_and_the_built_binaries_do_not_count(tm
     (root / "cpp" / "plant" / "core" / "new.h").write_text("// new\n")
     assert reference_scores.native_source_digest(root) != before
     assert not set(reference_scores.code_key()) & set(reference_scores.BUILT)
+
+
+def test_the_native_key_is_the_cores_sources_and_they_include_nothing_else(tmp_path):
+    import re
+
+    root = _copy_plant(tmp_path)
+    before = reference_scores.native_source_digest(root)
+    _edit(root / "cpp" / "plant" / "lcm" / "signing.h", "// the bus\n")  # not the core's
+    _edit(root / "cpp" / "plant" / "apps" / "echo.cpp", "// a tool\n")
+    assert reference_scores.native_source_digest(root) == before
+    _edit(root / "cpp" / "plant" / "bindings" / "bindings.cpp", "// bound\n")
+    assert reference_scores.native_source_digest(root) != before
+    # what the key covers is the include closure of the core's sources: every
+    # project header they include is under NATIVE_DIRS
+    base = REPO / "cpp" / "plant"
+    for d in reference_scores.NATIVE_DIRS:
+        for source in (base / d).rglob("*"):
+            for header in re.findall(r'#include "([^"]+)"', source.read_text()):
+                assert header.split("/")[:2] in (["plant", x] for x in
+                                                 reference_scores.NATIVE_DIRS), (source, header)
+
+
+def _copy_package(tmp_path: Path) -> Path:
+    root = _copy_plant(tmp_path)
+    shutil.copytree(REPO / "python" / "ftc", root / "python" / "ftc",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    return root
+
+
+def _edit(path: Path, text: str = "\n# edited\n") -> None:
+    path.write_text(path.read_text() + text)
+
+
+def test_the_key_is_the_import_closure_of_the_reference_and_closed_runs(tmp_path):
+    root = _copy_package(tmp_path)
+    made = reference_scores.code_key(root)
+    assert made == reference_scores.code_key()  # the copy is the checkout's code
+    modules = set(reference_scores.python_modules())
+    # the runs' tools, agents, planner and reward are in; plotting and the benchmark are not
+    for name in ("ftc/mpc.py", "ftc/controller.py", "ftc/control/agents/baselines.py",
+                 "ftc/control/agents/physics/mpc.py", "ftc/plant/reward.py",
+                 "ftc/control/planning/physics/episode_planner.py", "ftc/__init__.py"):
+        assert name in modules, name
+    for name in ("ftc/experiments/figures.py", "ftc/experiments/benchmark.py",
+                 "ftc/experiments/reference_scores.py"):
+        assert name not in modules, name
+    data = {"code": made, "protocol": {}, "scenarios": {}}
+    package = root / "python" / "ftc"
+    _edit(package / "experiments" / "figures.py")  # a plotting module: the key holds
+    reference_scores.check(data, Path("f.json"), {}, {}, (), code=reference_scores.code_key(root))
+    _edit(package / "plant" / "reward.py")  # a module the runs execute: refused, named
+    with pytest.raises(reference_scores.ReferenceScoresError) as e:
+        reference_scores.check(data, Path("f.json"), {}, {}, (),
+                               code=reference_scores.code_key(root))
+    assert "made with other code (ftc/plant/reward.py:" in str(e.value)
+    # a closure module that starts importing a plotting module brings it in
+    _edit(package / "plant" / "valves.py", "\n\ndef _f():\n    from ftc.experiments import figures\n")
+    grown = reference_scores.code_key(root)
+    assert set(grown) - set(made) >= {"ftc/experiments/figures.py",
+                                      "ftc/experiments/__init__.py"}
+
+
+def test_the_closure_follows_every_kind_of_import(tmp_path):
+    from ftc.experiments.import_closure import closure
+
+    pkg = tmp_path / "ftc"
+    files = {"__init__.py": "", "a/__init__.py": "from .b import x\n",
+             "a/b.py": "x = 1\ndef f():\n    import ftc.c.d\n",
+             "c/__init__.py": "", "c/d.py": "from ftc.e import g, h\n",
+             "e/__init__.py": "from . import g\n", "e/g.py": "from ..a import b\n",
+             "f.py": "import os\nfrom ftc import _core\n", "unused.py": "import ftc.f\n",
+             "msg_t.py": '"""LCM type definitions\n"""\n'}
+    for name, text in files.items():
+        (pkg / name).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / name).write_text(text)
+    got = closure(["ftc.a"], pkg)
+    # ftc.a -> .b (relative) -> ftc.c.d (in a function, with its parents) -> ftc.e
+    # (its __init__ imports .g) and g (a submodule named by a from-import) -> ..a.b;
+    # h is an attribute, f and unused are imported by no one reached
+    assert sorted(got) == ["ftc", "ftc.a", "ftc.a.b", "ftc.c", "ftc.c.d", "ftc.e", "ftc.e.g"]
+    assert got["ftc.e.g"] == pkg / "e" / "g.py"
+    # the native core has no source, lcm-gen's classes are left out
+    assert sorted(closure(["ftc.f", "ftc.msg_t"], pkg)) == ["ftc", "ftc.f"]
+    with pytest.raises(ValueError, match="no source file for entry module 'ftc.zz'"):
+        closure(["ftc.zz"], pkg)
 
 
 def _scenario(tmp_path: Path) -> tuple[Path, str]:
@@ -154,3 +240,16 @@ def test_the_shipped_file_covers_the_default_suite_and_its_scenario_files():
         # the reference never earns less than closed over intervals 1-9
         ref, closed = entry["rewards"]["reference"]["0"], entry["rewards"]["closed"]["0"]
         assert sum(ref[1:]) > sum(closed[1:])
+
+
+def test_reference_scores_are_made_with_the_link_whose_code_they_key(tmp_path):
+    # the key holds the native core's sources, not the LCM plant's: a benchmark
+    # over LCM is refused as a source, in one line
+    run = tmp_path / "bench"
+    run.mkdir()
+    (run / "benchmark.json").write_text(json.dumps({"config": {
+        "intervals": 2, "steps_per_interval": 16, "link": "lcm", "seeds": [0]}}))
+    (run / "results.csv").write_text("scenario,method,seed,interval,reward_per_step\n")
+    with pytest.raises(reference_scores.ReferenceScoresError, match="make them with --link core"):
+        reference_scores.from_benchmarks([run], tmp_path / "out.json")
+    assert not (tmp_path / "out.json").exists()

@@ -160,6 +160,20 @@ void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& cha
     return;
   }
   session_heard_ = now_();
+  if (cmd.seq == answered_seq_ && answered_seq_ != 0 &&
+      (!answered_valves_ || cmd.valve != *answered_valves_)) {
+    // The seq just applied again, with other content: two senders in one session
+    // (a neighbour that read the session off the bus raced the controller). Not
+    // applied; counted where the controller sees it (rejected_commands).
+    ++counters_.rejected_commands;
+    refusals_.Refused("rejected command seq " + std::to_string(cmd.seq) + " on " + channel +
+                      ": it repeats the seq of the " +
+                      (answered_valves_ ? "command" : "control message") +
+                      " applied with other content (another sender in session " +
+                      std::to_string(session_) + ")");
+    if (options_.mode == RunMode::kLockstep) PublishState();  // the sender learns of it now
+    return;
+  }
   if (!Admit(cmd.seq)) return;
   Valves u;
   std::string reason;
@@ -170,6 +184,7 @@ void PlantNode::OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& cha
     return;
   }
   answered_seq_ = cmd.seq;
+  answered_valves_ = cmd.valve;
   if (options_.mode == RunMode::kLockstep) {
     plant_->Step(u);
     PublishState();
@@ -209,6 +224,7 @@ void PlantNode::HandleControl(const plant_control_t& msg, const std::string& cha
     if (opens && msg.session != 0 && SessionIdle()) {
       session_ = msg.session;  // a new session: its seq counts from here
       answered_seq_ = 0;
+      answered_valves_.reset();
       fresh_command_ = false;
       if (options_.verbose)
         std::cerr << "plant: following session " << session_ << " (" << channel << ")\n";
@@ -259,6 +275,7 @@ void PlantNode::HandleControl(const plant_control_t& msg, const std::string& cha
       return;
   }
   answered_seq_ = msg.seq;
+  answered_valves_.reset();  // the seq of a control message
   fresh_command_ = false;  // a new episode: its first step needs a command answering it
   PublishState();
   if (msg.command == plant_control_t::CLOSE) {

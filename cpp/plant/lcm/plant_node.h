@@ -14,7 +14,9 @@
 // neighbour's stray command cannot take the valves. A new session may open
 // when none is followed, or when the followed one has sent nothing for
 // session_timeout_s (its controller is gone); CLOSE ends one. Sequence numbers
-// count within a session. Every received buffer is checked before decoding
+// count within a session. A command repeating the seq just applied with other
+// content (two senders in one session) is rejected and counted
+// (rejected_commands), so the controller sees it. Every received buffer is checked before decoding
 // (plant/lcm/wire.h); refusals are counted and logged rate-limited, never fatal.
 // With a key (options.key), every received message must carry a valid MAC
 // with a rising timestamp (plant/lcm/signing.h) and every state is signed.
@@ -37,6 +39,7 @@
 #include <functional>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "plant/core/plant.h"
 #include "plant/lcm/lcm_bridge.h"
@@ -121,6 +124,8 @@ class PlantNode final {
   std::optional<Clock::time_point> session_heard_;  // its last message
   std::int64_t state_seq_ = 0;
   std::int64_t answered_seq_ = 0;
+  // the valves of the command answered_seq_ names, as sent (none: a control message)
+  std::optional<std::vector<std::int8_t>> answered_valves_;
   bool shutdown_ = false;
   Valves held_ = Valves::Zero();
   std::optional<Clock::time_point> last_valid_command_time_;

@@ -7,11 +7,16 @@ scored without running the reference (``benchmark --reference-scores``).
 A file holds, besides the rewards, what they depend on, and is used only where
 all of it matches:
 
-* ``code``: the digests of the code that ran them: the run cache's
-  (:func:`ftc.experiments.run_cache.code_digests`) without the digests of built
-  binaries, which differ between two builds of the same sources (they embed the
-  build's paths), and instead the digest of the plant's C++ sources
-  (``cpp/plant/``, every file: :func:`native_source_digest`);
+* ``code``: the digests of the code that made them: the SHA-256 of each Python
+  module the reference's and closed's runs can execute (the import closure of
+  their tools and agents, read from the code: :func:`python_modules`; a module
+  outside it, a figure or the benchmark's report, changes without staling the
+  file), and the digest of the native core's C++ sources (``cpp/plant/core/``
+  and ``cpp/plant/bindings/``, every file: :func:`native_source_digest`; they
+  include nothing else of the project, and the runs, made with ``--link core``,
+  execute no other C++: the LCM plant, its bus and tools are not keyed; the built
+  binary differs between two builds of the same sources, which embed the
+  build's paths, so the sources are hashed instead);
 * ``protocol``: intervals, steps per interval, link;
 * per scenario, the SHA-256 of the scenario file's text.
 
@@ -31,16 +36,21 @@ from typing import Any, Mapping, Sequence
 
 from ftc.common.atomic import atomic_write_json, atomic_write_text
 from ftc.common.paths import PACKAGE_DIR, REPO_ROOT
-from ftc.experiments import run_cache
+from ftc.control import registry
+from ftc.experiments.import_closure import closure
 
 REFERENCE = "reference"
 CLOSED = "closed"
 METHODS = (REFERENCE, CLOSED)
-# Entries of run_cache.code_digests() that hash a built binary, not a source:
-# two builds of one commit differ there (measured: _core of the same commit built
-# in two checkouts, two digests), so shipped data is keyed by the sources instead.
+# The built binaries (the native core, the plant) are not keyed: two builds of one
+# commit differ (measured: _core of the same commit built in two checkouts, two
+# digests), so shipped data is keyed by their sources instead.
 BUILT = ("_core", "plant")
 NATIVE = "cpp/plant"  # the plant's C++ sources, relative to the checkout
+# the native core's (ftc._core: the physics and its bindings), under NATIVE; the
+# same list is in cpp/cmake/native_sources.cmake (the install's digest)
+NATIVE_DIRS = ("bindings", "core")
+LINK = "core"  # the only link reference scores are made with (the native core in process)
 INSTALLED_DIGEST = "native_sources.sha256"  # written into the package by its install
 SHIPPED = "shipped"  # --reference-scores shipped: the file for the default suite
 PROTOCOL = ("intervals", "steps_per_interval", "link")  # run settings the rewards depend on
@@ -51,24 +61,50 @@ class ReferenceScoresError(ValueError):
 
 
 def native_source_digest(root: Path | None = None) -> str | None:
-    """SHA-256 over every file under ``root/cpp/plant`` (the checkout's by default):
-    "relative/path sha256\\n" per file, sorted by path; in an installed package,
-    the digest its install wrote (``ftc/native_sources.sha256``); None if neither."""
+    """SHA-256 over every file under ``root/cpp/plant``'s :data:`NATIVE_DIRS` (the
+    checkout's by default): "relative/path sha256\\n" per file (relative to
+    cpp/plant), sorted by path; in an installed package, the digest its install
+    wrote (``ftc/native_sources.sha256``); None if neither."""
     base = (REPO_ROOT if root is None else Path(root)) / NATIVE
     if base.is_dir():
+        files = [p for d in NATIVE_DIRS for p in (base / d).rglob("*") if p.is_file()]
         lines = "".join(f"{p.relative_to(base).as_posix()} "
                         f"{hashlib.sha256(p.read_bytes()).hexdigest()}\n"
-                        for p in sorted(base.rglob("*"), key=lambda q: q.as_posix())
-                        if p.is_file())
+                        for p in sorted(files, key=lambda q: q.relative_to(base).as_posix()))
         return hashlib.sha256(lines.encode()).hexdigest()
     installed = PACKAGE_DIR / INSTALLED_DIGEST
     return installed.read_text().strip() if root is None and installed.is_file() else None
 
 
+def entry_modules() -> list[str]:
+    """The modules the reference's and closed's runs start from: each method's tool
+    (run with ``python -m``) and its agent's module (named in the registry as a
+    string, so no import statement leads there)."""
+    out = []
+    for name in METHODS:
+        method = registry.METHODS[name]
+        out += [method.tool, method.agent.split(":")[0]]
+    return sorted(set(out))
+
+
+def python_modules(package_dir: Path | None = None) -> dict[str, Path]:
+    """"ftc/<path>" -> source file of every module of the import closure of
+    :func:`entry_modules` in ``package_dir`` (default: this package)."""
+    package_dir = PACKAGE_DIR if package_dir is None else Path(package_dir)
+    return {f"ftc/{path.relative_to(package_dir).as_posix()}": path
+            for path in closure(entry_modules(), package_dir).values()}
+
+
 def code_key(root: Path | None = None) -> dict[str, str]:
-    """What reference rewards depend on of the code: the run cache's digests of
-    the sources, and the plant's C++ sources' (``root``: the checkout to hash)."""
-    digests = {k: v for k, v in run_cache.code_digests().items() if k not in BUILT}
+    """What reference rewards depend on of the code: the SHA-256 of each module of
+    :func:`python_modules` and the plant's C++ sources' digest ("native sources").
+    ``root``: a checkout to hash (its ``python/ftc`` when it has one, else this
+    package's; its ``cpp/plant``)."""
+    package_dir = None
+    if root is not None and (Path(root) / "python" / "ftc").is_dir():
+        package_dir = Path(root) / "python" / "ftc"
+    digests = {k: hashlib.sha256(p.read_bytes()).hexdigest()
+               for k, p in python_modules(package_dir).items()}
     digests["native sources"] = native_source_digest(root) or ""
     return digests
 
@@ -174,6 +210,10 @@ def from_benchmarks(run_dirs: Sequence[Path], out: Path) -> dict:
                                                "differs from another directory's")
                 sc["rewards"][r["method"]].setdefault(r["seed"], {})[int(r["interval"])] = \
                     float(r["reward_per_step"])
+    if protocol and protocol["link"] != LINK:
+        raise ReferenceScoresError(f"the benchmarks ran with --link {protocol['link']}; "
+                                   f"reference scores are keyed by the native core's sources "
+                                   f"only: make them with --link {LINK}")
     complete = {}
     for stem, sc in scenarios.items():
         if any(str(s) not in sc["rewards"][m] for m in METHODS for s in seeds):

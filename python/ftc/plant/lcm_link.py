@@ -25,6 +25,7 @@ import numpy as np
 from ftc.common.constants import DEFAULT_LCM_URL, DEFAULT_PREFIX, LCM_MULTICAST_GROUP, NUM_TANKS
 from ftc.common.build_info import plant_binary
 from ftc.common.lifetime import die_with_parent
+from ftc.plant.foreign import ForeignWatch
 from ftc.plant.link import (PlantError, PlantGoneError, PlantObservation,
                              valves_array)
 from ftc.plant.signing import KEY_VARIABLE, Auth, new_key
@@ -141,7 +142,12 @@ class LcmPlant:
     ``refused`` and otherwise ignored. A request not answered within ``retry_timeout`` is re-sent with the
     same seq (the plant answers a repeat without stepping twice); after
     ``give_up_timeout`` without an answer, :class:`PlantGoneError` is raised.
+
+    Once its session is open, it stops (ForeignTrafficError, one line) when the plant
+    shows another sender in it (:mod:`ftc.plant.foreign`; a HELLO checks too).
     """
+
+    lockstep_checks = True  # ftc.plant.foreign's checks (a real-time plant ticks alone)
 
     def __init__(self, lcm_url: str, prefix: str, *, config: LinkConfig = LinkConfig(),
                  process: "subprocess.Popen | None" = None, stderr_path: str | None = None,
@@ -168,11 +174,13 @@ class LcmPlant:
         self._auth = Auth(key) if key else None  # sign and check every message
         self.seen = None
         self._opened = False
+        self._watch = ForeignWatch(self.lockstep_checks)  # another sender in this session
         self._sub = self._lc.subscribe(prefix + "STATE", self._on_state)
         self._seq = 0
         self._closed = False
         self.hello(timeout=config.startup_timeout if process else config.give_up_timeout)
-        self._control(self._types[2].OPEN, "OPEN (this run's control session)")
+        opened = self._control(self._types[2].OPEN, "OPEN (this run's control session)")
+        self._watch.opened(opened)
         self._opened = True
 
     # -- transport ---------------------------------------------------------
@@ -193,6 +201,7 @@ class LcmPlant:
             self.refused["other session"] += 1
             self.seen = msg
         else:
+            self._watch.on_state(msg, self._seq)
             self._answers.append(msg)
 
     def foreign_note(self) -> str:
@@ -206,7 +215,8 @@ class LcmPlant:
     def _plant_exit_message(self) -> str | None:
         return exit_message(self._process, self._stderr_path)
 
-    def _request(self, channel: str, msg, seq: int, timeout: float, what: str):
+    def _request(self, channel: str, msg, seq: int, timeout: float, what: str,
+                 kind: str = "still"):
         data = msg.encode()
         self._publish(channel, data)
         start = time.monotonic()
@@ -231,12 +241,15 @@ class LcmPlant:
                 # a controller's SIGTERM) with the link intact for close().
                 # Anything else ends as "did not answer" at the timeout.
                 time.sleep(min(wait, 0.005))
+            self._watch.check(self.url, self.prefix)  # another sender in this session
             for i, state in enumerate(self._answers):
                 # a HELLO is answered in whatever session the plant follows
                 if state.command_seq == seq and (state.session == msg.session
                                                  or msg.command == self._types[2].HELLO):
                     del self._answers[:i + 1]  # a real-time plant's later ticks stay queued
+                    self._watch.on_answer(self.last_state, state, kind)
                     self.last_state = state
+                    self._watch.check(self.url, self.prefix)
                     return state
             self._answers.clear()
             if time.monotonic() - last_send >= interval:
@@ -254,8 +267,10 @@ class LcmPlant:
         seq = self._next_seq()
         msg.utime, msg.session, msg.seq, msg.command = time.time_ns() // 1000, self.session, seq, \
             command
+        kinds = {msg.RESET: "reset", msg.EVALUATE: "evaluate", msg.START: "start"}
         return self._request(self.prefix + "CONTROL", msg, seq,
-                             timeout or self.config.give_up_timeout, what)
+                             timeout or self.config.give_up_timeout, what,
+                             kinds.get(command, "still"))
 
     # -- PlantLink ---------------------------------------------------------
     def hello(self, timeout: float | None = None) -> PlantObservation:
@@ -276,11 +291,10 @@ class LcmPlant:
         msg.state_seq = self.last_state.seq if self.last_state is not None else 0
         msg.num_valves = NUM_TANKS
         msg.valve = [int(v) for v in u]
-        answer = self._request(self.prefix + "COMMAND", msg, seq, self.config.give_up_timeout,
-                               "valve command")
-        # The answer's valves are the applied ones, which a stuck valve makes differ
-        # from those sent: they cannot tell a neighbour's command from a fault.
-        return _from_message(answer)
+        # (the answer's valves are the applied ones, which a stuck valve makes differ
+        # from those sent: they cannot tell a neighbour's command from a fault)
+        return _from_message(self._request(self.prefix + "COMMAND", msg, seq,
+                                           self.config.give_up_timeout, "valve command", "step"))
 
     def shutdown(self, timeout: float = 2.0) -> None:
         """Ask the plant process to exit (best effort)."""
@@ -299,18 +313,9 @@ class LcmPlant:
                 self._control(self._types[2].CLOSE, "CLOSE", 1.0)
             except PlantError:
                 pass
-        if self._process is not None:
-            if self._process.poll() is None:
-                self.shutdown(timeout=1.0)
-                try:
-                    self._process.wait(timeout=2.0)
-                except Exception:  # noqa: BLE001
-                    self._process.terminate()
-                    try:
-                        self._process.wait(timeout=2.0)
-                    except Exception:  # noqa: BLE001
-                        self._process.kill()
-                        self._process.wait()
+        if self._process is not None and self._process.poll() is None:
+            self.shutdown(timeout=1.0)
+            _stop(self._process)
         self._lc.unsubscribe(self._sub)
         if self._stderr_path:
             try:
@@ -327,6 +332,19 @@ class LcmPlant:
     @property
     def process(self):
         return self._process
+
+
+def _stop(process) -> None:
+    """Wait 2 s for a plant asked to shut down, then terminate it, then kill it."""
+    try:
+        process.wait(timeout=2.0)
+    except Exception:  # noqa: BLE001
+        process.terminate()
+        try:
+            process.wait(timeout=2.0)
+        except Exception:  # noqa: BLE001
+            process.kill()
+            process.wait()
 
 
 def _from_message(msg) -> PlantObservation:

@@ -133,3 +133,9 @@ class PlantGoneError(PlantError):
     """The plant stopped answering (killed, crashed, or not there)."""
 
 
+class ForeignTrafficError(PlantGoneError):
+    """Another process commanded the plant in this run's control session (it read
+    the session id off the bus: without a bus key nothing else tells them apart);
+    the run stops rather than go on from a state it did not drive."""
+
+

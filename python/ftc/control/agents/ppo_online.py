@@ -28,6 +28,7 @@ from ftc.learning.buffer import RolloutBuffer
 from ftc.learning.ppo import PPO, UpdateStats
 from ftc.learning.pretrain import PretrainSettings, pretrain_cached
 from ftc.plant.lcm_link import check_loopback_url
+from ftc.plant.signing import load_key
 from ftc.learning.rollout import RolloutCollector
 from ftc.plant.link import PlantObservation
 
@@ -99,6 +100,9 @@ class PolicyConfig(RunConfig):
         "(None: no push)")})
     push_url: str = field(default=DEFAULT_LCM_URL, metadata={"run_local": True, "help": (
         "with --push-policy: the node's LCM URL (ttl=0)")})
+    push_key_file: str | None = field(default=None, metadata={"run_local": True, "help": (
+        "with --push-policy: sign every push with the node's bus key in this file (hex, "
+        "mode 600; the node's --key-file), and take only its signed answer (None: unsigned)")})
 
     def validate(self) -> None:
         super().validate()
@@ -111,6 +115,14 @@ class PolicyConfig(RunConfig):
         if self.push_policy is None and self.push_url != DEFAULT_LCM_URL:
             raise ValueError("--push-url is where --push-policy sends the policy: give "
                              "--push-policy PREFIX with it")
+        if self.push_key_file is not None:
+            if self.push_policy is None:
+                raise ValueError("--push-key-file signs --push-policy's pushes: give "
+                                 "--push-policy PREFIX with it")
+            try:
+                load_key(self.push_key_file)
+            except ValueError as e:
+                raise ValueError(f"--push-key-file {e}") from None
         if self.steps_per_interval % self.update_every:
             raise ValueError("--steps-per-interval must be a multiple of --update-every")
 

@@ -202,9 +202,10 @@ def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
     return PushOutcome(message.version, bool(answers[0].accepted), answers[0].reason)
 
 
-def push_policy(policy, lcm_url: str, prefix: str) -> PushOutcome:
+def push_policy(policy, lcm_url: str, prefix: str, key: bytes | None = None) -> PushOutcome:
     """Push ``policy``'s actor (an ActorCritic) to the node on ``lcm_url``/``prefix``
     as the version of the time in milliseconds (above any earlier push and any
-    file's); returns the node's answer."""
+    file's), signed with ``key`` if given; returns the node's answer."""
     version = time.time_ns() // 1_000_000
-    return push(lcm_url, prefix, policy_message(*actor_layers(policy), version=version))
+    return push(lcm_url, prefix, policy_message(*actor_layers(policy), version=version),
+                key=key)

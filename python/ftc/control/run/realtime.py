@@ -81,6 +81,7 @@ class RealtimeLoop:
         self.foreign_total = 0  # steps on commands this run never sent
         self._run_refused = dict(link.refused)
         self._first_other: int | None = None  # the plant's refusal count when the run began
+        self._first_rejected: int | None = None  # its rejected commands then
         self._restart_counts()
 
     # -- deadlines ----------------------------------------------------------------
@@ -108,6 +109,12 @@ class RealtimeLoop:
             text.append(f"the link refused states ({', '.join(parts)})")
         if other > 0:
             text.append(f"the plant refused {other} commands of other sessions")
+        rejected = (0 if self.msg is None or self._first_rejected is None
+                    else int(self.msg.rejected_commands) - self._first_rejected)
+        if rejected > 0:  # this run sends neither a conflicting repeat nor invalid valves
+            text.append(f"the plant rejected {rejected} commands of this run's session (a "
+                        "repeat of an applied seq with other valves, or invalid: another "
+                        "sender in the session)")
         if self.foreign_total:
             text.append(f"the plant took {self.foreign_total} steps on commands this run never "
                         "sent: results may differ from an undisturbed run")
@@ -146,6 +153,7 @@ class RealtimeLoop:
         self.sent_max = max(self.sent_max, int(self.msg.command_seq))
         if self._first_other is None:
             self._first_other = int(self.msg.other_session)
+            self._first_rejected = int(self.msg.rejected_commands)
         if new_interval:
             self._restart_counts()
         self.obs = finite_observation(observation(self.msg), self.where)

@@ -53,7 +53,8 @@ from ftc.control.run.policy_weights import PUSH_COLUMNS, push_policy
 from ftc.control.run.realtime import REALTIME_COLUMNS, RealtimeLoop
 from ftc.control.run.telemetry import NULL_TELEMETRY, Telemetry, open_telemetry
 from ftc.learning.transitions import Transitions
-from ftc.plant.link import PlantGoneError, PlantLink
+from ftc.plant.link import ForeignTrafficError, PlantGoneError, PlantLink
+from ftc.plant.signing import load_key
 
 
 @contextlib.contextmanager
@@ -241,7 +242,8 @@ class IntervalRunner:
                         raise PlantLostError(f"at interval {self.interval}: {e}") from None
                 self._run_intervals(plant, start, stop_after)
             except PlantGoneError as e:
-                raise PlantLostError(f"plant gone at {self.loop.where}: {e}; results of the "
+                what = "stopped" if isinstance(e, ForeignTrafficError) else "plant gone"
+                raise PlantLostError(f"{what} at {self.loop.where}: {e}; results of the "
                                      f"{self.saved} finished intervals are in {self.out}, "
                                      "--resume continues from them") from None
             finally:
@@ -280,6 +282,8 @@ class IntervalRunner:
         row = {"interval": k, **online, "online_seconds": time.perf_counter() - t0}
         row["eval_reward_per_step"], row["eval_steps"] = (
             self.evaluate(plant) if self.agent.evaluates else (None, None))
+        if getattr(plant, "lockstep_checks", False):  # no step of the interval was raced:
+            plant.hello()  # the lockstep link raises ForeignTrafficError if one was
         if isinstance(self.loop, RealtimeLoop):
             row.update(self.loop.deadline_row())
             if k + 1 < self.cfg.intervals:  # the plant does not wait for the bookkeeping
@@ -300,8 +304,9 @@ class IntervalRunner:
         """The finished intervals' checkpoint and metrics.csv (and the policy pushed)."""
         self._merge_late_metrics()
         if getattr(self.cfg, "push_policy", None):  # the controller's option
+            key_file = getattr(self.cfg, "push_key_file", None)
             pushed = push_policy(self.agent.exported_policy(), self.cfg.push_url,
-                                 self.cfg.push_policy)
+                                 self.cfg.push_policy, load_key(key_file) if key_file else None)
             self.rows[self.interval - 1].update(  # 1 accepted, 0 rejected, '' no answer
                 push_version=pushed.version, push_reason=pushed.reason,
                 push_accepted=None if pushed.accepted is None else int(pushed.accepted))
