@@ -69,6 +69,9 @@ struct Prepared {
   double root_off[kNumRoots][kTanks] = {};
   // psi at the grid's times over a whole control step (1 s): (g + 1) / kGrid
   double psi_grid[kGrid][kTanks] = {};
+  // the root functions with a gradient (the others are constant within the mode)
+  int live[kNumRoots] = {};
+  int live_count = 0;
 };
 
 // The mode, valves and root slots as one key (params beside it).
@@ -298,6 +301,13 @@ bool Prepare(const Valves& u, const PlantParams& p, const Mode& mode, std::uint3
     }
     for (int m = 0; m < kNumRoots; ++m) out->root_modes[m][k] = root_modes(m, k);
   }
+  out->live_count = 0;
+  for (int m = 0; m < kNumRoots; ++m) {
+    bool live = false;
+    for (int k = 0; k < kTanks; ++k)
+      live = live || out->root_off[m][k] != 0.0 || (k < nodes && out->root_modes[m][k] != 0.0);
+    if (live) out->live[out->live_count++] = m;
+  }
   for (int g = 0; g < kGrid; ++g) {
     const double t = static_cast<double>(g + 1) / kGrid;  // as Step's grid computes it for dt 1
     for (int k = 0; k < nodes; ++k) out->psi_grid[g][k] = Psi(out->lambda[k], t);
@@ -335,10 +345,22 @@ class ModeSolution {
   // above 0, or an unwatched one bounded below 0 (never armed), cannot be seen
   // crossing at any grid time; the margin covers the rounding of g's
   // evaluation (a few ulps of its terms' magnitude). Not finite: not proven.
+  //
+  // The functions not bounded so are kept (Open): only they can be seen
+  // crossing at a grid time, and arming (Arm) leaves the others as they are
+  // (one bounded above 0 is positive, so watched, at every grid time; one
+  // bounded below 0 is never armed), so the grid evaluates only them.
   bool NoCrossingWithin(double t) {
     const double* psi = PsiAt(t);
     const int nodes = prep_->nodes;
-    for (int m = 0; m < kNumRoots; ++m) {
+    open_count_ = 0;
+    for (int m = 0; m < kNumRoots; ++m) {  // a constant function: its value bounds it
+      if (live_[m]) continue;
+      const double margin = 1e-10 * std::abs(g0_[m]);
+      if (!(g0_[m] > margin || (!watched_[m] && g0_[m] < -margin))) open_[open_count_++] = m;
+    }
+    for (int r = 0; r < prep_->live_count; ++r) {
+      const int m = prep_->live[r];
       const double lin = linear_[m] * t;
       double low = g0_[m] + std::min(0.0, lin), high = g0_[m] + std::max(0.0, lin);
       double size = std::abs(g0_[m]) + std::abs(lin);
@@ -351,9 +373,33 @@ class ModeSolution {
       const double margin = 1e-10 * size;
       const bool above = low > margin;
       const bool below = !watched_[m] && high < -margin;
-      if (!(above || below)) return false;
+      if (!(above || below)) open_[open_count_++] = m;
     }
-    return true;
+    return open_count_ == 0;
+  }
+
+  // Whether a watched function among those NoCrossingWithin left open is <= 0
+  // at t; their values into *values (the others' entries: 1, as never crossed).
+  bool OpenCrossed(double t, RootVector* values) const {
+    const double* psi = PsiAt(t);
+    values->setOnes();
+    bool crossed = false;
+    for (int r = 0; r < open_count_; ++r) {
+      const int m = open_[r];
+      const double g = RootWith(m, t, psi);
+      (*values)[m] = g;
+      crossed = crossed || (watched_[m] && g <= 0.0);
+    }
+    return crossed;
+  }
+
+  // Watches the open functions positive in g (values at a time before any
+  // crossing): as CVODE reactivates a root function that was 0 (or below) at a
+  // restart once it has moved above 0, a later downward crossing of it ends the
+  // mode too (e.g. a sink that left a tied group at its start and catches up
+  // with the group within the step).
+  void ArmOpen(const RootVector& g) {
+    for (int r = 0; r < open_count_; ++r) watched_[open_[r]] = g[open_[r]] > 0.0;
   }
 
   // Whether a watched root function is <= 0 at t (the values into *values if given).
@@ -365,15 +411,6 @@ class ModeSolution {
   }
 
   bool Watched(int slot) const { return watched_[slot]; }
-
-  // Watches the functions positive in g (values at a time before any crossing):
-  // as CVODE reactivates a root function that was 0 (or below) at a restart
-  // once it has moved above 0, a later downward crossing of it ends the mode
-  // too (e.g. a sink that left a tied group at its start and catches up with
-  // the group within the step).
-  void Arm(const RootVector& g) {
-    for (int m = 0; m < kNumRoots; ++m) watched_[m] = g[m] > 0.0;
-  }
 
   Vec6 Levels(double t) const {
     const double* psi = PsiAt(t);
@@ -395,8 +432,8 @@ class ModeSolution {
 
   RootVector Roots(double t) const {
     const double* psi = PsiAt(t);
-    RootVector g;
-    for (int m = 0; m < kNumRoots; ++m) g[m] = RootWith(m, t, psi);
+    RootVector g = Eigen::Map<const RootVector>(g0_);  // the constant ones
+    for (int r = 0; r < prep_->live_count; ++r) g[prep_->live[r]] = RootWith(prep_->live[r], t, psi);
     return g;
   }
 
@@ -405,6 +442,10 @@ class ModeSolution {
 
   // Root function m alone at t, and its slope there (psi_k' = e^{lambda_k t}).
   double RootAndSlope(int m, double t, double* slope) const {
+    if (!live_[m]) {
+      *slope = 0.0;
+      return g0_[m];
+    }
     double value = g0_[m] + linear_[m] * t, rate = linear_[m];
     for (int k = 0; k < prep_->nodes; ++k) {
       const double lambda = prep_->lambda[k];
@@ -431,8 +472,18 @@ class ModeSolution {
     }
     for (int m = 0; m < kNumRoots; ++m) {
       g0_[m] = g0[m];
+      linear_[m] = 0.0;
+      live_[m] = false;
+      watched_[m] = g0[m] > 0.0;
+    }
+    int moving[kTanks], moving_count = 0;  // the tanks off the conduit that move
+    for (int i = 0; i < kTanks; ++i)
+      if (rate_[i] != 0.0) moving[moving_count++] = i;
+    for (int r = 0; r < prep.live_count; ++r) {
+      const int m = prep.live[r];
+      live_[m] = true;
       double lin = 0, sum = 0;
-      for (int i = 0; i < kTanks; ++i) lin += prep.root_off[m][i] * rate_[i];
+      for (int j = 0; j < moving_count; ++j) lin += prep.root_off[m][moving[j]] * rate_[moving[j]];
       linear_[m] = lin;
       for (int k = 0; k < nodes; ++k) {
         roots_[m][k] = prep.root_modes[m][k] * a_[k];
@@ -445,12 +496,13 @@ class ModeSolution {
       // start: CVODE's first internal step, a fraction of the grid's, sees it
       // above 0 and reactivates it, so its return to 0 (the member catching up
       // with the group) is an event.
-      watched_[m] = g0[m] > 0.0 || (g0[m] == 0.0 && lin + sum > 0.0);
+      if (g0[m] == 0.0 && lin + sum > 0.0) watched_[m] = true;
     }
   }
 
  private:
   double RootWith(int m, double t, const double* psi) const {
+    if (!live_[m]) return g0_[m];
     double g = g0_[m] + linear_[m] * t;
     for (int k = 0; k < prep_->nodes; ++k) g += roots_[m][k] * psi[k];
     return g;
@@ -477,6 +529,9 @@ class ModeSolution {
   double x0_[kTanks] = {}, rate_[kTanks] = {}, a_[kTanks] = {};
   double g0_[kNumRoots] = {}, linear_[kNumRoots] = {};
   bool watched_[kNumRoots] = {};
+  bool live_[kNumRoots] = {};  // the function has a gradient (Prepared::live)
+  int open_[kNumRoots] = {};   // the functions NoCrossingWithin did not bound
+  int open_count_ = 0;
   double roots_[kNumRoots][kTanks] = {};
   mutable double psi_t_ = -1;  // the time psi_ is for (-1: none)
   mutable double psi_[kTanks] = {};
@@ -526,14 +581,14 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
     for (int k = 1; k <= kGrid && !found; ++k) {
       const double t = remaining * k / kGrid;
       RootVector g;
-      if (solution.Crossed(t, &g)) {
+      if (solution.OpenCrossed(t, &g)) {
         hi = t;
         at_hi = g;
         found = true;
       } else {
         lo = t;
         at_lo = g;
-        solution.Arm(g);
+        solution.ArmOpen(g);
       }
     }
     if (!found) {
