@@ -32,6 +32,7 @@
 #include "plant/core/dynamics.h"
 
 #include <algorithm>
+#include <cstdint>
 #include <limits>
 
 namespace ftc {
@@ -232,16 +233,33 @@ void EvaluateField(const Vec6& x, const PlantParams& p, const Mode& mode, Vec6* 
   *flows = e.flows;
 }
 
-std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
-                                            const PlantParams& p, const Mode& mode) {
+namespace {
+
+// The root slots in force at an evaluation (bit m: slot m is a function of x;
+// the others are held at 1). Slot i: a draining tank reaching the bottom (a
+// live pump, or a source member paying for sinks); slot kTanks + i: the
+// tank's place in the conduit changes (pinned, sink, or a source member whose
+// own pump may outrun the group).
+std::uint32_t ActiveRoots(const Evaluation& e, const Mode& mode) {
+  std::uint32_t active = 0;
+  for (int i = 0; i < kTanks; ++i) {
+    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink && e.rho > 0)))
+      active |= 1u << i;
+    if (mode.pinned[i] || mode.sink[i] ||
+        (mode.source[i] && e.any_sink && e.flows.supply[i] > 0))
+      active |= 1u << (kTanks + i);
+  }
+  return active;
+}
+
+std::array<double, kNumRoots> RootsOf(const Evaluation& e, const Vec6& x, const PlantParams& p,
+                                      const Mode& mode, std::uint32_t active) {
   std::array<double, kNumRoots> r;
   r.fill(1.0);
-  const Evaluation e = Evaluate(x, p, mode);
   for (int i = 0; i < kTanks; ++i) {
-    // Slot i: a draining tank reaching the bottom (a live pump, or a source
-    // member paying for sinks). A sink's level below 0 while it is still
-    // being filled is an integration error, not the bottom (file header).
-    if (!mode.pinned[i] && (mode.pumping[i] || (mode.source[i] && e.any_sink && e.rho > 0))) {
+    // A sink's level below 0 while it is still being filled is an integration
+    // error, not the bottom (file header).
+    if (active & (1u << i)) {
       double bottom = x[i];
       if (mode.sink[i] && x[i] < 0) {
         const double equilibrium = e.xref - e.want[i] * p.resistance[i] / p.g;
@@ -249,18 +267,39 @@ std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
       }
       r[i] = bottom + kRootOffset;
     }
-    // Slot kTanks + i: the tank's place in the conduit changes.
+    if (!(active & (1u << (kTanks + i)))) continue;
     double& b = r[kTanks + i];
     if (mode.pinned[i]) {
       b = e.want[i] - e.flows.conduit[i] + kRootOffset;  // inflow exceeds the pump draw
     } else if (mode.sink[i]) {
       b = e.xref - x[i];  // rises to the conduit level: joins the group
-    } else if (mode.source[i] && e.any_sink && e.flows.supply[i] > 0) {
+    } else if (mode.source[i]) {
       const double s = e.flows.supply[i];  // own pump outruns the group:
       b = p.area[i] * e.rho - s + 2 * kLeaveMargin * s;
     }
   }
   return r;
+}
+
+}  // namespace
+
+std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& /*u*/,
+                                            const PlantParams& p, const Mode& mode) {
+  const Evaluation e = Evaluate(x, p, mode);
+  return RootsOf(e, x, p, mode, ActiveRoots(e, mode));
+}
+
+std::array<double, kNumRoots> RootFunctionsOf(const Vec6& x, const PlantParams& p,
+                                              const Mode& mode, std::uint32_t active) {
+  return RootsOf(Evaluate(x, p, mode), x, p, mode, active);
+}
+
+void FieldAndRoots(const Vec6& x, const PlantParams& p, const Mode& mode, Vec6* derivative,
+                   std::array<double, kNumRoots>* roots, std::uint32_t* active) {
+  const Evaluation e = Evaluate(x, p, mode);
+  *active = ActiveRoots(e, mode);
+  *derivative = e.derivative;
+  *roots = RootsOf(e, x, p, mode, *active);
 }
 
 }  // namespace ftc

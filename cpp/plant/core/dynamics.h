@@ -7,6 +7,7 @@
 #pragma once
 
 #include <array>
+#include <cstdint>
 
 #include "plant/core/params.h"
 
@@ -64,6 +65,18 @@ constexpr int kNumRoots = 2 * kTanks;
 // at a constant 1.
 std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& u, const PlantParams& p,
                                             const Mode& mode);
+
+// The root functions' slots in force at x (bit m set: slot m is a function of
+// x; the others are held at 1) and the functions themselves, with the field,
+// from one evaluation: RootFunctions(x) and Derivative(x).
+void FieldAndRoots(const Vec6& x, const PlantParams& p, const Mode& mode, Vec6* derivative,
+                   std::array<double, kNumRoots>* roots, std::uint32_t* active);
+
+// The root functions at x with the slots `active` in force whatever x (as
+// FieldAndRoots found them at another point of the mode): within a mode each
+// is affine in x, so differences of these give their gradients at any x.
+std::array<double, kNumRoots> RootFunctionsOf(const Vec6& x, const PlantParams& p,
+                                              const Mode& mode, std::uint32_t active);
 
 // Open tanks within this distance (m) of the highest open level form the source group.
 constexpr double kTieTolerance = 1e-9;

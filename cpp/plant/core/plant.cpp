@@ -59,7 +59,7 @@ const StepOutcome& Plant::Step(const Valves& u) {
   if (last_.episode < 0 || episode_over()) StartEpisode(last_.evaluation);
   const std::int64_t at = step_in_force();
   const double age = AgeAt(scenario_, at);
-  const PlantParams p = ParamsAtStep(at);
+  const PlantParams& p = ParamsInForce(at);
   const Valves applied = StuckValvesAtStep(scenario_, at).Apply(u);
   const StepResult r = Integrate(last_.level, applied, p);
 
@@ -77,6 +77,24 @@ const StepOutcome& Plant::Step(const Valves& u) {
         !last_.terminal && operating_steps_ % scenario_.steps_per_interval == 0;
   }
   return last_;
+}
+
+const PlantParams& Plant::ParamsInForce(std::int64_t at) {
+  // The parameters change only with the age and the factor events applied
+  // (DegradedParamsAtStep): kept while both stay as they were.
+  const double age = AgeAt(scenario_, at);
+  int events = 0;
+  for (const FaultEvent& e : scenario_.events) {
+    if (e.at_step > at) break;  // sorted by at_step
+    ++events;
+  }
+  if (!(params_valid_ && age == params_age_ && events == params_events_)) {
+    params_ = ParamsAtStep(at);
+    params_age_ = age;
+    params_events_ = events;
+    params_valid_ = true;
+  }
+  return params_;
 }
 
 StepIntegrator& Plant::Cvode() {

@@ -90,6 +90,8 @@ class Plant final {
   Vec6 Observe(const Vec6& x);
   StepResult Integrate(const Vec6& x, const Valves& u, const PlantParams& p);
   StepIntegrator& Cvode();
+  // ParamsAtStep(at), kept from the last call with the same age and events.
+  const PlantParams& ParamsInForce(std::int64_t at);
 
   FaultScenario scenario_;
   PlantParams nominal_;
@@ -102,6 +104,10 @@ class Plant final {
   std::int64_t operating_steps_ = 0;
   std::int64_t episodes_started_ = 0;
   std::int64_t eval_step_ = 0;  // step_in_force() of the evaluation episode
+  PlantParams params_;          // ParamsInForce's, for params_age_ and params_events_
+  double params_age_ = 0;
+  int params_events_ = 0;
+  bool params_valid_ = false;
 };
 
 }  // namespace ftc
