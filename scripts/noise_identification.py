@@ -49,7 +49,8 @@ def one(noise: float, seed: int, directory: Path) -> dict[str, float]:
     return {"pump": float(np.mean(np.abs(est.pump - true["pump"]) / true["pump"])),
             "conductance": float(np.mean(cond[opened])),
             "demand": float(np.mean(np.abs(est.demand - true["demand"]) / true["demand"])),
-            "changes": float(changes), "noise_estimate": online.noise}
+            "changes": float(changes),
+            "noise_estimate": float(getattr(online, "noise", float("nan")))}  # nan: no estimate
 
 
 def _interval(online: OnlineIdentification, path: Path, seed: int, age: int,
