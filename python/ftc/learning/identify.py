@@ -320,7 +320,7 @@ class OnlineIdentification:
             deficit: np.ndarray) -> bool:
         """One observed step; True when the parameters were re-identified."""
         self.rows.append((level, valves, next_level, deficit))
-        if len(self.rows) % 32 == 0:  # the sensor's noise, from the rows so far
+        if len(self.rows) % 16 == 0:  # the sensor's noise, from the rows so far
             estimate = noise_std(*(np.array(c) for c in list(zip(*self.rows))[:3]))
             self.noise = self.noise if estimate is None else estimate
         if self.trigger or self.tolerance:
