@@ -4,7 +4,8 @@
 one-error trigger on exact levels, the CUSUM on noisy ones): the figures of
 docs/controller.md's "Faults that change the plant's form".
 
-    .venv/bin/python scripts/change_detection.py [--seeds 0 1 2] [--intervals 10] [--scenarios NAME[@STD] ...]
+    .venv/bin/python scripts/change_detection.py [--seeds 0 1 2] [--intervals 10] \
+        [--scenarios NAME[@STD] ...]
 
 Each scenario's plant is driven for ``--intervals`` intervals of 512 steps by
 sparse random valve openings (an open probability in [0, 0.3] per episode,

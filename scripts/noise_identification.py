@@ -81,7 +81,8 @@ def main() -> int:
     p.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.005, 0.01, 0.02])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     args = p.parse_args()
-    print("noise_m,pump_rel_error,conductance_rel_error,demand_rel_error,false_changes,noise_estimate_m")
+    print("noise_m,pump_rel_error,conductance_rel_error,demand_rel_error,changes,"
+          "noise_estimate_m")
     with tempfile.TemporaryDirectory() as d:
         for noise in args.noise:
             rows = [one(noise, s, Path(d)) for s in args.seeds]

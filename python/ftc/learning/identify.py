@@ -328,7 +328,8 @@ class OnlineIdentification:
             error = float(np.max(np.abs(predicted - next_level)))  # NaN: refused, wrong
             self.mispredicted += int(not error <= self.tolerance)
             if self.noisy:
-                wrong = bool(self.trigger) and self._cusum(predicted - next_level, level, next_level)
+                wrong = bool(self.trigger) and self._cusum(predicted - next_level, level,
+                                                           next_level)
             else:
                 wrong = bool(self.trigger) and not error <= self.trigger
             if wrong and not self.pending:

@@ -50,8 +50,8 @@ class PhysicsEnv(BranchedStarts):
         trunc = np.zeros(self.num_envs, bool)
         for i in range(self.num_envs):
             try:
-                r = self.rollout.run(self.level[i], applied[i].reshape(1, 1, NUM_TANKS), self.params,
-                                     details=True)
+                r = self.rollout.run(self.level[i], applied[i].reshape(1, 1, NUM_TANKS),
+                                     self.params, details=True)
                 nxt = r["levels"][0, 0]
             except RuntimeError:  # ill-posed under these parameters: end the episode here
                 self.errors += 1

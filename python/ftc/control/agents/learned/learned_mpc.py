@@ -216,7 +216,8 @@ class LearnedMPCAgent(Agent):
     # -- persistence ---------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         return {"np_rng": self.rng.bit_generator.state, "demand": self.demand,
-                "stuck": self.stuck.state_dict()["stuck"], "stuck_valves": self.stuck.state_dict(),
+                "stuck": self.stuck.state_dict()["stuck"],  # as older checkpoints had it
+                "stuck_valves": self.stuck.state_dict(),
                 "learned_model": self.model.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

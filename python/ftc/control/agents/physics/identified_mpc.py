@@ -125,8 +125,8 @@ class IdentifiedAgent(MPCAgent):
         return {}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"np_rng": self.rng.bit_generator.state, "identification": self.online_id.state_dict(),
-                "stuck": self.stuck.state_dict()}
+        return {"np_rng": self.rng.bit_generator.state,
+                "identification": self.online_id.state_dict(), "stuck": self.stuck.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         missing = sorted({"np_rng", "identification"} - set(state))

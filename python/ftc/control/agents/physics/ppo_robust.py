@@ -123,8 +123,8 @@ def _ppo_on_physics(ppo: PPO, cfg: GuidedConfig, params: dict, starts: np.ndarra
                     interval: int, stuck: dict[int, int]) -> tuple[float, int, int]:
     """PPO for ``cfg.offline_steps`` steps on the identified physics ``params``
     (``cfg.branch_fraction`` of its episodes branched from ``starts``, levels
-    (N, 6) observed on the plant; valves ``stuck`` as they will be), on a stream of its own and with the offline
-    minibatch size, both restored after. Returns the mean reward per step, the
+    (N, 6) observed on the plant; valves ``stuck`` as they will be), on a
+    stream of its own and with the offline minibatch size, both restored after. Returns the mean reward per step, the
     number of updates and the steps the integrator refused."""
     env = PhysicsEnv(params, cfg.offline_envs, max_episode_steps=cfg.steps_per_interval,
                      starts=starts, branch_fraction=cfg.branch_fraction,
