@@ -23,7 +23,7 @@ QUICK_FILES = {
     "test_physics_vs_reference.py", "test_ppo.py", "test_ppo_numpy.py", "test_properties.py",
     "test_reference_sim.py", "test_small_mlp.py", "test_world_model.py", "test_docs.py",
     "test_layers.py", "test_suite_results.py", "test_headroom.py", "test_compare.py",
-    "test_scenario_names.py",
+    "test_scenario_names.py", "test_stuck.py", "test_noisy_identification.py",
 }
 
 

@@ -8,6 +8,9 @@ a level actually observed on the plant (``starts``), cut after
 the policy trains where the plant is, not only on the full-tank episodes.
 Full-tank episodes end by the plant's rule (terminal when the volume is below
 one step of demand + 1e-6 m^3) or are cut after ``max_episode_steps``.
+Valves known stuck (``stuck``: valve -> state) move fuel as they are stuck,
+whatever the action; the reward charges the action (the commanded valves), as
+the plant's runner does.
 """
 
 from __future__ import annotations
@@ -25,11 +28,12 @@ class PhysicsEnv(BranchedStarts):
     def __init__(self, params: dict, num_envs: int, *, max_episode_steps: int = 512,
                  starts: np.ndarray | None = None, branch_fraction: float = 0.0,
                  branch_steps: int = 64, seed: int = 0, rtol: float = 1e-6,
-                 atol: float = 1e-8) -> None:
+                 atol: float = 1e-8, stuck: dict[int, int] | None = None) -> None:
         from ftc import _core  # native: the plant's integrator
 
         self.rollout = _core.BatchRollout(rtol=rtol, atol=atol)
         self.params = params
+        self.stuck = dict(stuck or {})
         super().__init__(num_envs, max_episode_steps=max_episode_steps, starts=starts,
                          branch_fraction=branch_fraction, branch_steps=branch_steps, seed=seed)
         self.demand = float(np.sum(params["demand"]))
@@ -37,14 +41,17 @@ class PhysicsEnv(BranchedStarts):
 
     def step(self, actions: torch.Tensor) -> EnvStep:
         u = actions.numpy().astype(np.int64)
+        applied = u.copy()
+        for k, state in self.stuck.items():
+            applied[:, k] = state
         final = np.empty_like(self.level)
         rew = np.zeros(self.num_envs)
         term = np.zeros(self.num_envs, bool)
         trunc = np.zeros(self.num_envs, bool)
         for i in range(self.num_envs):
             try:
-                r = self.rollout.run(self.level[i], u[i].reshape(1, 1, NUM_TANKS), self.params,
-                                     details=True)
+                r = self.rollout.run(self.level[i], applied[i].reshape(1, 1, NUM_TANKS),
+                                     self.params, details=True)
                 nxt = r["levels"][0, 0]
             except RuntimeError:  # ill-posed under these parameters: end the episode here
                 self.errors += 1

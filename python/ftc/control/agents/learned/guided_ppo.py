@@ -134,7 +134,8 @@ class GuidedPPOAgent(ModelHooks):
     extra_columns = (*PPO_COLUMNS, "distill_loss", "distill_agreement", "distill_epochs",
                      "teacher_labels", "teacher_plans", "teacher_memory", "teach_seconds",
                      "refit_seconds", "offline_model_errors", "guided_refits", "detected_changes",
-                     "mispredicted_steps", "checks", "check_refits", "refused_rollouts")
+                     "mispredicted_steps", "checks", "check_refits", "refused_rollouts",
+                     "stuck_valves", "stuck_detected")
     progress_keys = PPO_PROGRESS_KEYS
     Config = GuidedConfig
     parts = {"ppo": (PPOConfig, "ppo-")}

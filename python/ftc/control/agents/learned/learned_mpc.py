@@ -20,7 +20,9 @@ catches such an import.
   every candidate rolled out on the model; an episode ends in a rollout where
   the predicted fuel falls ``learn_terminal_band`` below the demand, which is
   estimated from what was burnt (level drop plus published deficit).
-* Valves seen not to follow their command are planned as they will be.
+* Valves seen not to follow their command are planned as they will be, and
+  commanded closed (:class:`ftc.learning.stuck.StuckValves`, shared with the
+  controllers on the plant's equations).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from ftc.control.run.agent import Agent, StepContext, Transition
 from ftc.control.agents.mpc_config import MPCConfig
 from ftc.control.planning.planners import CEMPlanner, make_planner
 from ftc.learning.feature_model import FeatureModel
+from ftc.learning.stuck import StuckValves, charge_commanded
 from ftc.learning.transitions import (Transitions, collect_nominal_dataset,
                                       collect_sparse_episodes)
 from ftc.plant.link import CorePlant, PlantObservation
@@ -76,9 +79,9 @@ class LearnedEvaluator:
     """Candidate valve sequences rolled out on the learned model, all in one batch
     per step; after a predicted terminal step the tanks are full again, as the
     plant resets them. Valves seen not to follow their command (``stuck``: valve
-    -> the state it stays in) are planned as they will be, and commanded so: a
-    plan that opens a valve stuck closed would be rolled out on a transfer the
-    model learned before the valve stuck."""
+    -> the state it stays in) are planned as they will be, the activity charged
+    for the commanded valves: a plan that opens a valve stuck closed would be
+    rolled out on a transfer the model learned before the valve stuck."""
 
     def __init__(self, model: FeatureModel, demand: float, band: float,
                  stuck: dict[int, int] | None = None) -> None:
@@ -86,6 +89,7 @@ class LearnedEvaluator:
         self.stuck = stuck or {}
 
     def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
+        commanded = sequences
         if self.stuck:
             sequences = np.array(sequences, copy=True)
             for i, state in self.stuck.items():
@@ -98,7 +102,7 @@ class LearnedEvaluator:
             total += reward_moments(nxt, sequences[:, t])
             terminal = nxt @ AREAS < self.end_volume
             x = np.where(terminal[:, None], TANK_HEIGHT, nxt)
-        return total
+        return charge_commanded(total, commanded, sequences) if self.stuck else total
 
 
 def fit_nominal(model: FeatureModel, episodes: int, seed: int) -> tuple[float, dict[str, Any]]:
@@ -121,15 +125,14 @@ def fit_nominal(model: FeatureModel, episodes: int, seed: int) -> tuple[float, d
                     "learn_pretrain_seconds": time.perf_counter() - start}
 
 
-def learn_step(model: FeatureModel, t: Transition, stuck: dict[int, int],
+def learn_step(model: FeatureModel, t: Transition, stuck: StuckValves,
                errors: list[np.ndarray], demand: float) -> float:
     """One plant step into what a learned controller keeps: valves seen not to
     follow their command into ``stuck``, the model's error on the step (before
     learning it) into ``errors``, the step into ``model``. Returns the demand
     per step estimated anew from what was burnt (level drop plus deficit)."""
     applied = t.next_obs.valves  # the plant publishes the valves it applied
-    for i in np.flatnonzero(applied != t.valves):
-        stuck[int(i)] = int(applied[i])
+    stuck.observe(t.valves, applied, t.obs.operating_steps)
     errors.append(model.add(t.obs.level, applied, t.next_obs.level))
     burnt = float(np.sum(t.obs.level - t.next_obs.level) + np.sum(t.next_obs.deficit))
     return DEMAND_MEMORY * demand + (1 - DEMAND_MEMORY) * burnt
@@ -149,7 +152,7 @@ class LearnedMPCAgent(Agent):
 
     name = "learned-mpc"
     extra_columns = ("model_one_step_rmse", "model_max_step_error", "demand_estimate",
-                     "open_fraction", "decisions_per_second", "stuck_valves")
+                     "open_fraction", "decisions_per_second", "stuck_valves", "stuck_detected")
     progress_keys = (("model_one_step_rmse", "model rmse"),)
     Config = LearnedMPCConfig
 
@@ -160,7 +163,7 @@ class LearnedMPCAgent(Agent):
         self.model = FeatureModel(cfg.learn_features, cfg.learn_forget, cfg.learn_ridge,
                                   seed=cfg.seed)
         self.demand = 0.0
-        self.stuck: dict[int, int] = {}  # valve -> the state it stays in
+        self.stuck = StuckValves()
         self._reset_interval()
 
     @classmethod
@@ -187,14 +190,12 @@ class LearnedMPCAgent(Agent):
         if ctx.steps_left is not None and self.cfg.truncate_at_interval:
             horizon = max(1, min(horizon, ctx.steps_left))
         evaluate = LearnedEvaluator(self.model, self.demand, self.cfg.learn_terminal_band,
-                                    self.stuck)
+                                    self.stuck.stuck)
         t0 = time.perf_counter()
         u, _, _ = self.planner.plan(evaluate, obs.level, horizon)
         self.plan_seconds += time.perf_counter() - t0
         self.decisions += 1
-        u = u.astype(np.int8)
-        for i, state in self.stuck.items():
-            u[i] = state  # command what it will do anyway: no activity paid for nothing
+        u = self.stuck.command(u.astype(np.int8))
         if not ctx.evaluation:
             self.opened += int(u.sum())
         return u
@@ -210,12 +211,13 @@ class LearnedMPCAgent(Agent):
 
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
         self.model.settle()
-        return {"demand_estimate": self.demand, "stuck_valves": len(self.stuck)}
+        return {"demand_estimate": self.demand, **self.stuck.metrics()}
 
     # -- persistence ---------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         return {"np_rng": self.rng.bit_generator.state, "demand": self.demand,
-                "stuck": {str(k): v for k, v in self.stuck.items()},
+                "stuck": self.stuck.state_dict()["stuck"],  # as older checkpoints had it
+                "stuck_valves": self.stuck.state_dict(),
                 "learned_model": self.model.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -224,5 +226,5 @@ class LearnedMPCAgent(Agent):
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.rng.bit_generator.state = state["np_rng"]
         self.demand = float(state["demand"])
-        self.stuck = {int(k): int(v) for k, v in state["stuck"].items()}
+        self.stuck.load_state_dict(state.get("stuck_valves", {"stuck": state["stuck"]}))
         self.model.load_state_dict(state["learned_model"])

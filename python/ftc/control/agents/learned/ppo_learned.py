@@ -35,6 +35,7 @@ from ftc.learning.branched import BranchedStarts
 from ftc.learning.feature_model import FeatureModel
 from ftc.learning.ppo import PPOConfig
 from ftc.learning.rollout import EnvStep, train_on_env
+from ftc.learning.stuck import StuckValves
 from ftc.plant.reward import AREAS, reward
 
 # the learned model as learned-mpc's defaults configure it (ftc.mpc --help: --learn-*)
@@ -83,7 +84,7 @@ class LearnedPPOAgent(GuidedPPOAgent):
         self.model = FeatureModel(MODEL.learn_features, MODEL.learn_forget, MODEL.learn_ridge,
                                   seed=cfg.seed)
         self.demand, self.added = 0.0, 0  # steps the model has learned from
-        self.stuck: dict[int, int] = {}  # valves seen not to follow their command
+        self.stuck = StuckValves()  # valves seen not to follow their command
         self._reset_interval()
 
     def _reset_interval(self) -> None:
@@ -92,7 +93,8 @@ class LearnedPPOAgent(GuidedPPOAgent):
 
     @property
     def teacher_eval(self) -> LearnedEvaluator:  # type: ignore[override]
-        return LearnedEvaluator(self.model, self.demand, MODEL.learn_terminal_band, self.stuck)
+        return LearnedEvaluator(self.model, self.demand, MODEL.learn_terminal_band,
+                                self.stuck.stuck)
 
     def prepare(self) -> dict[str, Any]:
         info = super().prepare()  # the policy (--pretrain)
@@ -126,7 +128,7 @@ class LearnedPPOAgent(GuidedPPOAgent):
     def end_model(self, interval: int) -> dict[str, Any]:
         self.model.settle()
         return {"model_one_step_rmse": error_metrics(self.errors)["model_one_step_rmse"],
-                "detected_changes": 0, "mispredicted_steps": None}
+                "detected_changes": 0, "mispredicted_steps": None, **self.stuck.metrics()}
 
     def offline(self, interval: int, observed: np.ndarray) -> tuple[float, int, int]:
         """PPO on the learned model (--offline-steps; half the episodes branched
@@ -151,7 +153,8 @@ class LearnedPPOAgent(GuidedPPOAgent):
 
     def model_state(self) -> dict[str, Any]:
         return {"learned_model": self.model.state_dict(), "demand": self.demand,
-                "added": self.added, "stuck": {str(k): v for k, v in self.stuck.items()}}
+                "added": self.added, "stuck": self.stuck.state_dict()["stuck"],
+                "stuck_valves": self.stuck.state_dict()}
 
     def load_model_state(self, state: dict[str, Any]) -> None:
         missing = sorted({"learned_model", "demand", "added"} - set(state))
@@ -159,4 +162,4 @@ class LearnedPPOAgent(GuidedPPOAgent):
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.model.load_state_dict(state["learned_model"])
         self.demand, self.added = float(state["demand"]), int(state["added"])
-        self.stuck = {int(k): int(v) for k, v in state.get("stuck", {}).items()}
+        self.stuck.load_state_dict(state.get("stuck_valves", {"stuck": state.get("stuck", {})}))

@@ -45,6 +45,7 @@ from ftc.control.agents.physics.mpc import MPCAgent, PhysicsConfig
 from ftc.control.planning.physics.evaluators import ParamsEvaluator
 from ftc.control.planning.planners import Evaluator
 from ftc.learning.identify import Identifier, OnlineIdentification
+from ftc.learning.stuck import StuckValves
 from ftc.learning.transitions import Transitions
 from ftc.plant.link import PlantObservation
 
@@ -70,7 +71,8 @@ class IdentifiedAgent(MPCAgent):
 
     # (refused_rollouts: one of MPCAgent's columns)
     extra_columns = (*MPCAgent.extra_columns, "identify_seconds", "identified_pump_min",
-                     "identified_demand_max", "detected_changes", "mispredicted_steps")
+                     "identified_demand_max", "detected_changes", "mispredicted_steps",
+                     "stuck_valves", "stuck_detected")
 
     def __init__(self, cfg: IdentifiedConfig) -> None:
         super().__init__(cfg)
@@ -82,6 +84,8 @@ class IdentifiedAgent(MPCAgent):
         self.evaluator_ = ParamsEvaluator(_core.BatchRollout(
             rtol=cfg.rollout_rtol, atol=cfg.rollout_atol,
             exact_active_conduit=cfg.rollout_closed_form))
+        self.stuck = StuckValves()
+        self.evaluator_.stuck = self.stuck.stuck  # planned as they will be
 
     def prepare(self) -> dict[str, Any]:
         return {}
@@ -96,15 +100,11 @@ class IdentifiedAgent(MPCAgent):
 
     def observe(self, t: Transition) -> None:
         applied = t.next_obs.valves  # the plant publishes the valves it applied
-        for i in np.flatnonzero(applied != t.valves):  # a valve that ignores its command
-            self.evaluator_.stuck[int(i)] = int(applied[i])
+        self.stuck.observe(t.valves, applied, t.obs.operating_steps)
         self.online_id.add(t.obs.level, applied, t.next_obs.level, t.next_obs.deficit)
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
-        u = super().act(obs, ctx)
-        for i, state in self.evaluator_.stuck.items():
-            u[i] = state  # command what it will do anyway: no activity paid for nothing
-        return u
+        return self.stuck.command(super().act(obs, ctx))
 
     def wants_data(self) -> bool:
         return False
@@ -112,20 +112,21 @@ class IdentifiedAgent(MPCAgent):
     def end_interval(self, interval: int, data: Transitions | None) -> dict[str, Any]:
         ident = self.online_id
         if not ident.rows:
-            return {}
+            return self.stuck.metrics()
         params, rms = ident.end()
         refused, self.evaluator_.refused = self.evaluator_.refused, 0
         return {"model_one_step_rmse": rms, "identify_seconds": ident.seconds,
                 "refused_rollouts": refused, "detected_changes": ident.changes,
                 "mispredicted_steps": ident.mispredicted,
                 "identified_pump_min": float(params.pump.min()),
-                "identified_demand_max": float(params.demand.max())}
+                "identified_demand_max": float(params.demand.max()), **self.stuck.metrics()}
 
     def config_doc(self) -> dict[str, Any]:
         return {}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"np_rng": self.rng.bit_generator.state, "identification": self.online_id.state_dict()}
+        return {"np_rng": self.rng.bit_generator.state,
+                "identification": self.online_id.state_dict(), "stuck": self.stuck.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         missing = sorted({"np_rng", "identification"} - set(state))
@@ -133,3 +134,4 @@ class IdentifiedAgent(MPCAgent):
             raise CheckpointError(f"checkpoint lacks the agent's {', '.join(missing)}")
         self.rng.bit_generator.state = state["np_rng"]
         self.online_id.load_state_dict(state["identification"])
+        self.stuck.load_state_dict(state.get("stuck", {}))  # none in older checkpoints

@@ -36,6 +36,7 @@ from ftc.learning.identify import Identifier, OnlineIdentification
 from ftc.learning.physics_env import PhysicsEnv
 from ftc.learning.ppo import PPO, PPOConfig
 from ftc.learning.rollout import train_on_env
+from ftc.learning.stuck import StuckValves
 
 
 
@@ -53,14 +54,19 @@ class RobustPPOAgent(GuidedPPOAgent):
         self.online_id = OnlineIdentification(Identifier(seed=cfg.seed), trigger=1e-4, every=0)
         self.teacher_eval = ParamsEvaluator(_core.BatchRollout(rtol=1e-6, atol=1e-8,
                                                              exact_active_conduit=True))
+        self.stuck = StuckValves()
+        self.teacher_eval.stuck = self.stuck.stuck  # the teacher plans them as they will be
 
     def _begin_interval(self, interval: int) -> None:
         super()._begin_interval(interval)
         self.online_id.begin()
 
     def watch(self, t: Transition) -> bool:
-        return self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
-                                  t.next_obs.deficit)  # the valves the plant applied
+        stuck = self.stuck.observe(t.valves, t.next_obs.valves, t.obs.operating_steps)
+        refitted = self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
+                                      t.next_obs.deficit)  # the valves the plant applied
+        # a valve newly stuck changes what the teacher plans: refit the policy at once
+        return refitted or stuck
 
     def observed_levels(self) -> np.ndarray:
         return np.array([r[2] for r in self.online_id.rows])
@@ -79,19 +85,21 @@ class RobustPPOAgent(GuidedPPOAgent):
 
     def rollout_env(self, seed: int) -> PhysicsEnv:
         return PhysicsEnv(self.teacher_eval.params, 1,
-                          max_episode_steps=self.cfg.steps_per_interval, seed=seed)
+                          max_episode_steps=self.cfg.steps_per_interval, seed=seed,
+                          stuck=self.stuck.stuck)
 
     def end_model(self, interval: int) -> dict[str, Any]:
         params, rms = self.online_id.end()
         self.ahead = self.online_id.ahead()
         self.teacher_eval.params = self.ahead.as_core()
         return {"model_one_step_rmse": rms, "detected_changes": self.online_id.changes,
-                "mispredicted_steps": self.online_id.mispredicted}
+                "mispredicted_steps": self.online_id.mispredicted, **self.stuck.metrics()}
 
     def offline(self, interval: int, observed: np.ndarray) -> tuple[float, int, int]:
         if not self.cfg.offline_steps:  # then PPO on the identified physics (also fits the critic)
             return float("nan"), 0, 0
-        return _ppo_on_physics(self.ppo, self.cfg, self.ahead.as_core(), observed, interval)
+        return _ppo_on_physics(self.ppo, self.cfg, self.ahead.as_core(), observed, interval,
+                               self.stuck.stuck)
 
     def take_refused(self) -> int:
         refused, self.teacher_eval.refused = self.teacher_eval.refused, 0
@@ -102,24 +110,26 @@ class RobustPPOAgent(GuidedPPOAgent):
         # phase), empty here, which ppo-robust checkpoints carried when this class
         # inherited PPOAgent: still written, so checkpoints stay as they were; not read
         return {"model": None, "model_fits": 0, "window": [], "pending": None,
-                "identification": self.online_id.state_dict()}
+                "identification": self.online_id.state_dict(), "stuck": self.stuck.state_dict()}
 
     def load_model_state(self, state: dict[str, Any]) -> None:
         if "identification" not in state:
             raise CheckpointError("checkpoint lacks the agent's identification")
         self.online_id.load_state_dict(state["identification"])
+        self.stuck.load_state_dict(state.get("stuck", {}))  # none in older checkpoints
 
 
 def _ppo_on_physics(ppo: PPO, cfg: GuidedConfig, params: dict, starts: np.ndarray,
-                    interval: int) -> tuple[float, int, int]:
+                    interval: int, stuck: dict[int, int]) -> tuple[float, int, int]:
     """PPO for ``cfg.offline_steps`` steps on the identified physics ``params``
     (``cfg.branch_fraction`` of its episodes branched from ``starts``, levels
-    (N, 6) observed on the plant), on a stream of its own and with the offline
-    minibatch size, both restored after. Returns the mean reward per step, the
+    (N, 6) observed on the plant; valves ``stuck`` as they will be), on a
+    stream of its own and with the offline minibatch size, both restored after. Returns the mean reward per step, the
     number of updates and the steps the integrator refused."""
     env = PhysicsEnv(params, cfg.offline_envs, max_episode_steps=cfg.steps_per_interval,
                      starts=starts, branch_fraction=cfg.branch_fraction,
-                     branch_steps=cfg.branch_steps, seed=offline_seed(cfg.seed, interval))
+                     branch_steps=cfg.branch_steps, seed=offline_seed(cfg.seed, interval),
+                     stuck=stuck)
     online_config = ppo.config
     generator_state = ppo.generator.get_state()
     ppo.generator.manual_seed(offline_seed(cfg.seed, interval))

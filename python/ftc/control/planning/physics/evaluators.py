@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from ftc.learning.stuck import charge_commanded
+
 
 def guarded_rollout(rollout: Any, x0: np.ndarray, sequences: np.ndarray, params: Any
                     ) -> tuple[np.ndarray, int]:
@@ -97,7 +99,7 @@ class OracleEvaluator:
         totals, refused = guarded_rollout(self.rollout, x0, applied, self.params)
         self.refused += refused
         # r = shape(x') - mean(u): the rollout charged the applied valves.
-        return totals + (applied.mean(-1) - np.asarray(sequences).mean(-1)).sum(-1)
+        return charge_commanded(totals, sequences, applied)
 
 
 class ParamsEvaluator:
@@ -106,7 +108,10 @@ class ParamsEvaluator:
     Estimated parameters can make a candidate's rollout ill-posed where the true
     ones are not (the integrator refuses a step that would switch modes without
     end: chattering); such a candidate scores -inf and the others are planned
-    on (:func:`guarded_rollout`). ``refused`` counts them."""
+    on (:func:`guarded_rollout`). ``refused`` counts them. Valves known stuck
+    (``stuck``, a :class:`ftc.learning.stuck.StuckValves`' dict) are rolled out as
+    they will be, and the activity term charged for the commanded valves, as the
+    runner's reward is (the oracle's rule)."""
 
     def __init__(self, rollout: Any) -> None:
         self.rollout = rollout
@@ -117,10 +122,11 @@ class ParamsEvaluator:
 
     def __call__(self, x0: np.ndarray, sequences: np.ndarray) -> np.ndarray:
         x0 = np.asarray(x0, np.float64)
+        applied = sequences
         if self.stuck:  # plan with the valves as they will be, not as commanded
-            sequences = sequences.copy()
+            applied = np.array(sequences, copy=True)
             for i, state in self.stuck.items():
-                sequences[:, :, i] = state
-        totals, refused = guarded_rollout(self.rollout, x0, sequences, self.params)
+                applied[:, :, i] = state
+        totals, refused = guarded_rollout(self.rollout, x0, applied, self.params)
         self.refused += refused
-        return totals
+        return charge_commanded(totals, sequences, applied) if self.stuck else totals
