@@ -211,3 +211,36 @@ def test_the_method_refuses_to_run_without_a_checkpoint(tmp_path):
     agent = AdaptivePolicyAgent(AdaptiveConfig(checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(UsageError, match="ftc.experiments.adaptive train"):
         agent.prepare()
+
+
+def test_bad_input_to_the_commands_is_one_line_and_exit_2(tmp_path, capsys):
+    from ftc.experiments.adaptive.cli import main
+
+    assert main(["train", "--iterations", "0", "--cache", str(tmp_path)]) == 2
+    assert main(["evaluate", "--checkpoint", str(tmp_path / "none.pt")]) == 2
+    assert main(["train", "--distribution", str(tmp_path / "none.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("adaptive: error: ") for line in err)
+    assert "--iterations must be >= 1" in err[0] and "train`" in err[1] and "none.toml" in err[2]
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.slow
+def test_one_command_trains_and_the_method_flies_it_on_the_plant(tmp_path):
+    import subprocess
+    import sys
+
+    cache = tmp_path / "cache"
+    train = [sys.executable, "-m", "ftc.experiments.adaptive", "train", "--cache", str(cache),
+             "--iterations", "2", "--envs", "4", "--life-intervals", "1"]
+    first = subprocess.run(train, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    (checkpoint,) = cache.iterdir()
+    again = subprocess.run(train, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and f"cached {checkpoint}" in again.stdout
+    run = subprocess.run([sys.executable, "-m", "ftc.controller", "--method", "adaptive-policy",
+                          "--checkpoint", str(checkpoint), "--link", "core", "--intervals", "1",
+                          "--steps-per-interval", "64", "--out", str(tmp_path / "run"), "--quiet"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "run" / "metrics.csv").read_text().count("\n") >= 2

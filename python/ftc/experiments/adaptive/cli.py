@@ -27,8 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from ftc.common.atomic import atomic_torch_save, atomic_write_csv
+from ftc.common.atomic import atomic_torch_save, atomic_write_text
+from ftc.common.build_info import git_revision
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE
+from ftc.control.agents.balance import balance_valves
+from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive import dagger, distribution, evaluate
 from ftc.learning.history_policy import HistoryPolicy, TrainingConfig, checkpoint_file
 
@@ -100,28 +103,65 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     record, path = load_record(a)
     policy = HistoryPolicy.from_record(record["policy"])
+    if a.policy == "teacher":
+        policy = PoolTeacher(record["config"]["hold"], record["config"]["horizon"])
+    elif a.policy == "balance":
+        policy = balance_rule
     rows = []
     for which in a.sets:
-        rows += evaluate.evaluate(policy, which, seeds=a.seeds)
+        if which == "heldout" and not a.heldout_results:
+            raise ValueError("--sets heldout needs --heldout-results (a benchmark's results.csv "
+                             "with reference and closed on scenarios/heldout/)")
+        rows += evaluate.evaluate(policy, which, seeds=a.seeds,
+                                  heldout=Path(a.heldout_results) if a.heldout_results else None)
     for which in a.sets:
         s = np.array([r["score"] for r in rows if r["set"] == which])
         worst = min((r for r in rows if r["set"] == which), key=lambda r: r["score"])
-        print(f"adaptive: {which}: mean score {s.mean():.3f} over {len(s)} runs, worst "
+        print(f"adaptive: {a.policy}: {which}: mean score {s.mean():.3f} over {len(s)} runs, worst "
               f"{worst['score']:.3f} ({worst['scenario']}, seed {worst['seed']})")
     try:
         if a.out:
-            atomic_write_csv(a.out, ["set", "scenario", "seed", "score", "reward_per_step"],
-                             [[r["set"], r["scenario"], r["seed"], f"{r['score']:.4f}",
-                               f"{r['reward_per_step']:.4f}"] for r in rows])
+            write_result(a.out, f"{a.policy} ({path.name}), per-scenario normalized score "
+                         "(intervals 1-9 against the shipped reference and closed rewards) "
+                         "in the batched pool, 10 x 512 steps",
+                         [{**r, "score": round(r["score"], 4),
+                           "reward_per_step": round(r["reward_per_step"], 4)} for r in rows])
         if a.curve:
             curve = learning_curve(record)
-            atomic_write_csv(a.curve, list(curve[0]), [list(r.values()) for r in curve])
+            write_result(a.curve, "adaptive-policy's learning curve: each DAgger iteration's "
+                         f"student on the suite (seed 0); training {record['train_seconds']:.0f} s "
+                         f"wall, load average at its end {record['load_average'][0]:.1f}", curve)
             if a.figure:
                 draw_curve(curve, Path(a.figure), record)
     except OSError as e:
         print(f"adaptive: error: cannot write: {e}", file=sys.stderr)
         return EXIT_STORAGE
     return 0
+
+
+def balance_rule(levels: np.ndarray) -> np.ndarray:
+    """The balance rule's valves (N, 6) for levels (N, 6) (ftc.control.agents.balance)."""
+    return np.stack([balance_valves(x) for x in levels])
+
+
+def write_result(path: str, what: str, rows: list[dict[str, Any]]) -> None:
+    """A result file (docs/results/): '#' provenance lines, then the CSV."""
+    import csv
+    import io
+    import platform
+
+    buf = io.StringIO()
+    for key, value in (("what", what), ("command", "python -m ftc.experiments.adaptive " +
+                                        " ".join(sys.argv[1:])),
+                       ("commit", git_revision()), ("date", time.strftime("%Y-%m-%d")),
+                       ("machine", f"{platform.processor() or platform.machine()}, "
+                                   f"{os.cpu_count()} cores, load average "
+                                   f"{os.getloadavg()[0]:.1f}")):
+        buf.write(f"# {key}: {value}\n")
+    writer = csv.DictWriter(buf, list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
 
 
 def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
@@ -183,8 +223,13 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--checkpoint", default="", help="a checkpoint file (default: the "
                            "cached one of the training options)")
             s.add_argument("--sets", nargs="+", default=["suite", "check"],
-                           choices=["suite", "check"])
+                           choices=["suite", "check", "heldout"])
+            s.add_argument("--heldout-results", default="", help=(
+                "results.csv of a benchmark of reference and closed on scenarios/heldout/"))
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
+            s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
+                           help="what to score: the checkpoint's student, its teacher "
+                                "(oracle-mpc's decision on the true physics) or the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
