@@ -244,3 +244,20 @@ def test_one_command_trains_and_the_method_flies_it_on_the_plant(tmp_path):
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     assert (tmp_path / "run" / "metrics.csv").read_text().count("\n") >= 2
+
+
+def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path):
+    from ftc.experiments.adaptive.cli import main
+
+    scores = tmp_path / "s.csv"
+    scores.write_text("# what: a known case\nset,scenario,seed,score,reward_per_step\n"
+                      "suite,a,0,1.0,2.5\nsuite,a,1,0.8,2.5\nsuite,b,0,0.5,2.4\n"
+                      "check,c,0,0.7,2.3\n")
+    out = tmp_path / "summary.csv"
+    assert main(["summarize", f"mine={scores}", "--out", str(out)]) == 0
+    rows = [ln.split(",") for ln in out.read_text().splitlines() if not ln.startswith("#")]
+    assert rows[0] == ["policy", "set", "runs", "mean score", "worst scenario",
+                       "scenarios below 0.60"]
+    # suite: runs 1.0, 0.8, 0.5 -> mean 0.767; scenario means a 0.9, b 0.5 (below 0.60)
+    assert rows[1] == ["mine", "suite", "3", "0.767", "b (0.500)", "1"]
+    assert rows[2] == ["mine", "check", "1", "0.7", "c (0.700)", "0"]

@@ -164,6 +164,42 @@ def write_result(path: str, what: str, rows: list[dict[str, Any]]) -> None:
     atomic_write_text(path, buf.getvalue())
 
 
+def cmd_summarize(a: argparse.Namespace) -> int:
+    """One row per (result file, set): runs, mean and worst score, scenarios below 0.60."""
+    import csv
+
+    rows = []
+    for given in a.results:
+        label, _, path = given.rpartition("=")
+        try:
+            lines = [ln for ln in Path(path).read_text().splitlines() if not ln.startswith("#")]
+        except OSError as e:
+            raise ValueError(f"{path}: {e}") from None
+        scored = list(csv.DictReader(lines))
+        for which in dict.fromkeys(r["set"] for r in scored):
+            cells = [r for r in scored if r["set"] == which]
+            per_scenario: dict[str, list[float]] = {}
+            for r in cells:
+                per_scenario.setdefault(r["scenario"], []).append(float(r["score"]))
+            means = {k: float(np.mean(v)) for k, v in per_scenario.items()}
+            worst = min(means, key=means.get)
+            rows.append({"policy": label or Path(path).stem, "set": which, "runs": len(cells),
+                         "mean score": round(float(np.mean([float(r["score"]) for r in cells])), 3),
+                         "worst scenario": f"{worst} ({means[worst]:.3f})",
+                         "scenarios below 0.60": sum(v < 0.6 for v in means.values())})
+    try:
+        write_result(a.out, "per-scenario normalized scores summarized per set (intervals 1-9, "
+                     "against the reference and closed), from " +
+                     ", ".join(g.rpartition("=")[2] for g in a.results), rows)
+    except OSError as e:
+        print(f"adaptive: error: cannot write {a.out}: {e}", file=sys.stderr)
+        return EXIT_STORAGE
+    for r in rows:
+        print(f"adaptive: {r['policy']}: {r['set']}: mean {r['mean score']:.3f}, worst "
+              f"{r['worst scenario']}, {r['scenarios below 0.60']} below 0.60")
+    return 0
+
+
 def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
     """Per iteration: env steps, teacher labels, wall seconds, and the student's
     mean and worst per-scenario score on the suite (seed 0)."""
@@ -210,6 +246,9 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m ftc.experiments.adaptive",
                                 description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
+    summ = sub.add_parser("summarize", help="summarize evaluate's result files per set")
+    summ.add_argument("results", nargs="+", help="[LABEL=]FILE: evaluate's --out files")
+    summ.add_argument("--out", required=True, help="the summary (CSV)")
     for name, help_ in (("train", "build the checkpoint (a cached one is kept)"),
                         ("evaluate", "score a checkpoint per scenario; the learning curve")):
         s = sub.add_parser(name, help=help_)
@@ -240,7 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     p = parser()
     a = p.parse_args(argv)
     try:
-        return cmd_train(a) if a.command == "train" else cmd_evaluate(a)
+        commands = {"train": cmd_train, "evaluate": cmd_evaluate, "summarize": cmd_summarize}
+        return commands[a.command](a)
     except ValueError as e:
         print(f"adaptive: error: {e}", file=sys.stderr)
         return EXIT_USAGE
