@@ -42,6 +42,14 @@ class AdaptiveConfig(RunConfig):
     adaptive_cache: str = field(default="~/.cache/ftc/adaptive", metadata={
         "run_local": True, "help": "directory of the cached checkpoints"})
 
+    def validate(self) -> None:
+        super().validate()
+        if self.checkpoint and not Path(self.checkpoint).is_file():
+            raise ValueError(f"--checkpoint {self.checkpoint}: no such file (build one with "
+                             f"`{TRAIN_COMMAND}`)")
+        if not self.adaptive_cache.strip():
+            raise ValueError("--adaptive-cache must name a directory, got ''")
+
 
 def default_checkpoint(cache_dir: str) -> Path:
     """The cached checkpoint of the default training options, distribution and code."""
