@@ -45,6 +45,10 @@ ACCEPTED = {
     ("--tensorboard", "0"), ("--tensorboard", "-1"), ("--tensorboard", "nan"),
     ("--tensorboard", "inf"), ("--tensorboard", "1e18"),
     ("--tensorboard", "abc"),                 # a directory name (relative to the cwd)
+    ("--checkpoint", ""),                     # adaptive-policy: the cached checkpoint
+    ("--adaptive-cache", "0"), ("--adaptive-cache", "-1"), ("--adaptive-cache", "nan"),
+    ("--adaptive-cache", "inf"), ("--adaptive-cache", "1e18"),
+    ("--adaptive-cache", "abc"),              # a cache directory
 }
 # --out is given a fresh directory by every case (its checks: test_fault_injection.py)
 SKIPPED = {"--out"}

@@ -30,7 +30,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 CONTRACT = "the learned-plant controllers use no plant equations"
 # a room and a module: every module in ftc.control.agents.learned, present or added later
-LEARNED = ("ftc.control.agents.learned", "ftc.learning.feature_model")
+LEARNED = ("ftc.control.agents.learned", "ftc.learning.feature_model",
+           "ftc.learning.history_policy")
 # the plant link runs the plant itself (not a model of it); pretraining hashes the
 # native file into its cache key (the nominal plants it pretrains on change with it)
 ALLOWED_NATIVE = {"ftc.plant.link", "ftc.learning.pretrain"}
@@ -116,6 +117,11 @@ def test_only_the_plant_link_imports_the_native_core():
     # a module added to the learned room is under the rule without being listed
     ("from ftc.control.planning.physics.evaluators import ParamsEvaluator",
      "control/agents/learned/new_agent.py"),
+    # the adaptive policy's run-time modules: its agent may not reach its teacher, nor
+    # its student's module the training (which runs the true physics)
+    ("from ftc.control.planning.physics.teacher import PoolTeacher",
+     "control/agents/learned/adaptive_policy.py"),
+    ("from ftc.experiments.adaptive.dagger import train", "learning/history_policy.py"),
 ])
 def test_the_contract_fails_on_an_import_of_plant_equations(package_copy, line, where):
     kept = _lint(package_copy, package_copy / "python")

@@ -26,7 +26,8 @@ from ftc.common.cli import add_dataclass_options, offered
 from ftc.control.run.config import ALIASES, canonical  # noqa: F401 - former names, re-exported
 
 # What a method is told about the plant, from least to most.
-KNOWS = ("nothing", "the learned model", "the plant's equations", "the true faults")
+KNOWS = ("nothing", "a simulator of the plant family, for training only", "the learned model",
+         "the plant's equations", "the true faults")
 # The tools that run methods, and the name of a run's own config in its config.json.
 TOOLS = {"ftc.controller": "controller", "ftc.mpc": "mpc"}
 
@@ -168,6 +169,13 @@ for _m in (
            # four refits an interval: the model learns a dying pump within the interval,
            # and the policy needs more than ppo-robust's two to follow it (docs/controller.md)
            recommended=(*_GUIDED, "--teacher-refits", "4"), cost=10.0, learns=True),
+    # trained once in simulation over a distribution of degradations (DAgger from
+    # oracle-mpc), flown without equations; its checkpoint is built by
+    # `python -m ftc.experiments.adaptive train` (docs/adaptive.md)
+    Method("adaptive-policy", "ftc.control.agents.learned.adaptive_policy:AdaptivePolicyAgent",
+           "adaptive student (history window, DAgger in simulation)", color="#2ca58d",
+           knows="a simulator of the plant family, for training only", cost=1.0,
+           benchmark=False),
     Method("oracle-mpc", _ORACLE, "MPC, faults known (oracle)", tool="ftc.mpc", color="black",
            knows="the true faults", cost=1.5),
     # whole episodes optimised on the true physics (episode_planner.py), never below

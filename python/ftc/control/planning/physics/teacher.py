@@ -1,0 +1,64 @@
+"""The adaptive policy's privileged teacher: oracle-mpc's planner on the true
+physics of each plant of a batch (docs/adaptive.md).
+
+For env i of a pool, given its scenario (the true faults), its operating
+steps (the age and the events in force) and its published levels, the
+teacher returns the valves ``oracle-mpc`` would apply there: the best of the
+64 "hold H steps, then all closed" plans over a horizon of L steps, the
+horizon cut at the interval's end (oracle-mpc's defaults: H = 3, L = 10).
+It is used for training only: the student never sees it at run time.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from ftc.common.constants import NUM_TANKS
+from ftc.control.planning.physics.evaluators import OracleEvaluator
+from ftc.control.planning.planners import HoldPlanner
+
+
+class PoolTeacher:
+    """Labels states of many plants with oracle-mpc's decision.
+
+    hold, horizon: the planner's H and L; closed_form: the rollouts step the
+    conduit in closed form (``_core.BatchRollout``'s exact_active_conduit,
+    several times faster than CVODE, within its tolerances)."""
+
+    def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True) -> None:
+        self.planner = HoldPlanner(hold, horizon)
+        self.horizon = horizon
+        self.closed_form = closed_form
+        self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
+        self.labels = 0
+
+    def forget(self) -> None:
+        """Drop the per-env evaluators (the pool was reseeded with new plants)."""
+        self._evaluators.clear()
+
+    def _evaluator(self, env: int, scenario: Any) -> OracleEvaluator:
+        kept = self._evaluators.get(env)
+        if kept is None or kept[0] is not scenario:
+            kept = (scenario, OracleEvaluator(scenario, closed_form=self.closed_form))
+            self._evaluators[env] = kept
+        return kept[1]
+
+    def label(self, envs: Sequence[int], scenarios: Sequence[Any], operating_steps: np.ndarray,
+              levels: np.ndarray) -> np.ndarray:
+        """Valves (len(envs), 6) int8: the teacher's decision for env ``envs[k]``
+        (scenario ``scenarios[envs[k]]``) at ``operating_steps[k]`` operating
+        steps taken, levels ``levels[k]`` (6,) m."""
+        out = np.zeros((len(envs), NUM_TANKS), np.int8)
+        for k, env in enumerate(envs):
+            scenario = scenarios[env]
+            evaluator = self._evaluator(int(env), scenario)
+            step = int(operating_steps[k])
+            evaluator.set_step(step)
+            steps_left = scenario.steps_per_interval - step % scenario.steps_per_interval
+            horizon = max(1, min(self.horizon, steps_left))
+            u, _, _ = self.planner.plan(evaluator, np.asarray(levels[k], np.float64), horizon)
+            out[k] = u
+        self.labels += len(envs)
+        return out

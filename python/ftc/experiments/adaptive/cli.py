@@ -1,0 +1,287 @@
+"""The adaptive policy's commands (docs/adaptive.md):
+
+    python -m ftc.experiments.adaptive train      # build the checkpoint (cached; a hit is instant)
+    python -m ftc.experiments.adaptive evaluate --out docs/results/adaptive.csv \\
+        --curve docs/results/adaptive_curve.csv --figure docs/figures/adaptive_curve.png
+
+``train`` runs DAgger (:mod:`ftc.experiments.adaptive.dagger`) on the
+distribution of ``scenarios/training/adaptive.toml`` and stores the student
+under a key of its training config, that file's text and the code
+(:func:`ftc.learning.history_policy.checkpoint_file`), which the registered
+method ``adaptive-policy`` loads; ``evaluate`` scores a checkpoint per
+scenario on the suite and on the check set, and every iteration's student on
+the suite for the learning curve.
+
+Exit codes: 0 done, 2 bad input (one line), 5 a file that could not be written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ftc.common.atomic import atomic_torch_save, atomic_write_text
+from ftc.common.build_info import git_revision
+from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE
+from ftc.control.agents.balance import balance_valves
+from ftc.control.planning.physics.teacher import PoolTeacher
+from ftc.experiments.adaptive import dagger, distribution, evaluate
+from ftc.learning.history_policy import HistoryPolicy, TrainingConfig, checkpoint_file
+
+DEFAULT_CACHE = "~/.cache/ftc/adaptive"
+
+
+def _config_options(p: argparse.ArgumentParser) -> None:
+    d = TrainingConfig()
+    for f in dataclasses.fields(TrainingConfig):
+        value = getattr(d, f.name)
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value,
+                           metavar="BOOL", help=f"(default {value})")
+        elif isinstance(value, tuple):
+            p.add_argument(flag, type=int, nargs="+", default=list(value), help=f"(default {value})")
+        else:
+            p.add_argument(flag, type=type(value), default=value, help=f"(default {value})")
+
+
+def config_of(a: argparse.Namespace) -> TrainingConfig:
+    values = {f.name: getattr(a, f.name) for f in dataclasses.fields(TrainingConfig)}
+    values["hidden"] = tuple(values["hidden"])
+    for name in ("iterations", "envs", "life_intervals", "epochs", "batch", "max_samples",
+                 "window", "hold", "horizon"):
+        if values[name] < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {values[name]}")
+    if not 0.0 <= values["label_fraction"] <= 1.0 or not values["lr"] > 0:
+        raise ValueError("--label-fraction must be in [0, 1] and --lr > 0")
+    return TrainingConfig(**values)
+
+
+def cmd_train(a: argparse.Namespace) -> int:
+    dist = distribution.load(a.distribution)
+    config = config_of(a)
+    path = checkpoint_file(a.cache, config, dist.text)
+    if path.is_file() and not a.force:
+        print(f"adaptive: cached {path}")
+        return 0
+    start = time.monotonic()
+    record = dagger.train(dist, config)
+    record["train_seconds"] = time.monotonic() - start
+    record["load_average"] = os.getloadavg()
+    try:
+        atomic_torch_save(path, record)
+    except OSError as e:
+        print(f"adaptive: error: cannot write {path}: {e}", file=sys.stderr)
+        return EXIT_STORAGE
+    print(f"adaptive: trained in {record['train_seconds']:.0f} s, {path}")
+    return 0
+
+
+def load_record(a: argparse.Namespace) -> tuple[dict[str, Any], Path]:
+    import torch
+
+    if a.checkpoint:
+        path = Path(a.checkpoint)
+    else:
+        path = checkpoint_file(a.cache, config_of(a), distribution.load(a.distribution).text)
+    if not path.is_file():
+        raise ValueError(f"no checkpoint at {path}: build it with "
+                         f"`python -m ftc.experiments.adaptive train`")
+    return torch.load(path, weights_only=True), path
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    import torch
+
+    torch.set_num_threads(1)
+    record, path = load_record(a)
+    policy = HistoryPolicy.from_record(record["policy"])
+    if a.policy == "teacher":
+        policy = PoolTeacher(record["config"]["hold"], record["config"]["horizon"])
+    elif a.policy == "balance":
+        policy = balance_rule
+    rows = []
+    for which in a.sets:
+        if which == "heldout" and not a.heldout_results:
+            raise ValueError("--sets heldout needs --heldout-results (a benchmark's results.csv "
+                             "with reference and closed on scenarios/heldout/)")
+        rows += evaluate.evaluate(policy, which, seeds=a.seeds,
+                                  heldout=Path(a.heldout_results) if a.heldout_results else None)
+    for which in a.sets:
+        s = np.array([r["score"] for r in rows if r["set"] == which])
+        worst = min((r for r in rows if r["set"] == which), key=lambda r: r["score"])
+        print(f"adaptive: {a.policy}: {which}: mean score {s.mean():.3f} over {len(s)} runs, worst "
+              f"{worst['score']:.3f} ({worst['scenario']}, seed {worst['seed']})")
+    try:
+        if a.out:
+            write_result(a.out, f"{a.policy} ({path.name}), per-scenario normalized score "
+                         "(intervals 1-9 against the shipped reference and closed rewards) "
+                         "in the batched pool, 10 x 512 steps",
+                         [{**r, "score": round(r["score"], 4),
+                           "reward_per_step": round(r["reward_per_step"], 4)} for r in rows])
+        if a.curve:
+            curve = learning_curve(record)
+            write_result(a.curve, "adaptive-policy's learning curve: each DAgger iteration's "
+                         f"student on the suite (seed 0); training {record['train_seconds']:.0f} s "
+                         f"wall, load average at its end {record['load_average'][0]:.1f}", curve)
+            if a.figure:
+                draw_curve(curve, Path(a.figure), record)
+    except OSError as e:
+        print(f"adaptive: error: cannot write: {e}", file=sys.stderr)
+        return EXIT_STORAGE
+    return 0
+
+
+def balance_rule(levels: np.ndarray) -> np.ndarray:
+    """The balance rule's valves (N, 6) for levels (N, 6) (ftc.control.agents.balance)."""
+    return np.stack([balance_valves(x) for x in levels])
+
+
+def write_result(path: str, what: str, rows: list[dict[str, Any]]) -> None:
+    """A result file (docs/results/): '#' provenance lines, then the CSV."""
+    import csv
+    import io
+    import platform
+
+    buf = io.StringIO()
+    for key, value in (("what", what), ("command", "python -m ftc.experiments.adaptive " +
+                                        " ".join(sys.argv[1:])),
+                       ("commit", git_revision()), ("date", time.strftime("%Y-%m-%d")),
+                       ("machine", f"{platform.processor() or platform.machine()}, "
+                                   f"{os.cpu_count()} cores, load average "
+                                   f"{os.getloadavg()[0]:.1f}")):
+        buf.write(f"# {key}: {value}\n")
+    writer = csv.DictWriter(buf, list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+
+
+def cmd_summarize(a: argparse.Namespace) -> int:
+    """One row per (result file, set): runs, mean and worst score, scenarios below 0.60."""
+    import csv
+
+    rows = []
+    for given in a.results:
+        label, _, path = given.rpartition("=")
+        try:
+            lines = [ln for ln in Path(path).read_text().splitlines() if not ln.startswith("#")]
+        except OSError as e:
+            raise ValueError(f"{path}: {e}") from None
+        scored = list(csv.DictReader(lines))
+        for which in dict.fromkeys(r["set"] for r in scored):
+            cells = [r for r in scored if r["set"] == which]
+            per_scenario: dict[str, list[float]] = {}
+            for r in cells:
+                per_scenario.setdefault(r["scenario"], []).append(float(r["score"]))
+            means = {k: float(np.mean(v)) for k, v in per_scenario.items()}
+            worst = min(means, key=means.get)
+            rows.append({"policy": label or Path(path).stem, "set": which, "runs": len(cells),
+                         "mean score": round(float(np.mean([float(r["score"]) for r in cells])), 3),
+                         "worst scenario": f"{worst} ({means[worst]:.3f})",
+                         "scenarios below 0.60": sum(v < 0.6 for v in means.values())})
+    try:
+        write_result(a.out, "per-scenario normalized scores summarized per set (intervals 1-9, "
+                     "against the reference and closed), from " +
+                     ", ".join(g.rpartition("=")[2] for g in a.results), rows)
+    except OSError as e:
+        print(f"adaptive: error: cannot write {a.out}: {e}", file=sys.stderr)
+        return EXIT_STORAGE
+    for r in rows:
+        print(f"adaptive: {r['policy']}: {r['set']}: mean {r['mean score']:.3f}, worst "
+              f"{r['worst scenario']}, {r['scenarios below 0.60']} below 0.60")
+    return 0
+
+
+def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per iteration: env steps, teacher labels, wall seconds, and the student's
+    mean and worst per-scenario score on the suite (seed 0)."""
+    out = []
+    for row, snap in zip(record["curve"], record["snapshots"]):
+        policy = HistoryPolicy.from_record(snap)
+        s = np.array([r["score"] for r in evaluate.evaluate(policy, "suite")])
+        out.append({"iteration": row["iteration"], "env_steps": row["env_steps"],
+                    "teacher_labels": row["teacher_labels"], "seconds": row["seconds"],
+                    "loss": round(row["loss"], 5),
+                    "action_agreement": round(row["action_agreement"], 4),
+                    "suite_mean_score": round(float(s.mean()), 4),
+                    "suite_worst_score": round(float(s.min()), 4)})
+        print(f"adaptive: curve: iteration {row['iteration']}  {row['env_steps']} steps  "
+              f"{row['seconds']:.0f} s  suite mean {s.mean():.3f}  worst {s.min():.3f}")
+    return out
+
+
+def draw_curve(curve: list[dict[str, Any]], path: Path, record: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    for ax, x, label in ((axes[0], "env_steps", "environment steps"),
+                         (axes[1], "seconds", "training wall time, s")):
+        xs = [r[x] for r in curve]
+        ax.plot(xs, [r["suite_mean_score"] for r in curve], "o-", label="mean over scenarios")
+        ax.plot(xs, [r["suite_worst_score"] for r in curve], "s--", label="worst scenario")
+        ax.axhline(0.9, color="gray", lw=0.8, ls=":")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("normalized score (suite, per scenario)")
+    axes[0].legend(loc="lower right")
+    fig.suptitle("adaptive-policy: DAgger from oracle-mpc over the training distribution")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m ftc.experiments.adaptive",
+                                description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    summ = sub.add_parser("summarize", help="summarize evaluate's result files per set")
+    summ.add_argument("results", nargs="+", help="[LABEL=]FILE: evaluate's --out files")
+    summ.add_argument("--out", required=True, help="the summary (CSV)")
+    for name, help_ in (("train", "build the checkpoint (a cached one is kept)"),
+                        ("evaluate", "score a checkpoint per scenario; the learning curve")):
+        s = sub.add_parser(name, help=help_)
+        s.add_argument("--cache", default=DEFAULT_CACHE, help="checkpoint cache directory")
+        s.add_argument("--distribution", default=str(distribution.DISTRIBUTION_FILE),
+                       help="the training distribution's file")
+        _config_options(s)
+        if name == "train":
+            s.add_argument("--force", action="store_true", help="train even if cached")
+        else:
+            s.add_argument("--checkpoint", default="", help="a checkpoint file (default: the "
+                           "cached one of the training options)")
+            s.add_argument("--sets", nargs="+", default=["suite", "check"],
+                           choices=["suite", "check", "heldout"])
+            s.add_argument("--heldout-results", default="", help=(
+                "results.csv of a benchmark of reference and closed on scenarios/heldout/"))
+            s.add_argument("--seeds", type=int, nargs="+", default=[0])
+            s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
+                           help="what to score: the checkpoint's student, its teacher "
+                                "(oracle-mpc's decision on the true physics) or the balance rule")
+            s.add_argument("--out", default="", help="per-scenario scores (CSV)")
+            s.add_argument("--curve", default="", help="the learning curve (CSV)")
+            s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = parser()
+    a = p.parse_args(argv)
+    try:
+        commands = {"train": cmd_train, "evaluate": cmd_evaluate, "summarize": cmd_summarize}
+        return commands[a.command](a)
+    except ValueError as e:
+        print(f"adaptive: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+

@@ -1,0 +1,156 @@
+"""Distillation with DAgger: the adaptive student learns oracle-mpc's decisions
+on its own state distribution, over plants drawn from the training
+distribution (docs/adaptive.md).
+
+Iteration k (of ``iterations``):
+
+1. ``envs`` plants drawn from the distribution (seed ``seed * 1000 + k``) in
+   the batched pool (``ftc.plant.vector``, same-step autoreset), each run for
+   its whole life (``life_intervals`` x 512 steps, ageing as a plant does);
+2. at every step, env i is driven by the teacher if i < beta_k * envs (beta
+   halves each iteration from 1: iteration 0 is the teacher's own rollouts),
+   else by the student; the teacher labels every state it drives and a
+   fraction ``label_fraction`` of the student's (DAgger: the states the
+   student itself reaches, its mistakes included);
+3. the labelled (history window, teacher valves) pairs join the data set
+   (the newest ``max_samples`` kept), and the student is trained on it by
+   binary cross-entropy on each valve for ``epochs`` epochs.
+
+Every iteration's student is kept (the learning curve evaluates them); the
+last one is the checkpoint. Torch runs on one thread.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ftc.control.planning.physics.teacher import PoolTeacher
+from ftc.experiments.adaptive.distribution import TrainingDistribution, draw
+from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, TrainingConfig
+from ftc.plant.vector import FuelTransferVectorEnv
+
+
+@dataclass
+class Dataset:
+    """Labelled pairs, the newest ``capacity`` kept: features (M, F) float32, valves (M, 6)."""
+
+    capacity: int
+    features: list[np.ndarray] = field(default_factory=list)
+    valves: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, x: np.ndarray, y: np.ndarray) -> None:
+        self.features.append(x)
+        self.valves.append(y)
+        while sum(len(a) for a in self.features) - len(self.features[0]) >= self.capacity:
+            self.features.pop(0)
+            self.valves.pop(0)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        x, y = np.concatenate(self.features), np.concatenate(self.valves)
+        return x[-self.capacity:], y[-self.capacity:]
+
+
+def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribution,
+            config: TrainingConfig, iteration: int, beta: float) -> dict[str, Any]:
+    """One iteration's rollouts: (features, teacher valves) and statistics."""
+    rng = np.random.default_rng([config.seed, iteration, 1])
+    scenarios = draw(dist, config.envs, config.seed * 1000 + iteration)
+    env = FuelTransferVectorEnv(config.envs, scenarios, plant_seed=config.seed * 10**6 +
+                                iteration * config.envs, autoreset="same_step", threads=1,
+                                copy=False)
+    teacher.forget()
+    obs, _ = env.reset()
+    window = HistoryWindow(config.envs, config.window)
+    window.start(obs)
+    driven = np.arange(config.envs) < round(beta * config.envs)  # by the teacher
+    xs, ys, reward, student_reward = [], [], 0.0, []
+    steps = config.life_intervals * dist.steps_per_interval
+    for _ in range(steps):
+        features = window.features()
+        u = policy.act(features)
+        labelled = driven | (rng.random(config.envs) < config.label_fraction)
+        envs = np.flatnonzero(labelled)
+        if len(envs):
+            ops = np.array([env.pool.operating_steps(int(i)) for i in envs])
+            labels = teacher.label(envs, scenarios, ops, obs[envs])
+            xs.append(features[envs])
+            ys.append(labels)
+            u[driven] = labels[driven[envs]]
+        obs, r, terminated, truncated, _ = env.step(u)
+        reward += float(r.mean())
+        if (~driven).any():
+            student_reward.append(float(r[~driven].mean()))
+        window.push(obs, u, terminated | truncated)
+    env.close()
+    return {"x": np.concatenate(xs), "y": np.concatenate(ys), "steps": steps * config.envs,
+            "reward_per_step": reward / steps,
+            "student_reward_per_step": float(np.mean(student_reward)) if student_reward else None}
+
+
+def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, y: np.ndarray,
+        config: TrainingConfig, rng: np.random.Generator) -> dict[str, float]:
+    """``epochs`` epochs of minibatch BCE on (x, y); the last epoch's loss and the
+    fraction of valves the student gets right on the data set."""
+    xt, yt = torch.as_tensor(x), torch.as_tensor(y, dtype=torch.float32)
+    loss_fn = torch.nn.BCEWithLogitsLoss()
+    policy.train()
+    losses: list[float] = []
+    for _ in range(config.epochs):
+        losses = []
+        order = torch.as_tensor(rng.permutation(len(x)))
+        for start in range(0, len(x), config.batch):
+            idx = order[start:start + config.batch]
+            loss = loss_fn(policy(xt[idx]), yt[idx])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.item())
+    policy.eval()
+    with torch.no_grad():
+        agree = float(((policy(xt) > 0).float() == yt).all(dim=1).float().mean())
+    return {"loss": float(np.mean(losses)), "action_agreement": agree}
+
+
+def train(dist: TrainingDistribution, config: TrainingConfig,
+          log: Callable[[str], None] = print) -> dict[str, Any]:
+    """The student after ``config.iterations`` DAgger iterations: a record with its
+    weights (``policy``), every iteration's weights (``snapshots``) and the
+    curve (``curve``: per iteration, env steps, teacher labels, wall seconds,
+    loss, agreement, rewards)."""
+    if config.life_intervals > dist.life_intervals:
+        raise ValueError(f"life_intervals {config.life_intervals} exceeds the distribution's "
+                         f"{dist.life_intervals} (its events are drawn within it)")
+    torch.set_num_threads(1)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng([config.seed, 2])
+    policy = HistoryPolicy(config.student())
+    policy.eval()
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
+    teacher = PoolTeacher(config.hold, config.horizon)
+    data = Dataset(config.max_samples)
+    start, steps = time.monotonic(), 0
+    curve, snapshots = [], []
+    for k in range(config.iterations):
+        beta = 1.0 if not config.dagger else 0.5 ** k
+        rollouts = collect(policy, teacher, dist, config, k, beta)
+        steps += rollouts["steps"]
+        data.add(rollouts["x"], rollouts["y"])
+        x, y = data.arrays()
+        stats = fit(policy, optimizer, x, y, config, rng)
+        row = {"iteration": k, "beta": beta, "env_steps": steps, "teacher_labels": teacher.labels,
+               "samples": len(x), "seconds": round(time.monotonic() - start, 1),
+               "reward_per_step": rollouts["reward_per_step"],
+               "student_reward_per_step": rollouts["student_reward_per_step"], **stats}
+        curve.append(row)
+        snapshots.append(policy.record())
+        log(f"adaptive: iteration {k}  beta {beta:.3f}  steps {steps}  labels {teacher.labels}  "
+            f"{row['seconds']:.0f} s  loss {stats['loss']:.4f}  agreement "
+            f"{stats['action_agreement']:.3f}  reward/step {rollouts['reward_per_step']:.3f}")
+    return {"policy": policy.record(), "snapshots": snapshots, "curve": curve,
+            "config": config.to_json(), "distribution": dist.text}
+

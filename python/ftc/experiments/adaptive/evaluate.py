@@ -1,0 +1,137 @@
+"""The adaptive student scored on the benchmark's protocol, in the batched pool:
+each scenario a plant of its own, 10 intervals of 512 operating steps from
+full tanks, the reward per step of each interval, scored per scenario
+against the shipped reference and closed rewards (``scenarios/reference/``):
+the sum over intervals 1-9 of (r - closed), divided by the same sum for the
+reference.
+
+The pool runs the plant's physics (closed-form steps where they apply, CVODE
+for the rest); all valves closed, run here, reproduces the shipped closed
+rewards (tests/python/test_adaptive.py), so the scores are the benchmark's.
+The learning curve evaluates every iteration's student this way (the suite
+is never used to choose anything).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ftc.common.paths import SCENARIO_DIR
+from ftc.control.planning.physics.teacher import PoolTeacher
+from ftc.experiments.suite import write_suite
+from ftc.learning.history_policy import HistoryPolicy, HistoryWindow
+from ftc.plant.vector import FuelTransferVectorEnv
+
+REFERENCE_FILES = {"suite": SCENARIO_DIR / "reference" / "suite.json",
+                   "check": SCENARIO_DIR / "reference" / "check.json"}
+FIRST_SCORED = 1  # interval 0 (a healthy plant) is not scored
+
+
+HELDOUT_DIR = SCENARIO_DIR / "heldout"  # faults made to check it, in no training or suite
+
+
+def scenario_files(which: str, directory: Path) -> dict[str, Path]:
+    """name -> scenario file of the suite (written into ``directory``), the check
+    set or the held-out set."""
+    if which == "suite":
+        return {p.stem: p for p in write_suite(directory)}
+    if which == "heldout":
+        return {p.stem: p for p in sorted(HELDOUT_DIR.glob("*.toml"))}
+    names = json.loads(REFERENCE_FILES["check"].read_text())["scenarios"]
+    return {n: (SCENARIO_DIR / f"{n}.toml" if (SCENARIO_DIR / f"{n}.toml").is_file()
+                else SCENARIO_DIR / "check" / f"{n}.toml") for n in names}
+
+
+def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndarray] | None,
+            scenarios: Sequence[Any], seeds: Sequence[int], intervals: int = 10,
+            steps_per_interval: int = 512) -> np.ndarray:
+    """Reward per step (len(scenarios), intervals) of ``policy`` on plant i with
+    scenario i seeded seeds[i], from full tanks: the student, the teacher
+    (oracle-mpc's decision on each plant's true physics), a function of the
+    levels (N, 6) -> valves (N, 6), or None (all valves closed)."""
+    n = len(scenarios)
+    env = FuelTransferVectorEnv(n, list(scenarios), plant_seed=list(seeds),
+                                autoreset="same_step", threads=1, copy=False)
+    obs, _ = env.reset()
+    window = None
+    if isinstance(policy, HistoryPolicy):
+        window = HistoryWindow(n, policy.config.window)
+        window.start(obs)
+    out = np.zeros((n, intervals))
+    u = np.zeros((n, 6), np.int8)
+    for k in range(intervals):
+        for _ in range(steps_per_interval):
+            if window is not None:
+                u = policy.act(window.features())
+            elif isinstance(policy, PoolTeacher):
+                u = policy.label(range(n), scenarios, np.array(
+                    [env.pool.operating_steps(i) for i in range(n)]), obs)
+            elif policy is not None:
+                u = np.asarray(policy(obs), np.int8)
+            obs, r, terminated, truncated, _ = env.step(u)
+            out[:, k] += r
+            if window is not None:
+                window.push(obs, u, terminated | truncated)
+    env.close()
+    return out / steps_per_interval
+
+
+def benchmark_rewards(results_csv: Path) -> dict[str, Any]:
+    """A benchmark's results.csv as reference_scores' layout: scenario -> {"rewards":
+    method -> seed (str) -> reward per step of each interval}."""
+    import csv
+
+    out: dict[str, Any] = {}
+    with open(results_csv, newline="") as f:
+        for r in csv.DictReader(f):
+            cells = out.setdefault(r["scenario"], {"rewards": {}})["rewards"]
+            seq = cells.setdefault(r["method"], {}).setdefault(r["seed"], {})
+            seq[int(r["interval"])] = float(r["reward_per_step"])
+    for sc in out.values():
+        for per_seed in sc["rewards"].values():
+            for seed, seq in per_seed.items():
+                per_seed[seed] = [seq[k] for k in sorted(seq)]
+    return out
+
+
+def reference_rewards(which: str, names: Sequence[str], seed: int,
+                      heldout: Path | None = None) -> dict[str, np.ndarray]:
+    """method ('reference', 'closed') -> (len(names), intervals) rewards: the
+    shipped ones, or for the held-out set a benchmark's results.csv."""
+    data = (benchmark_rewards(heldout) if which == "heldout" else
+            json.loads(REFERENCE_FILES[which].read_text())["scenarios"])
+    return {m: np.array([data[n]["rewards"][m][str(seed)] for n in names])
+            for m in ("reference", "closed")}
+
+
+def scores(r: np.ndarray, reference: np.ndarray, closed: np.ndarray) -> np.ndarray:
+    """Per-scenario normalized score of rewards (S, intervals)."""
+    s = slice(FIRST_SCORED, None)
+    return (r[:, s] - closed[:, s]).sum(1) / (reference[:, s] - closed[:, s]).sum(1)
+
+
+def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
+             heldout: Path | None = None) -> list[dict[str, Any]]:
+    """Rows (set, scenario, seed, score, reward per step of intervals 1-9) of
+    ``policy`` on the suite, the check set or the held-out set (its reference
+    and closed rewards from the benchmark results.csv ``heldout``), each seed."""
+    from ftc import _core  # the plant's scenario parser
+
+    with tempfile.TemporaryDirectory() as tmp:
+        files = scenario_files(which, Path(tmp))
+        names = list(files)
+        loaded = [_core.load_scenario(str(files[n])) for n in names]
+    rows = []
+    for seed in seeds:
+        r = rewards(policy, loaded, [seed] * len(loaded))
+        ref = reference_rewards(which, names, seed, heldout)
+        sc = scores(r, ref["reference"], ref["closed"])
+        for i, name in enumerate(names):
+            rows.append({"set": which, "scenario": name, "seed": seed, "score": float(sc[i]),
+                         "reward_per_step": float(r[i, FIRST_SCORED:].mean())})
+    return rows

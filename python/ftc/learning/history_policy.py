@@ -1,0 +1,193 @@
+"""The adaptive student: a policy that acts on the recent history of what a
+deployed controller sees (published levels and its own valve commands), in
+one forward pass per step, with no plant equations (docs/adaptive.md).
+
+Input: a window of the last ``window`` steps, newest first, each step the six
+levels (m) and the six valves commanded after them, scaled to [-1, 1]
+(``2 x - 1``), flattened to ``12 * window`` floats. At an episode's start the
+window is filled with the first levels and closed valves, so the policy sees
+a plant that has just been reset. Network: tanh MLP to six logits; a valve
+opens where its logit is positive (the deployed policies' rule,
+cpp/policy/policy.h), so the weights export as today's policies do with a
+wider first layer.
+
+:class:`HistoryWindow` keeps N windows at once (the batched pool, N = 1 in a
+controller); :class:`HistoryPolicy` is the network.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ftc.common.constants import NUM_TANKS
+from ftc.common.source_key import closure_digest, native_source_digest
+
+STEP_FEATURES = 2 * NUM_TANKS  # levels and valves of one step
+# the module whose import closure trains the checkpoint (its code is the cache key's);
+# named, not imported: this module stays free of the plant equations training uses
+TRAINER = "ftc.experiments.adaptive.dagger"
+CACHE_VERSION = 1  # bump when the checkpoint record's layout changes
+
+
+@dataclass(frozen=True)
+class StudentConfig:
+    """The student's architecture.
+
+    window: steps of history in its input (1: the current levels and the last
+        valves only); hidden: widths of its tanh layers."""
+
+    window: int = 12
+    hidden: tuple[int, ...] = (128, 128)
+
+    def __post_init__(self) -> None:
+        if self.window < 1 or not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"StudentConfig: window >= 1 and hidden widths >= 1 needed, got "
+                             f"window={self.window}, hidden={self.hidden}")
+
+    @property
+    def inputs(self) -> int:
+        return STEP_FEATURES * self.window
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["hidden"] = list(self.hidden)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "StudentConfig":
+        return cls(window=int(d["window"]), hidden=tuple(int(h) for h in d["hidden"]))
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Everything the checkpoint depends on, with the distribution file and the code.
+
+    iterations: DAgger iterations; envs: plants per iteration; life_intervals:
+    intervals each plant runs (<= the distribution's life); label_fraction:
+    fraction of the student's states the teacher labels; dagger: False trains
+    without DAgger (every iteration driven and labelled by the teacher alone:
+    behaviour cloning); epochs, batch, lr: the student's fit after each
+    iteration; max_samples: data set size kept; window, hidden: the student
+    (:class:`StudentConfig`); hold, horizon: the teacher's planner (oracle-mpc's
+    H and L); seed: draws, pool plants, initial weights and minibatches."""
+
+    iterations: int = 8
+    envs: int = 24
+    life_intervals: int = 10
+    label_fraction: float = 0.2
+    dagger: bool = True
+    epochs: int = 4
+    batch: int = 512
+    lr: float = 1e-3
+    max_samples: int = 600_000
+    window: int = 12
+    hidden: tuple[int, ...] = (128, 128)
+    hold: int = 3
+    horizon: int = 10
+    seed: int = 0
+
+    def student(self) -> StudentConfig:
+        return StudentConfig(window=self.window, hidden=tuple(self.hidden))
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["hidden"] = list(self.hidden)
+        return d
+
+
+class HistoryWindow:
+    """N windows of history, newest first: ``features()`` is (N, 12 W) float32.
+
+    Slot k holds the levels published k steps ago and the valves commanded on
+    the step that led to them (closed for an episode's first levels), so the
+    newest slot pairs the current levels with the last command.
+    ``start(levels, which)``: envs ``which`` (bool (N,), default all) begin an
+    episode at ``levels`` (N, 6); ``push(levels, valves, started)``: after a
+    step with ``valves`` (N, 6) the plant published ``levels`` (N, 6); rows
+    where ``started`` is set began a new episode with these levels (their
+    window is refilled). Levels are clipped to [0, 1] as the observation space
+    is."""
+
+    def __init__(self, num_envs: int, window: int) -> None:
+        self.window = window
+        self._buf = np.zeros((num_envs, window, STEP_FEATURES), np.float32)
+
+    def start(self, levels: np.ndarray, which: np.ndarray | None = None) -> None:
+        rows = np.arange(len(self._buf)) if which is None else np.flatnonzero(which)
+        if not len(rows):
+            return
+        scaled = 2.0 * np.clip(np.asarray(levels, np.float32)[rows], 0.0, 1.0) - 1.0
+        self._buf[rows, :, :NUM_TANKS] = scaled[:, None, :]
+        self._buf[rows, :, NUM_TANKS:] = -1.0  # closed
+
+    def push(self, levels: np.ndarray, valves: np.ndarray,
+             started: np.ndarray | None = None) -> None:
+        self._buf[:, 1:] = self._buf[:, :-1]
+        self._buf[:, 0, :NUM_TANKS] = 2.0 * np.clip(np.asarray(levels, np.float32), 0.0,
+                                                    1.0) - 1.0
+        self._buf[:, 0, NUM_TANKS:] = 2.0 * np.asarray(valves, np.float32) - 1.0
+        if started is not None and np.any(started):
+            self.start(levels, started)
+
+    def features(self) -> np.ndarray:
+        return self._buf.reshape(len(self._buf), -1).copy()
+
+
+class HistoryPolicy(nn.Module):
+    """features (N, 12 W) -> six valve logits; ``act`` opens where a logit > 0."""
+
+    def __init__(self, config: StudentConfig = StudentConfig()) -> None:
+        super().__init__()
+        self.config = config
+        widths = (config.inputs, *config.hidden)
+        layers: list[nn.Module] = []
+        for a, b in zip(widths[:-1], widths[1:]):
+            layers += [nn.Linear(a, b), nn.Tanh()]
+        layers.append(nn.Linear(widths[-1], NUM_TANKS))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features)
+
+    @torch.no_grad()
+    def act(self, features: np.ndarray) -> np.ndarray:
+        """Valves (N, 6) int8 for features (N, 12 W)."""
+        logits = self.net(torch.as_tensor(features, dtype=torch.float32))
+        return (logits > 0).numpy().astype(np.int8)
+
+    def record(self) -> dict[str, Any]:
+        """Its architecture and weights (loadable with torch.load(weights_only=True))."""
+        return {"config": self.config.to_json(),
+                "state": {k: v.detach().clone() for k, v in self.state_dict().items()}}
+
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> "HistoryPolicy":
+        policy = cls(StudentConfig.from_json(record["config"]))
+        policy.load_state_dict(record["state"])
+        policy.eval()
+        return policy
+
+
+def code_digest() -> str:
+    """The code a checkpoint depends on: the trainer's import closure and the
+    C++ sources of the physics core it simulates with (:mod:`ftc.common.source_key`)."""
+    return hashlib.sha256((closure_digest([TRAINER]) + native_source_digest()).encode()
+                          ).hexdigest()
+
+
+def checkpoint_file(cache_dir: str, config: TrainingConfig, distribution_text: str) -> Path:
+    """Where the checkpoint trained with ``config`` on the distribution declared
+    by ``distribution_text``, by this code, is cached under ``cache_dir``."""
+    fields_ = {"config": config.to_json(), "distribution": distribution_text,
+               "code": code_digest(), "version": CACHE_VERSION}
+    key = hashlib.sha256(json.dumps(fields_, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(os.path.expanduser(cache_dir)) / f"adaptive-{key}.pt"

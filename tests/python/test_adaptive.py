@@ -1,0 +1,272 @@
+"""The adaptive policy (docs/adaptive.md): its training distribution is disjoint
+from every benchmark scenario, its teacher is oracle-mpc's decision, its
+student's window and network, DAgger's fit on a tiny case with a known
+answer, the pool evaluation reproducing the shipped rewards, the cache key,
+and the registered method flying a checkpoint as the trainer's window does.
+(The import contract for its run-time modules: test_learned_contract.py.)"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ftc import _core
+from ftc.common.errors import UsageError
+from ftc.common.source_key import closure_digest, import_closure
+from ftc.control.agents.learned.adaptive_policy import AdaptiveConfig, AdaptivePolicyAgent
+from ftc.control.planning.physics.evaluators import OracleEvaluator
+from ftc.control.planning.physics.teacher import PoolTeacher
+from ftc.control.planning.planners import HoldPlanner
+from ftc.control.run.agent import StepContext
+from ftc.experiments.adaptive import dagger, distribution, evaluate
+from ftc.experiments.suite import default_suite
+from ftc.learning.history_policy import (TRAINER, HistoryPolicy, HistoryWindow, StudentConfig,
+                                         TrainingConfig, checkpoint_file)
+from ftc.plant.link import PlantObservation
+
+
+def test_window_pairs_levels_with_the_command_that_led_to_them():
+    w = HistoryWindow(2, 3)
+    w.start(np.array([[1.0] * 6, [0.5] * 6]))
+    f = w.features().reshape(2, 3, 12)
+    assert np.all(f[:, :, 6:] == -1.0)                 # closed before the first step
+    assert np.allclose(f[0, :, :6], 1.0) and np.allclose(f[1, :, :6], 0.0)
+    u = np.array([[1, 0, 0, 0, 0, 1], [0] * 6])
+    w.push(np.array([[0.75] * 6, [0.25] * 6]), u, started=np.array([False, True]))
+    f = w.features().reshape(2, 3, 12)
+    assert np.allclose(f[0, 0], [0.5] * 6 + [1, -1, -1, -1, -1, 1])  # newest: x_t, u_{t-1}
+    assert np.allclose(f[0, 1], [1.0] * 6 + [-1] * 6)                # shifted back
+    assert np.allclose(f[1], [[-0.5] * 6 + [-1] * 6] * 3)            # a new episode: refilled
+    w.push(np.array([[1.5] * 6, [-0.2] * 6]), np.zeros((2, 6)))
+    assert w.features().max() == 1.0 and w.features().min() == -1.0  # clipped to [0, 1]
+
+
+def test_the_training_distribution_never_draws_a_benchmark_scenario():
+    dist = distribution.load()
+    forbidden = distribution.benchmark_signatures()
+    # every suite scenario, abrupt.toml and scenarios/check/ are in the forbidden set
+    assert len(forbidden) >= len(default_suite()) + 1 + 9
+    config = TrainingConfig()
+    # the draws of every default training iteration (dagger.collect's seeds) pass the guard
+    for k in range(config.iterations):
+        drawn = distribution.draw(dist, config.envs, config.seed * 1000 + k, forbidden)
+        assert not {distribution.signature(s) for s in drawn} & forbidden
+    # and a draw that were a benchmark scenario is refused: the guard works
+    single = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    with pytest.raises(ValueError, match="faults of a benchmark scenario"):
+        distribution.refuse_benchmark([*drawn[:2], single], forbidden)
+
+
+def test_the_distribution_is_wider_than_the_suite_and_has_every_kind_of_fault():
+    dist = distribution.load()
+    drawn = distribution.draw(dist, 400, 7)
+    factors = [v for s in drawn for v in (*s.tank_factor, *s.engine_factor) if math.isfinite(v)]
+    assert min(factors) < 6.0 and max(factors) > 30.0  # the suite's range is [6, 30]
+    kinds = {k for s in drawn for e in s.events for k in ("tank", "engine", "stuck_valve")
+             if k in e}
+    assert kinds == {"tank", "engine", "stuck_valve"}
+    assert any(len(s.events) >= 2 for s in drawn)
+    assert any(s.mode == "continuous" for s in drawn) and any(s.random_start for s in drawn)
+    assert any(s.noise_std > 0 for s in drawn)
+
+
+def test_a_bad_distribution_file_is_one_clear_error(tmp_path):
+    bad = tmp_path / "d.toml"
+    bad.write_text("[draw]\ntank_probability = 2.0\n")
+    with pytest.raises(ValueError, match="d.toml: \\[draw\\].*tank_probability"):
+        distribution.load(bad)
+    bad.write_text("[draw]\n[extra]\nsomething = 0.1\n")
+    with pytest.raises(ValueError, match="something: unknown"):
+        distribution.load(bad)
+
+
+def test_the_teacher_is_oracle_mpc_and_moves_fuel_to_the_light_wing():
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    full = np.ones((1, 6))
+    light_left = np.array([[0.2, 0.2, 0.2, 1.0, 1.0, 1.0]])
+    teacher = PoolTeacher()
+    # a full healthy plant is balanced: every valve closed is optimal (plant-model.md)
+    assert teacher.label([0], [scenario], np.array([0]), full).tolist() == [[0] * 6]
+    u = teacher.label([0], [scenario], np.array([600]), light_left)[0]
+    assert u[3:].any() and u[:3].any()  # a source on the heavy wing, a sink on the light
+    # the same decision as oracle-mpc's own planner on the same state
+    oracle = OracleEvaluator(scenario, closed_form=True)
+    oracle.set_step(600)
+    expected, _, _ = HoldPlanner(3, 10).plan(oracle, light_left[0], 10)
+    assert u.tolist() == expected.tolist()
+    assert teacher.labels == 2
+
+
+@pytest.fixture()
+def one_torch_thread():
+    """Torch on one thread, as training runs it (many crawl on a loaded machine)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_the_student_learns_a_rule_of_its_window_from_labels(one_torch_thread):
+    # a known answer: valve i opens iff tank i's newest level is below 0.5
+    rng = np.random.default_rng(0)
+    torch.manual_seed(0)
+    config = TrainingConfig(window=2, hidden=(32,), epochs=20, batch=100, lr=1e-2)
+    levels = rng.uniform(0, 1, (1000, 6))
+    w = HistoryWindow(1000, 2)
+    w.start(levels)
+    x, y = w.features(), (levels < 0.5).astype(np.int8)
+    policy = HistoryPolicy(config.student())
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
+    stats = dagger.fit(policy, optimizer, x, y, config, rng)
+    # separable with a margin everywhere but near 0.5: most rows all right (measured
+    # 0.94-0.95 over seeds 0-3), and all but a few of those 0.05 from the threshold (0.998-1)
+    assert stats["action_agreement"] > 0.85
+    margin = np.abs(levels - 0.5).min(1) > 0.05
+    assert (policy.act(x[margin]) == y[margin]).all(1).mean() > 0.97
+
+
+def test_the_pool_evaluation_reproduces_the_shipped_rewards_and_scores():
+    names = ["single", "random-03"]
+    scenarios = [_core.Scenario() for _ in names]
+    for s, sc in zip(scenarios, [d for d in default_suite() if d.name in names]):
+        s.tank_factor, s.engine_factor = list(sc.tank_factor), list(sc.engine_factor)
+    r = evaluate.rewards(None, scenarios, [0, 0])
+    ref = evaluate.reference_rewards("suite", names, 0)
+    # the pool's closed-form steps against the shipped runs' plant: within the
+    # integrator's tolerance (docs/benchmarks.md measures < 1e-5 per step)
+    assert np.abs(r - ref["closed"]).max() < 1e-4
+    assert np.allclose(evaluate.scores(ref["reference"], ref["reference"], ref["closed"]), 1.0)
+    assert np.allclose(evaluate.scores(ref["closed"], ref["reference"], ref["closed"]), 0.0)
+    half = (ref["reference"] + ref["closed"]) / 2
+    assert np.allclose(evaluate.scores(half, ref["reference"], ref["closed"]), 0.5)
+
+
+def test_the_cache_key_follows_the_training_inputs_and_code(tmp_path, monkeypatch):
+    import ftc.learning.history_policy as hp
+
+    code = ["one"]
+    monkeypatch.setattr(hp, "code_digest", lambda: code[0])  # hashing the code: below
+    config, text = TrainingConfig(), distribution.load().text
+    path = checkpoint_file(str(tmp_path), config, text)
+    assert path == checkpoint_file(str(tmp_path), config, text)
+    assert path != checkpoint_file(str(tmp_path), dataclasses.replace(config, envs=8), text)
+    assert path != checkpoint_file(str(tmp_path), config, text + "# another distribution\n")
+    code[0] = "two"
+    assert path != checkpoint_file(str(tmp_path), config, text)
+    closure = import_closure([TRAINER])
+    assert {"ftc.experiments.adaptive.dagger", "ftc.experiments.adaptive.distribution",
+            "ftc.control.planning.physics.teacher", "ftc.learning.history_policy",
+            "ftc.plant.vector"} <= set(closure)
+    # the flying agent is not training code: editing it keeps the checkpoint
+    assert "ftc.control.agents.learned.adaptive_policy" not in closure
+
+
+def test_the_code_digest_is_the_import_closure(tmp_path):
+    pkg = tmp_path / "ftc"
+    (pkg / "a").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a" / "__init__.py").write_text("")
+    (pkg / "a" / "top.py").write_text("from . import mid\nimport numpy\n")
+    (pkg / "a" / "mid.py").write_text("def f():\n    from ftc.leaf import g\n")
+    (pkg / "leaf.py").write_text("g = 1\n")
+    (pkg / "other.py").write_text("x = 2\n")
+    assert list(import_closure(["ftc.a.top"], pkg)) == ["ftc", "ftc.a", "ftc.a.mid", "ftc.a.top",
+                                                        "ftc.leaf"]
+    before = closure_digest(["ftc.a.top"], pkg)
+    (pkg / "other.py").write_text("x = 3\n")  # not imported: the key stays
+    assert closure_digest(["ftc.a.top"], pkg) == before
+    (pkg / "leaf.py").write_text("g = 2\n")  # imported inside a function: it changes
+    assert closure_digest(["ftc.a.top"], pkg) != before
+
+
+def _obs(level: np.ndarray, step: int) -> PlantObservation:
+    fields = {f.name: 0 for f in dataclasses.fields(PlantObservation)}
+    fields.update(level=np.asarray(level, np.float64), terminal=False, truncated=False,
+                  operating_steps=step)
+    return PlantObservation(**fields)
+
+
+def test_the_method_flies_the_checkpoint_as_the_trainer_windows_it(tmp_path):
+    torch.manual_seed(3)
+    policy = HistoryPolicy(StudentConfig(window=4, hidden=(16,)))
+    with torch.no_grad():
+        for p in policy.parameters():  # weights large enough that valves open
+            p.mul_(4.0)
+    path = tmp_path / "student.pt"
+    torch.save({"policy": policy.record()}, path)
+    agent = AdaptivePolicyAgent(AdaptiveConfig(checkpoint=str(path)))
+    agent.prepare()
+    rng = np.random.default_rng(1)
+    levels = rng.uniform(0, 1, (12, 6))
+    window = HistoryWindow(1, 4)
+    window.start(levels[:1])
+    agent.start_episode(_obs(levels[0], 0))
+    actions = []
+    for t in range(12):
+        if t:
+            window.push(levels[t:t + 1], actions[-1][None, :])
+        expected = policy.act(window.features())[0]
+        u = agent.act(_obs(levels[t], t), StepContext(0, t, 512 - t))
+        assert u.tolist() == expected.tolist(), t
+        actions.append(u)
+    assert 0 < np.sum(actions) < 72  # the check saw both open and closed valves
+
+
+def test_the_method_refuses_to_run_without_a_checkpoint(tmp_path):
+    agent = AdaptivePolicyAgent(AdaptiveConfig(checkpoint=str(tmp_path / "none.pt")))
+    with pytest.raises(UsageError, match="ftc.experiments.adaptive train"):
+        agent.prepare()
+
+
+def test_bad_input_to_the_commands_is_one_line_and_exit_2(tmp_path, capsys):
+    from ftc.experiments.adaptive.cli import main
+
+    assert main(["train", "--iterations", "0", "--cache", str(tmp_path)]) == 2
+    assert main(["evaluate", "--checkpoint", str(tmp_path / "none.pt")]) == 2
+    assert main(["train", "--distribution", str(tmp_path / "none.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("adaptive: error: ") for line in err)
+    assert "--iterations must be >= 1" in err[0] and "train`" in err[1] and "none.toml" in err[2]
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.slow
+def test_one_command_trains_and_the_method_flies_it_on_the_plant(tmp_path):
+    import subprocess
+    import sys
+
+    cache = tmp_path / "cache"
+    train = [sys.executable, "-m", "ftc.experiments.adaptive", "train", "--cache", str(cache),
+             "--iterations", "2", "--envs", "4", "--life-intervals", "1"]
+    first = subprocess.run(train, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    (checkpoint,) = cache.iterdir()
+    again = subprocess.run(train, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and f"cached {checkpoint}" in again.stdout
+    run = subprocess.run([sys.executable, "-m", "ftc.controller", "--method", "adaptive-policy",
+                          "--checkpoint", str(checkpoint), "--link", "core", "--intervals", "1",
+                          "--steps-per-interval", "64", "--out", str(tmp_path / "run"), "--quiet"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "run" / "metrics.csv").read_text().count("\n") >= 2
+
+
+def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path):
+    from ftc.experiments.adaptive.cli import main
+
+    scores = tmp_path / "s.csv"
+    scores.write_text("# what: a known case\nset,scenario,seed,score,reward_per_step\n"
+                      "suite,a,0,1.0,2.5\nsuite,a,1,0.8,2.5\nsuite,b,0,0.5,2.4\n"
+                      "check,c,0,0.7,2.3\n")
+    out = tmp_path / "summary.csv"
+    assert main(["summarize", f"mine={scores}", "--out", str(out)]) == 0
+    rows = [ln.split(",") for ln in out.read_text().splitlines() if not ln.startswith("#")]
+    assert rows[0] == ["policy", "set", "runs", "mean score", "worst scenario",
+                       "scenarios below 0.60"]
+    # suite: runs 1.0, 0.8, 0.5 -> mean 0.767; scenario means a 0.9, b 0.5 (below 0.60)
+    assert rows[1] == ["mine", "suite", "3", "0.767", "b (0.500)", "1"]
+    assert rows[2] == ["mine", "check", "1", "0.7", "c (0.700)", "0"]
