@@ -71,6 +71,8 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
                             (sb3_pool_learn_steps_per_s: PPO.learn, updates included)
   vector_closed_form_level_error_m / _reward_error   the largest difference of the
                             pool's closed-form envs from its CVODE envs over the suite
+                            (vector_load_average_before/_after: the 1-minute load average
+                            around the scaling table, the machine's share of its 2 cores)
   experiments_full_min, benchmark_suite_min  (--long only) the paper's protocol and
                             the default benchmark suite at --jobs 2, aims 10 / 45 min
 
@@ -500,7 +502,9 @@ def bench_realtime(rounds: int) -> list[Figure]:
 def bench_vector(rounds: int) -> list[Figure]:
     import bench_vector as bv
 
+    load_before = os.getloadavg()[0]
     rows, core = bv.scaling(rounds)
+    load_after = os.getloadavg()[0]
     rate = {(int(r["threads"]), int(r["num_envs"])): float(r["steps_per_s"]) for r in rows}
     best = max(v for (t, n), v in rate.items() if n >= 1024)
     sb3 = bv.sb3_rates(16, rounds)
@@ -521,7 +525,10 @@ def bench_vector(rounds: int) -> list[Figure]:
                Figure("sb3_pool_learn_steps_per_s", sb3["learn"], "steps/s"),
                Figure("vector_closed_form_level_error_m", level, "m"),
                Figure("vector_closed_form_reward_error", reward, "reward"),
-               Figure("vector_closed_form_episode_ends_differing", ends, "steps")])
+               Figure("vector_closed_form_episode_ends_differing", ends, "steps"),
+               # the machine's 1-minute load average around the scaling table (2 cores)
+               Figure("vector_load_average_before", load_before, "runnable"),
+               Figure("vector_load_average_after", load_after, "runnable")])
 
 
 def bench_long() -> list[Figure]:

@@ -38,8 +38,8 @@ def rewards(root: Path, method: str) -> dict[tuple[str, int], np.ndarray]:
             continue  # a benchmark run's copy of the controller's own file
         parts = path.relative_to(root).parts
         seed = int(parts[-2].removeprefix("s"))
-        if "runs" in parts and method not in parts:
-            continue
+        if ("runs" in parts or len(parts) >= 4) and method not in parts:
+            continue  # another method's run (the benchmark's layout, or <method>/<scenario>/...)
         scenario = parts[parts.index("runs") + 1] if "runs" in parts else parts[-3]
         with open(path) as f:
             rows = list(csv.DictReader(f))

@@ -65,8 +65,14 @@ class RobustPPOAgent(GuidedPPOAgent):
         stuck = self.stuck.observe(t.valves, t.next_obs.valves, t.obs.operating_steps)
         refitted = self.online_id.add(t.obs.level, t.next_obs.valves, t.next_obs.level,
                                       t.next_obs.deficit)  # the valves the plant applied
-        # a valve newly stuck changes what the teacher plans: refit the policy at once
-        return refitted or stuck
+        if stuck:
+            # a valve newly stuck changes every plan the teacher makes: refit the policy
+            # at once, outside the --teacher-refits budget (a change's refits may have
+            # spent it; at most six valves can stick)
+            self.on_change()
+            self._refit(self.interval * 1000 + 500 + len(self.stuck.detections))
+            return False
+        return refitted
 
     def observed_levels(self) -> np.ndarray:
         return np.array([r[2] for r in self.online_id.rows])
