@@ -248,7 +248,7 @@ def test_push_key_file_needs_push_policy_and_a_private_key_file(tmp_path):
     key.write_text("ab" * 32)
     key.chmod(0o600)
     ControllerConfig(push_policy="RT_", push_key_file=str(key)).validate()
-    with pytest.raises(ValueError, match="--push-key-file signs --push-policy"):
+    with pytest.raises(ValueError, match="--push-key-file has no effect without --push-policy"):
         ControllerConfig(push_key_file=str(key)).validate()
     key.chmod(0o644)  # (a config's ValueError is the command line's one-line exit 2)
     with pytest.raises(ValueError, match="--push-key-file .*readable or writable by others"):

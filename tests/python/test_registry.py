@@ -15,7 +15,7 @@ import sys
 
 import pytest
 
-from ftc.common.cli import needs, unmet
+from ftc.common.cli import NONZERO, needs, unmet
 from ftc.control import registry
 from ftc.control.agents.mpc_config import MPCConfig
 from ftc.control.agents.physics.mpc import ModelMPCConfig
@@ -99,12 +99,16 @@ def _given(flag: str, f: dataclasses.Field) -> list[str]:
 
 
 @pytest.mark.parametrize("tool", list(TOOLS))
-def test_every_method_against_every_option(tool, tmp_path, capsys):
+def test_every_method_against_every_option(tool, tmp_path, capsys, monkeypatch):
     """No option is accepted without effect: each method's command line takes
     an option of its tool exactly when its run config (or a part of it) has the
     field, its method does not fix it, and what it acts with is given (an option
     that acts only with another's value is refused without it, and taken with it);
     every other is refused, exit 2, one line naming the option and the method."""
+    key = tmp_path / "bus.key"  # --push-key-file's value: a key file, mode 600
+    key.write_text("ab" * 32)
+    key.chmod(0o600)
+    monkeypatch.setitem(SAMPLES, "push_key_file", str(key))
     walked = 0
     for name in registry.tool_methods(tool):
         m = registry.method(name)
@@ -133,6 +137,8 @@ def test_every_method_against_every_option(tool, tmp_path, capsys):
                         _parse(tool, argv)
                     err = capsys.readouterr().err.strip().splitlines()
                     assert e.value.code == 2 and f"{flag} has no effect" in err[-1], (name, err)
+                    if value is NONZERO:  # any value of the option it needs
+                        value = SAMPLES[dep]
                     argv += [f"--{dep.replace('_', '-')}"] + ([] if value is True else [value])
             configs = _parse(tool, argv)
             part = configs["ppo"] if prefix else configs[m.part]

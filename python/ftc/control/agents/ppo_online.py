@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from ftc.common.cli import at_least, between, positive
+from ftc.common.cli import NONZERO, at_least, between, positive
 from ftc.common.constants import DEFAULT_LCM_URL
 from ftc.common.errors import CheckpointError
 from ftc.control.run import checkpoint
@@ -51,10 +51,10 @@ class PolicyConfig(RunConfig):
     RETIRED_FIELDS: ClassVar[dict[str, Any]] = {"pretrain_deterministic_closed": False,
                                                 "pretrain_sim": "core"}
     #: options that act only with another's value (ftc.common.cli.unmet)
-    NEEDS: ClassVar[dict[str, Any]] = {name: ("pretrain", True) for name in (
+    NEEDS: ClassVar[dict[str, Any]] = {**{name: ("pretrain", True) for name in (
         "pretrain_cache", "fresh_optimizer", "pretrain_open_fraction", "pretrain_max_steps",
         "pretrain_envs", "pretrain_ent_coef", "pretrain_lr", "pretrain_minibatch",
-        "pretrain_rollout")}
+        "pretrain_rollout")}, "push_key_file": ("push_policy", NONZERO)}
 
     method: str = field(default="ppo", metadata={"help": "the method (--help lists them)"})
     update_every: int = field(default=128, metadata={"check": at_least(1, MAX_STEPS_PER_INTERVAL), "help": (
@@ -117,8 +117,8 @@ class PolicyConfig(RunConfig):
                              "--push-policy PREFIX with it")
         if self.push_key_file is not None:
             if self.push_policy is None:
-                raise ValueError("--push-key-file signs --push-policy's pushes: give "
-                                 "--push-policy PREFIX with it")
+                raise ValueError("--push-key-file has no effect without --push-policy: it "
+                                 "signs --push-policy's pushes")
             try:
                 load_key(self.push_key_file)
             except ValueError as e:
