@@ -9,8 +9,8 @@ cd "$root"
 bash scripts/setup.sh
 status=0
 (cd build && ctest --output-on-failure -j2) || status=$?
-# Two workers (pytest-xdist), a test file per worker at a time: the module
-# fixtures (a benchmark, an experiment) run once, and a subprocess-heavy file
-# waits on its plant while the other worker computes.
-.venv/bin/python -m pytest -q --durations=20 -n 2 --dist loadfile "$@" || status=$?
+# Three workers (pytest-xdist) on the two cores, a test file per worker at a
+# time: the module fixtures (a benchmark, an experiment) run once, and while a
+# file waits on a real-time plant or a subprocess, the other two compute.
+.venv/bin/python -m pytest -q --durations=20 -n 3 --dist loadfile "$@" || status=$?
 exit $status
