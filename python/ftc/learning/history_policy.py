@@ -36,6 +36,8 @@ STEP_FEATURES = 2 * NUM_TANKS  # levels and valves of one step
 # named, not imported: this module stays free of the plant equations training uses
 TRAINER = "ftc.experiments.adaptive.dagger"
 CACHE_VERSION = 1  # bump when the checkpoint record's layout changes
+HEADS = {"valves": NUM_TANKS, "joint": 2 ** NUM_TANKS}  # outputs of each head
+INPUTS = ("window", "rates")  # the training-time input parametrizations (TrainingConfig.inputs)
 
 
 @dataclass(frozen=True)
@@ -43,19 +45,30 @@ class StudentConfig:
     """The student's architecture.
 
     window: steps of history in its input (1: the current levels and the last
-        valves only); hidden: widths of its tanh layers."""
+        valves only); hidden: widths of its tanh layers; head: "valves" (six
+        logits, valve i opens where logit i > 0) or "joint" (64 logits, one per
+        valve setting: the setting a of the largest logit, first on ties, opens
+        valve i iff bit i of a is set)."""
 
     window: int = 12
     hidden: tuple[int, ...] = (128, 128)
+    head: str = "valves"
 
     def __post_init__(self) -> None:
         if self.window < 1 or not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"StudentConfig: window >= 1 and hidden widths >= 1 needed, got "
                              f"window={self.window}, hidden={self.hidden}")
+        if self.head not in HEADS:
+            raise ValueError(f"StudentConfig: head must be one of {sorted(HEADS)}, "
+                             f"got {self.head!r}")
 
     @property
     def inputs(self) -> int:
         return STEP_FEATURES * self.window
+
+    @property
+    def outputs(self) -> int:
+        return HEADS[self.head]
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -64,7 +77,8 @@ class StudentConfig:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "StudentConfig":
-        return cls(window=int(d["window"]), hidden=tuple(int(h) for h in d["hidden"]))
+        return cls(window=int(d["window"]), hidden=tuple(int(h) for h in d["hidden"]),
+                   head=str(d.get("head", "valves")))
 
 
 @dataclass(frozen=True)
@@ -76,9 +90,17 @@ class TrainingConfig:
     fraction of the student's states the teacher labels; dagger: False trains
     without DAgger (every iteration driven and labelled by the teacher alone:
     behaviour cloning); epochs, batch, lr: the student's fit after each
-    iteration; max_samples: data set size kept; window, hidden: the student
-    (:class:`StudentConfig`); hold, horizon: the teacher's planner (oracle-mpc's
-    H and L); seed: draws, pool plants, initial weights and minibatches."""
+    iteration; max_samples: data set size kept; window, hidden, head: the
+    student (:class:`StudentConfig`); inputs: how its first layer is
+    parametrized while it trains ("window": on the scaled window; "rates": on
+    the newest levels and valves and the first differences of the levels
+    between steps, each standardized by the first iteration's data; the
+    checkpoint folds this linear map into the first layer, so the flown
+    network reads the window either way); regret: with the joint head, the
+    weight of the expected regret (the teacher's summed-reward loss of the
+    student's choice, per unit of the data's mean regret) added to the cross
+    entropy; hold, horizon: the teacher's planner (oracle-mpc's H and L); seed:
+    draws, pool plants, initial weights and minibatches."""
 
     iterations: int = 8
     envs: int = 24
@@ -91,12 +113,23 @@ class TrainingConfig:
     max_samples: int = 600_000
     window: int = 12
     hidden: tuple[int, ...] = (128, 128)
+    head: str = "valves"
+    inputs: str = "window"
+    regret: float = 0.0
     hold: int = 3
     horizon: int = 10
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        if self.inputs not in INPUTS:
+            raise ValueError(f"TrainingConfig: inputs must be one of {list(INPUTS)}, "
+                             f"got {self.inputs!r}")
+        if self.regret < 0 or (self.regret > 0 and self.head != "joint"):
+            raise ValueError(f"TrainingConfig: regret must be >= 0, and > 0 only with the joint "
+                             f"head, got regret={self.regret}, head={self.head!r}")
+
     def student(self) -> StudentConfig:
-        return StudentConfig(window=self.window, hidden=tuple(self.hidden))
+        return StudentConfig(window=self.window, hidden=tuple(self.hidden), head=self.head)
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -143,7 +176,12 @@ class HistoryWindow:
 
 
 class HistoryPolicy(nn.Module):
-    """features (N, 12 W) -> six valve logits; ``act`` opens where a logit > 0."""
+    """features (N, 12 W) -> logits (six, or 64 with the joint head); ``act``
+    maps them to valves (:class:`StudentConfig`).
+
+    While it trains, a fixed affine map of the input (``set_input_map``: the
+    rates parametrization) may precede the first layer; :meth:`record` folds it
+    into that layer, so a checkpoint is always a plain MLP on the window."""
 
     def __init__(self, config: StudentConfig = StudentConfig()) -> None:
         super().__init__()
@@ -152,22 +190,39 @@ class HistoryPolicy(nn.Module):
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:]):
             layers += [nn.Linear(a, b), nn.Tanh()]
-        layers.append(nn.Linear(widths[-1], NUM_TANKS))
+        layers.append(nn.Linear(widths[-1], config.outputs))
         self.net = nn.Sequential(*layers)
+        self.input_map: torch.Tensor | None = None  # (F, F): x -> x @ map.T - shift
+        self.input_shift: torch.Tensor | None = None
+
+    def set_input_map(self, matrix: np.ndarray, shift: np.ndarray) -> None:
+        self.input_map = torch.as_tensor(np.asarray(matrix, np.float32))
+        self.input_shift = torch.as_tensor(np.asarray(shift, np.float32))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
+        if self.input_map is not None:
+            features = features @ self.input_map.T - self.input_shift
         return self.net(features)
 
     @torch.no_grad()
     def act(self, features: np.ndarray) -> np.ndarray:
         """Valves (N, 6) int8 for features (N, 12 W)."""
-        logits = self.net(torch.as_tensor(features, dtype=torch.float32))
+        logits = self.forward(torch.as_tensor(features, dtype=torch.float32))
+        if self.config.head == "joint":
+            setting = logits.argmax(dim=1).numpy()
+            return ((setting[:, None] >> np.arange(NUM_TANKS)) & 1).astype(np.int8)
         return (logits > 0).numpy().astype(np.int8)
 
     def record(self) -> dict[str, Any]:
-        """Its architecture and weights (loadable with torch.load(weights_only=True))."""
-        return {"config": self.config.to_json(),
-                "state": {k: v.detach().clone() for k, v in self.state_dict().items()}}
+        """Its architecture and weights (loadable with torch.load(weights_only=True)),
+        the input map folded into the first layer."""
+        state = {k: v.detach().clone() for k, v in self.state_dict().items()}
+        if self.input_map is not None:
+            w = state["net.0.weight"].double()
+            state["net.0.weight"] = (w @ self.input_map.double()).float()
+            state["net.0.bias"] = (state["net.0.bias"].double()
+                                   - w @ self.input_shift.double()).float()
+        return {"config": self.config.to_json(), "state": state}
 
     @classmethod
     def from_record(cls, record: dict[str, Any]) -> "HistoryPolicy":
@@ -175,6 +230,24 @@ class HistoryPolicy(nn.Module):
         policy.load_state_dict(record["state"])
         policy.eval()
         return policy
+
+
+def rates_map(window: int, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rates parametrization for a window of ``window`` steps: (matrix (F, F),
+    shift (F,)) such that ``x @ matrix.T - shift`` holds the newest levels
+    (slot 0), in slot k >= 1 the levels' change over that step (slot k-1 minus
+    slot k), and every valve unchanged, each standardized to zero mean and unit
+    deviation over ``features`` (N, F) (a deviation under 1e-6 is taken as 1)."""
+    f = STEP_FEATURES * window
+    d = np.eye(f)
+    for k in range(1, window):
+        for i in range(NUM_TANKS):
+            d[k * STEP_FEATURES + i, (k - 1) * STEP_FEATURES + i] = 1.0
+            d[k * STEP_FEATURES + i, k * STEP_FEATURES + i] = -1.0
+    z = np.asarray(features, np.float64) @ d.T
+    mean, std = z.mean(axis=0), z.std(axis=0)
+    std = np.where(std > 1e-6, std, 1.0)
+    return d / std[:, None], mean / std
 
 
 def code_digest() -> str:

@@ -31,28 +31,33 @@ import torch
 
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive.distribution import TrainingDistribution, draw
-from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, TrainingConfig
+from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, TrainingConfig, rates_map
 from ftc.plant.vector import FuelTransferVectorEnv
 
 
 @dataclass
 class Dataset:
-    """Labelled pairs, the newest ``capacity`` kept: features (M, F) float32, valves (M, 6)."""
+    """Labelled samples, the newest ``capacity`` kept: features (M, F) float32,
+    valves (M, 6) int8 and the teacher's regrets (M, 64) float32 (empty (M, 0)
+    when they are not kept)."""
 
     capacity: int
     features: list[np.ndarray] = field(default_factory=list)
     valves: list[np.ndarray] = field(default_factory=list)
+    regrets: list[np.ndarray] = field(default_factory=list)
 
-    def add(self, x: np.ndarray, y: np.ndarray) -> None:
+    def add(self, x: np.ndarray, y: np.ndarray, regrets: np.ndarray | None = None) -> None:
         self.features.append(x)
         self.valves.append(y)
+        self.regrets.append(np.zeros((len(x), 0), np.float32) if regrets is None else regrets)
         while sum(len(a) for a in self.features) - len(self.features[0]) >= self.capacity:
             self.features.pop(0)
             self.valves.pop(0)
+            self.regrets.pop(0)
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        x, y = np.concatenate(self.features), np.concatenate(self.valves)
-        return x[-self.capacity:], y[-self.capacity:]
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x, y, g = (np.concatenate(a) for a in (self.features, self.valves, self.regrets))
+        return x[-self.capacity:], y[-self.capacity:], g[-self.capacity:]
 
 
 def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribution,
@@ -68,7 +73,8 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
     window = HistoryWindow(config.envs, config.window)
     window.start(obs)
     driven = np.arange(config.envs) < round(beta * config.envs)  # by the teacher
-    xs, ys, reward, student_reward = [], [], 0.0, []
+    xs, ys, gs, reward, student_reward = [], [], [], 0.0, []
+    keep_regrets = config.head == "joint"
     steps = config.life_intervals * dist.steps_per_interval
     for _ in range(steps):
         features = window.features()
@@ -77,9 +83,11 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
         envs = np.flatnonzero(labelled)
         if len(envs):
             ops = np.array([env.pool.operating_steps(int(i)) for i in envs])
-            labels = teacher.label(envs, scenarios, ops, obs[envs])
+            labels, regrets = teacher.label_with_regrets(envs, scenarios, ops, obs[envs])
             xs.append(features[envs])
             ys.append(labels)
+            if keep_regrets:
+                gs.append(regrets)
             u[driven] = labels[driven[envs]]
         obs, r, terminated, truncated, _ = env.step(u)
         reward += float(r.mean())
@@ -87,17 +95,45 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
             student_reward.append(float(r[~driven].mean()))
         window.push(obs, u, terminated | truncated)
     env.close()
-    return {"x": np.concatenate(xs), "y": np.concatenate(ys), "steps": steps * config.envs,
+    return {"x": np.concatenate(xs), "y": np.concatenate(ys),
+            "regrets": np.concatenate(gs) if keep_regrets else None, "steps": steps * config.envs,
             "reward_per_step": reward / steps,
             "student_reward_per_step": float(np.mean(student_reward)) if student_reward else None}
 
 
+def settings_of(valves: np.ndarray) -> np.ndarray:
+    """Setting index a (valve i open iff bit i of a) of valves (N, 6)."""
+    return (np.asarray(valves, np.int64) << np.arange(valves.shape[1])).sum(axis=1)
+
+
+def loss_of(policy: HistoryPolicy, x: torch.Tensor, y: torch.Tensor, a: torch.Tensor,
+            g: torch.Tensor, config: TrainingConfig, regret_scale: float) -> torch.Tensor:
+    """The student's loss on a minibatch: BCE per valve (valves head), or the
+    cross entropy of the teacher's setting plus ``config.regret`` times the
+    expected regret per unit of ``regret_scale`` (joint head)."""
+    logits = policy(x)
+    if config.head == "valves":
+        return torch.nn.functional.binary_cross_entropy_with_logits(logits, y)
+    loss = torch.nn.functional.cross_entropy(logits, a)
+    if config.regret > 0:
+        p = torch.softmax(logits, dim=1)
+        loss = loss + config.regret * (p * g).sum(dim=1).mean() / regret_scale
+    return loss
+
+
 def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, y: np.ndarray,
-        config: TrainingConfig, rng: np.random.Generator) -> dict[str, float]:
-    """``epochs`` epochs of minibatch BCE on (x, y); the last epoch's loss and the
-    fraction of valves the student gets right on the data set."""
+        config: TrainingConfig, rng: np.random.Generator, regrets: np.ndarray | None = None
+        ) -> dict[str, float]:
+    """``epochs`` epochs of minibatches on (x, y, regrets (M, 64) or None)
+    (:func:`loss_of`); the last epoch's loss, the fraction of samples where the
+    student's valves are the teacher's (all six), and its mean regret where the
+    regrets are given."""
+    if regrets is None:
+        regrets = np.zeros((len(x), 0), np.float32)
     xt, yt = torch.as_tensor(x), torch.as_tensor(y, dtype=torch.float32)
-    loss_fn = torch.nn.BCEWithLogitsLoss()
+    at = torch.as_tensor(settings_of(y))
+    gt = torch.as_tensor(regrets)
+    scale = float(regrets.mean()) if regrets.size and regrets.mean() > 0 else 1.0
     policy.train()
     losses: list[float] = []
     for _ in range(config.epochs):
@@ -105,15 +141,19 @@ def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, 
         order = torch.as_tensor(rng.permutation(len(x)))
         for start in range(0, len(x), config.batch):
             idx = order[start:start + config.batch]
-            loss = loss_fn(policy(xt[idx]), yt[idx])
+            loss = loss_of(policy, xt[idx], yt[idx], at[idx], gt[idx] if regrets.size else gt,
+                           config, scale)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
             losses.append(loss.item())
     policy.eval()
-    with torch.no_grad():
-        agree = float(((policy(xt) > 0).float() == yt).all(dim=1).float().mean())
-    return {"loss": float(np.mean(losses)), "action_agreement": agree}
+    u = policy.act(x)
+    out = {"loss": float(np.mean(losses)),
+           "action_agreement": float((u == y).all(axis=1).mean())}
+    if regrets.size:
+        out["mean_regret"] = float(regrets[np.arange(len(x)), settings_of(u)].mean())
+    return out
 
 
 def train(dist: TrainingDistribution, config: TrainingConfig,
@@ -139,9 +179,11 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
         beta = 1.0 if not config.dagger else 0.5 ** k
         rollouts = collect(policy, teacher, dist, config, k, beta)
         steps += rollouts["steps"]
-        data.add(rollouts["x"], rollouts["y"])
-        x, y = data.arrays()
-        stats = fit(policy, optimizer, x, y, config, rng)
+        data.add(rollouts["x"], rollouts["y"], rollouts["regrets"])
+        x, y, g = data.arrays()
+        if config.inputs == "rates" and policy.input_map is None:
+            policy.set_input_map(*rates_map(config.window, x))  # fixed from iteration 0's data
+        stats = fit(policy, optimizer, x, y, config, rng, g)
         row = {"iteration": k, "beta": beta, "env_steps": steps, "teacher_labels": teacher.labels,
                "samples": len(x), "seconds": round(time.monotonic() - start, 1),
                "reward_per_step": rollouts["reward_per_step"],

@@ -50,7 +50,17 @@ class PoolTeacher:
         """Valves (len(envs), 6) int8: the teacher's decision for env ``envs[k]``
         (scenario ``scenarios[envs[k]]``) at ``operating_steps[k]`` operating
         steps taken, levels ``levels[k]`` (6,) m."""
+        return self.label_with_regrets(envs, scenarios, operating_steps, levels)[0]
+
+    def label_with_regrets(self, envs: Sequence[int], scenarios: Sequence[Any],
+                           operating_steps: np.ndarray, levels: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+        """(valves (len(envs), 6) int8, regrets (len(envs), 64) float32): the
+        decision of :meth:`label` and, for each of the 64 settings a (valve i
+        open iff bit i of a), the summed reward its plan loses against the
+        best plan over the horizon (0 for the decision and its exact ties)."""
         out = np.zeros((len(envs), NUM_TANKS), np.int8)
+        regrets = np.zeros((len(envs), 2 ** NUM_TANKS), np.float32)
         for k, env in enumerate(envs):
             scenario = scenarios[env]
             evaluator = self._evaluator(int(env), scenario)
@@ -58,7 +68,10 @@ class PoolTeacher:
             evaluator.set_step(step)
             steps_left = scenario.steps_per_interval - step % scenario.steps_per_interval
             horizon = max(1, min(self.horizon, steps_left))
-            u, _, _ = self.planner.plan(evaluator, np.asarray(levels[k], np.float64), horizon)
-            out[k] = u
+            totals = np.asarray(evaluator(np.asarray(levels[k], np.float64),
+                                          self.planner.candidates(horizon)), np.float64)
+            best = int(np.argmax(totals))  # the planner's rule: first maximum
+            out[k] = self.planner.candidates(horizon)[best, 0]
+            regrets[k] = totals[best] - totals
         self.labels += len(envs)
-        return out
+        return out, regrets
