@@ -115,3 +115,14 @@ def test_bad_student_options_are_one_clear_error():
         TrainingConfig(inputs="deltas")
     with pytest.raises(ValueError, match="only with the joint head"):
         TrainingConfig(regret=1.0)
+
+
+def test_bad_student_options_to_train_are_one_line_and_exit_2(tmp_path, capsys):
+    from ftc.experiments.adaptive.cli import main
+
+    assert main(["train", "--head", "softmax", "--cache", str(tmp_path)]) == 2
+    assert main(["train", "--regret", "2", "--cache", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("adaptive: error: ") for line in err)
+    assert "head must be one of" in err[0] and "only with the joint head" in err[1]
+    assert not list(tmp_path.iterdir())  # nothing written
