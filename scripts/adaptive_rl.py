@@ -140,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"adaptive_rl: error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    config = TrainingConfig(envs=a.envs, seed=a.seed, life_intervals=a.life_intervals)
+    config = TrainingConfig(envs=a.envs, seed=a.seed, life_intervals=a.life_intervals,
+                            head="valves", regret=0.0)
     steps = a.steps or config.iterations * config.envs * config.life_intervals * \
         dist.steps_per_interval
     torch.set_num_threads(1)

@@ -114,7 +114,7 @@ def test_the_student_learns_a_rule_of_its_window_from_labels(one_torch_thread):
     # a known answer: valve i opens iff tank i's newest level is below 0.5
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
-    config = TrainingConfig(window=2, hidden=(32,), epochs=20, batch=100, lr=1e-2)
+    config = TrainingConfig(window=2, hidden=(32,), epochs=20, batch=100, lr=1e-2, head="valves")
     levels = rng.uniform(0, 1, (1000, 6))
     w = HistoryWindow(1000, 2)
     w.start(levels)

@@ -113,16 +113,19 @@ def test_bad_student_options_are_one_clear_error():
         StudentConfig(head="softmax")
     with pytest.raises(ValueError, match="inputs must be one of"):
         TrainingConfig(inputs="deltas")
-    with pytest.raises(ValueError, match="only with the joint head"):
-        TrainingConfig(regret=1.0)
+    with pytest.raises(ValueError, match="regret must be >= 0"):
+        TrainingConfig(regret=-1.0)
 
 
-def test_bad_student_options_to_train_are_one_line_and_exit_2(tmp_path, capsys):
+def test_bad_options_to_train_and_evaluate_are_one_line_and_exit_2(tmp_path, capsys):
     from ftc.experiments.adaptive.cli import main
 
     assert main(["train", "--head", "softmax", "--cache", str(tmp_path)]) == 2
-    assert main(["train", "--regret", "2", "--cache", str(tmp_path)]) == 2
+    assert main(["train", "--regret", "-1", "--cache", str(tmp_path)]) == 2
+    assert main(["evaluate", "--sets", "heldout", "--heldout-results",
+                 str(tmp_path / "none.csv"), "--out", str(tmp_path / "x.csv")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("adaptive: error: ") for line in err)
-    assert "head must be one of" in err[0] and "only with the joint head" in err[1]
+    assert len(err) == 3 and all(line.startswith("adaptive: error: ") for line in err)
+    assert "head must be one of" in err[0] and "regret must be >= 0" in err[1]
+    assert "none.csv: no such file" in err[2]
     assert not list(tmp_path.iterdir())  # nothing written

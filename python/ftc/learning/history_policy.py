@@ -6,10 +6,11 @@ Input: a window of the last ``window`` steps, newest first, each step the six
 levels (m) and the six valves commanded after them, scaled to [-1, 1]
 (``2 x - 1``), flattened to ``12 * window`` floats. At an episode's start the
 window is filled with the first levels and closed valves, so the policy sees
-a plant that has just been reset. Network: tanh MLP to six logits; a valve
-opens where its logit is positive (the deployed policies' rule,
-cpp/policy/policy.h), so the weights export as today's policies do with a
-wider first layer.
+a plant that has just been reset. Network: tanh MLP to logits; the default
+"joint" head has 64, one per valve setting, and applies the setting a of the
+largest logit (the first on ties), valve i open iff bit i of a is set; the
+"valves" head has six, a valve opening where its logit is positive (the
+deployed policies' rule, cpp/policy/policy.h).
 
 :class:`HistoryWindow` keeps N windows at once (the batched pool, N = 1 in a
 controller); :class:`HistoryPolicy` is the network.
@@ -99,8 +100,9 @@ class TrainingConfig:
     network reads the window either way); regret: with the joint head, the
     weight of the expected regret (the teacher's summed-reward loss of the
     student's choice, per unit of the data's mean regret) added to the cross
-    entropy; hold, horizon: the teacher's planner (oracle-mpc's H and L); seed:
-    draws, pool plants, initial weights and minibatches."""
+    entropy (the valves head has none); hold, horizon: the teacher's planner
+    (oracle-mpc's H and L); seed: draws, pool plants, initial weights and
+    minibatches."""
 
     iterations: int = 8
     envs: int = 24
@@ -113,9 +115,9 @@ class TrainingConfig:
     max_samples: int = 600_000
     window: int = 12
     hidden: tuple[int, ...] = (128, 128)
-    head: str = "valves"
+    head: str = "joint"
     inputs: str = "window"
-    regret: float = 0.0
+    regret: float = 5.0
     hold: int = 3
     horizon: int = 10
     seed: int = 0
@@ -124,9 +126,8 @@ class TrainingConfig:
         if self.inputs not in INPUTS:
             raise ValueError(f"TrainingConfig: inputs must be one of {list(INPUTS)}, "
                              f"got {self.inputs!r}")
-        if self.regret < 0 or (self.regret > 0 and self.head != "joint"):
-            raise ValueError(f"TrainingConfig: regret must be >= 0, and > 0 only with the joint "
-                             f"head, got regret={self.regret}, head={self.head!r}")
+        if not self.regret >= 0:
+            raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
 
     def student(self) -> StudentConfig:
         return StudentConfig(window=self.window, hidden=tuple(self.hidden), head=self.head)

@@ -101,6 +101,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
+    if "heldout" in a.sets and a.heldout_results and not Path(a.heldout_results).is_file():
+        raise ValueError(f"--heldout-results {a.heldout_results}: no such file")
     record, path = load_record(a)
     policy = HistoryPolicy.from_record(record["policy"])
     if a.policy == "teacher":
