@@ -65,9 +65,39 @@ def parse_config(text: str, epochs: int) -> TrainingConfig:
     return TrainingConfig(**values)
 
 
+def write_rows(path: str, a: argparse.Namespace, n_train: int, n_val: int,
+               rows: list[dict]) -> None:
+    """The comparison as a result file (docs/results/): provenance, then the CSV."""
+    import csv
+    import io
+    import os
+    import platform
+
+    from ftc.common.atomic import atomic_write_text
+    from ftc.common.build_info import git_revision
+
+    buf = io.StringIO()
+    for key, value in (
+            ("what", f"student configurations fitted {a.epochs} epochs on {n_train} teacher "
+                     f"labels of 24 plants drawn from the training distribution, scored on "
+                     f"{n_val} labels of 12 other plants: share of states with the teacher's "
+                     f"six valves, and mean regret (summed reward over the teacher's horizon "
+                     f"lost against its best plan)"),
+            ("command", "python scripts/adaptive_proxy.py " + " ".join(sys.argv[1:])),
+            ("commit", git_revision()), ("date", time.strftime("%Y-%m-%d")),
+            ("machine", f"{platform.machine()}, {os.cpu_count()} cores, load average "
+                        f"{os.getloadavg()[0]:.1f}")):
+        buf.write(f"# {key}: {value}\n")
+    writer = csv.DictWriter(buf, list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+
+
 def fit(a: argparse.Namespace) -> None:
     torch.set_num_threads(1)
     d = np.load(a.data)
+    rows = []
     for text in a.configs:
         config = parse_config(text, a.epochs)
         w = config.window
@@ -87,6 +117,11 @@ def fit(a: argparse.Namespace) -> None:
         print(f"proxy: {text}: train agreement {stats['action_agreement']:.4f}  val agreement "
               f"{agree:.4f}  val mean regret {regret:.5f}  ({time.monotonic() - t:.0f} s)",
               flush=True)
+        rows.append({"student": text, "train_agreement": round(stats["action_agreement"], 3),
+                     "validation_agreement": round(agree, 3),
+                     "validation_mean_regret": round(regret, 3)})
+    if a.out:
+        write_rows(a.out, a, len(d["train_x"]), len(d["val_x"]), rows)
 
 
 def main() -> int:
@@ -103,6 +138,7 @@ def main() -> int:
     f = sub.add_parser("fit")
     f.add_argument("--data", required=True)
     f.add_argument("--epochs", type=int, default=8)
+    f.add_argument("--out", default="", help="the comparison as a result file (CSV)")
     f.add_argument("configs", nargs="+", help="KEY=VALUE,... of TrainingConfig (hidden=256x256)")
     a = p.parse_args()
     try:
