@@ -129,3 +129,25 @@ def test_bad_options_to_train_and_evaluate_are_one_line_and_exit_2(tmp_path, cap
     assert "head must be one of" in err[0] and "regret must be >= 0" in err[1]
     assert "none.csv: no such file" in err[2]
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.slow
+def test_the_no_teacher_ablation_saves_ppos_actor_in_the_students_layout(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "adaptive_rl.py"
+    spec = importlib.util.spec_from_file_location("adaptive_rl", script)
+    rl = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rl)
+    out = tmp_path / "rl.pt"
+    # two batches of plants (a life of one interval, 1,024 steps of 2 plants); the script
+    # itself refuses (exit 1) a checkpoint that acts otherwise than PPO's deterministic policy
+    assert rl.main(["--out", str(out), "--steps", "2048", "--envs", "2", "--n-steps", "128",
+                    "--life-intervals", "1"]) == 0
+    record = torch.load(out, weights_only=True)
+    student = HistoryPolicy.from_record(record["policy"])
+    assert student.config.head == "valves" and student.config.window == 12
+    assert record["config"]["ppo_steps"] == 2048
+    assert rl.main(["--out", str(tmp_path / "x.pt"), "--envs", "0"]) == 2
+    assert not (tmp_path / "x.pt").exists()
