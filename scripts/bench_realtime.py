@@ -4,7 +4,11 @@ mode at rising rates, driven by
 
     node   build/policy_node flying a policy (a fresh ActorCritic, seed 0,
            exported as the node reads it) for --steps steps;
-    node-signed  the same with a bus key (plant and node --key-file): every
+    node-student  build/policy_node flying the adaptive student (its history
+           window: docs/adaptive.md), exported by ftc.export from --student
+           (default: the checkpoint `python -m ftc.experiments.adaptive train`
+           cached for its default options), for --steps steps;
+    node-signed  the same as node with a bus key (plant and node --key-file): every
            message signed and checked (HMAC-SHA256), for the signing's cost
            side by side with node at the same rates (with both, each rate runs
            --repeats pairs, node and node-signed alternating ABBA, and the
@@ -20,6 +24,8 @@ mode at rising rates, driven by
            --realtime RATE, the same run: PPO updates and the guided fit (DAgger
            with the planner) after each interval, off the control loop.
 
+    .venv/bin/python scripts/bench_realtime.py --controllers node-student --rates 100 \
+        --steps 5000 --results docs/results/node_student.csv
     .venv/bin/python scripts/bench_realtime.py [--controllers node ppo mpc] [--steps 5000]
         [--rates 100 200 500 1000 2000] [--python-rates 20 50 100 200]
         [--results docs/results/realtime.csv] [--figure docs/figures/realtime_latency.png]
@@ -64,10 +70,11 @@ SUMMARY = re.compile(r"steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
                      r"latency_p99_us (\d+) latency_max_us (\d+) auth_us_per_step ([\d.]+)")
 SIGNING_BUDGET = (0.05, 20.0)  # signing may cost the node 5% of its p99 latency, or 20 us
 MISS_LIMIT = 0.001  # the aim: fewer than 0.1% of the steps missed
+DEFAULT_CACHE = "~/.cache/ftc/adaptive"  # where `python -m ftc.experiments.adaptive train` caches
 
 
 def run_rate(weights: Path, rate: float, steps: int, log: Path,
-             key_file: Path | None = None) -> dict:
+             key_file: Path | None = None, name: str = "node") -> dict:
     url, prefix = private_lcm_url(), private_prefix()
     keyed = ["--key-file", str(key_file)] if key_file else []
     plant = subprocess.Popen([str(plant_binary()), "--scenario", str(REPO / "scenarios" /
@@ -86,7 +93,7 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
     if out.returncode or not m:
         raise SystemExit(f"bench_realtime: the node failed at {rate} Hz: {out.stderr.strip()}")
     n, misses, p50, p99, worst = map(int, m.groups()[:5])
-    row = _row("node-signed" if key_file else "node", rate, n, misses, p50, p99, worst)
+    row = _row(name, rate, n, misses, p50, p99, worst)
     row["auth_us_per_step"] = m.group(6)
     return row
 
@@ -171,9 +178,34 @@ def signing_cost(rows: list[dict]) -> list[dict]:
     return out
 
 
+def student_weights(student: Path | None, out: Path) -> str:
+    """Exports the adaptive student (``student``, or the cached checkpoint of
+    the default training options) to ``out`` with ftc.export; returns the
+    checkpoint's path. Exits naming the train command when there is none."""
+    from ftc.control.agents.learned.adaptive_policy import TRAIN_COMMAND, default_checkpoint
+    from ftc.tools.export import main as export
+
+    path = student or default_checkpoint(DEFAULT_CACHE)
+    if not path.is_file():
+        raise SystemExit(f"bench_realtime: no student checkpoint at {path}; build it with "
+                         f"`{TRAIN_COMMAND}` or give --student")
+    if export([str(path), "--weights", str(out)]) != 0:
+        raise SystemExit(f"bench_realtime: ftc.export could not export {path}")
+    return str(path)
+
+
+def student_name(student: Path | None) -> str:
+    """How the result file names the student flown: the given file, or the cache's."""
+    if student is not None:
+        return str(student)
+    from ftc.control.agents.learned.adaptive_policy import default_checkpoint
+
+    return f"the cached default checkpoint ({default_checkpoint(DEFAULT_CACHE).name})"
+
+
 def measure(controllers: list[str], steps: int, rates: list[float],
             python_rates: list[float], echo: bool = False,
-            repeats: int = 1) -> tuple[list[dict], Any]:
+            repeats: int = 1, student: Path | None = None) -> tuple[list[dict], Any]:
     """Every controller at every rate: the table's rows, and the node's latencies
     at its lowest rate with that row (or None)."""
     torch.manual_seed(0)
@@ -181,6 +213,10 @@ def measure(controllers: list[str], steps: int, rates: list[float],
     with tempfile.TemporaryDirectory() as tmp:
         weights = Path(tmp) / "policy.txt"
         policy_weights.write_weights(weights, *policy_weights.actor_layers(ActorCritic()))
+        student_file = Path(tmp) / "student.txt"
+        if "node-student" in controllers:
+            print(f"bench_realtime: node-student flies {student_weights(student, student_file)}",
+                  flush=True)
         key_file = Path(tmp) / "bus.key"
         key_file.write_text(new_key().hex())
         key_file.chmod(0o600)
@@ -190,8 +226,10 @@ def measure(controllers: list[str], steps: int, rates: list[float],
         for controller, rate in runs:
             if controller.startswith("node"):
                 log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
-                rows.append(run_rate(weights, rate, steps, log,
-                                     key_file if controller == "node-signed" else None))
+                rows.append(run_rate(student_file if controller == "node-student" else weights,
+                                     rate, steps, log,
+                                     key_file if controller == "node-signed" else None,
+                                     name=controller))
                 if first_log is None:
                     first_log = (np.loadtxt(log), rows[-1])
             else:
@@ -210,7 +248,8 @@ def highest_rate(rows: list[dict], controller: str) -> float | None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--controllers", nargs="+", choices=["node", "node-signed", *PYTHON_RUNS],
+    p.add_argument("--controllers", nargs="+",
+                   choices=["node", "node-signed", "node-student", *PYTHON_RUNS],
                    default=["node", *PYTHON_RUNS], help="which controllers (default all)")
     p.add_argument("--steps", type=int, default=5000,
                    help="the node's steps per rate (default 5000)")
@@ -220,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="plant rates to try with the Python controllers, Hz")
     p.add_argument("--repeats", type=int, default=1,
                    help="with node and node-signed: pairs per rate, alternating (default 1)")
+    p.add_argument("--student", type=Path, default=None,
+                   help="node-student: the student checkpoint (default: the cached one of "
+                        "`python -m ftc.experiments.adaptive train`)")
     p.add_argument("--results", type=Path, help="write the table as a result file")
     p.add_argument("--signing-results", type=Path,
                    help="write the signing's cost per rate (node against node-signed) as a "
@@ -229,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         p.error(f"--repeats must be at least 1, not {args.repeats}")
     rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
-                              echo=True, repeats=args.repeats)
+                              echo=True, repeats=args.repeats, student=args.student)
     for controller in dict.fromkeys(args.controllers):
         best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
@@ -260,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
         write_result_file(args.results, (
             f"# what: controllers on the plant in real-time mode, single fault: node = "
             f"build/policy_node, {args.steps} steps per rate, a fresh 6-64-64-16-16-6 policy; "
+            + (f"node-student = build/policy_node flying the adaptive student (a window of 12 "
+               f"steps, 144-128-128-6) of {student_name(args.student)}; "
+               if "node-student" in args.controllers else "") +
             f"ppo = ftc.controller ppo-offline learning on, mpc = ftc.mpc oracle-mpc, robust = "
             f"ftc.controller ppo-robust (guided fits), 2 x 256 steps and the evaluations; "
             f"latency: state received to command sent\n"

@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "python" / "ftc"
 NATIVE = {"ftc._core", "ftc._learn", "ftc.plant_state_t", "ftc.valve_command_t", "ftc.plant_control_t",
           "ftc.policy_ack_t",
-          "ftc.policy_t"}
+          "ftc.policy_t", "ftc.policy_v2_t"}
 MAX_MODULE_LINES, MAX_CLASS_LINES = 500, 200
 
 
