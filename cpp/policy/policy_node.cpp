@@ -62,6 +62,14 @@ constexpr std::int64_t kMaxSeqJump = 1 << 16;
 // the session came for kSessionLost (a restarted plant follows no session).
 constexpr auto kOpenRetry = std::chrono::milliseconds(250);
 constexpr auto kSessionLost = std::chrono::seconds(2);
+// The socket's receive buffer unless the URL sets one (recv_buf_size): a
+// pushed student (143 kB) reaches the node as ~100 UDP fragments of 1.4 kB,
+// which the kernel's default buffer (rmem_default, 208 kB, counting each
+// fragment at its allocation's size) did not always hold while the node was
+// not scheduled on a loaded machine, and a push with one fragment lost is lost
+// whole (measured: 2 of 3 runs of test_node_student.py lost a push under a
+// load of 11). 4 MB holds several maximal pushes (1 MB each).
+constexpr int kReceiveBufferBytes = 4 << 20;
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
@@ -418,6 +426,8 @@ int main(int argc, char** argv) {
     std::cerr << "policy_node: " << error << "\n";
     return 2;
   }
+  if (url.find("recv_buf_size=") == std::string::npos)
+    url += "&recv_buf_size=" + std::to_string(kReceiveBufferBytes);  // (ttl=0 gave it a '?')
   lcm::LCM lcm(url);
   if (!lcm.good()) {
     std::cerr << "policy_node: cannot open LCM at " << url << "\n";
