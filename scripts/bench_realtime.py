@@ -50,6 +50,7 @@ import re
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -74,15 +75,18 @@ DEFAULT_CACHE = "~/.cache/ftc/adaptive"  # where `python -m ftc.experiments.adap
 
 
 def run_rate(weights: Path, rate: float, steps: int, log: Path,
-             key_file: Path | None = None, name: str = "node") -> dict:
+             key_file: Path | None = None, name: str = "node", fifo: int = 0) -> dict:
+    """One node run; with ``fifo`` the plant and the node under SCHED_FIFO at that
+    priority (chrt), as a real-time deployment schedules its control loop."""
     url, prefix = private_lcm_url(), private_prefix()
     keyed = ["--key-file", str(key_file)] if key_file else []
-    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(REPO / "scenarios" /
+    chrt = ["chrt", "-f", str(fifo)] if fifo else []
+    plant = subprocess.Popen([*chrt, str(plant_binary()), "--scenario", str(REPO / "scenarios" /
                               "single.toml"), "--mode", "realtime", "--rate", str(rate),
                               "--watchdog", "1", "--lcm-url", url, "--prefix", prefix, *keyed],
                              stderr=subprocess.DEVNULL)
     try:
-        out = subprocess.run([str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
+        out = subprocess.run([*chrt, str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
                               url, "--prefix", prefix, "--steps", str(steps),
                               "--latency-log", str(log), *keyed], capture_output=True, text=True,
                              timeout=steps / rate + 60)
@@ -93,14 +97,16 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
     if out.returncode or not m:
         raise SystemExit(f"bench_realtime: the node failed at {rate} Hz: {out.stderr.strip()}")
     n, misses, p50, p99, worst = map(int, m.groups()[:5])
-    row = _row(name, rate, n, misses, p50, p99, worst)
+    row = _row(name, rate, n, misses, p50, p99, worst,
+               scheduler=f"fifo {fifo}" if fifo else "other")
     row["auth_us_per_step"] = m.group(6)
     return row
 
 
 def _row(controller: str, rate: float, n: int, misses: int, p50: float, p99: float,
-         worst: float) -> dict:
-    return {"controller": controller, "rate_hz": f"{rate:g}", "steps": str(n),
+         worst: float, scheduler: str = "other") -> dict:
+    return {"controller": controller, "scheduler": scheduler, "rate_hz": f"{rate:g}",
+            "steps": str(n),
             "deadline_misses": str(misses), "miss_fraction": f"{misses / n:.4f}",
             "latency_p50_us": f"{p50:.0f}", "latency_p99_us": f"{p99:.0f}",
             "latency_max_us": f"{worst:.0f}",
@@ -156,6 +162,7 @@ def signing_cost(rows: list[dict]) -> list[dict]:
     each, the difference, the budget (max(5% of the unsigned p99, 20 us)) and
     whether it is met, and the signed node's median time in HMAC per step."""
     out = []
+    rows = [r for r in rows if r["scheduler"] == "other"]
     for rate in dict.fromkeys(r["rate_hz"] for r in rows):
         plain = [float(r["latency_p99_us"]) for r in rows
                  if r["rate_hz"] == rate and r["controller"] == "node"]
@@ -205,7 +212,8 @@ def student_name(student: Path | None) -> str:
 
 def measure(controllers: list[str], steps: int, rates: list[float],
             python_rates: list[float], echo: bool = False,
-            repeats: int = 1, student: Path | None = None) -> tuple[list[dict], Any]:
+            repeats: int = 1, student: Path | None = None,
+            fifo: int = 0) -> tuple[list[dict], Any]:
     """Every controller at every rate: the table's rows, and the node's latencies
     at its lowest rate with that row (or None)."""
     torch.manual_seed(0)
@@ -220,16 +228,17 @@ def measure(controllers: list[str], steps: int, rates: list[float],
         key_file = Path(tmp) / "bus.key"
         key_file.write_text(new_key().hex())
         key_file.chmod(0o600)
-        runs = _node_runs(controllers, rates, repeats)
-        runs += [(c, rate) for c in controllers if not c.startswith("node")
+        runs = [(c, rate, f) for c, rate in _node_runs(controllers, rates, repeats)
+                for f in ((0, fifo) if fifo else (0,))]  # each scheduler beside the other
+        runs += [(c, rate, 0) for c in controllers if not c.startswith("node")
                  for rate in sorted(python_rates)]
-        for controller, rate in runs:
+        for controller, rate, f in runs:
             if controller.startswith("node"):
                 log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
                 rows.append(run_rate(student_file if controller == "node-student" else weights,
                                      rate, steps, log,
                                      key_file if controller == "node-signed" else None,
-                                     name=controller))
+                                     name=controller, fifo=f))
                 if first_log is None:
                     first_log = (np.loadtxt(log), rows[-1])
             else:
@@ -242,7 +251,8 @@ def measure(controllers: list[str], steps: int, rates: list[float],
 def highest_rate(rows: list[dict], controller: str) -> float | None:
     """The highest rate at which ``controller`` missed fewer than 0.1% of its deadlines."""
     kept = [float(r["rate_hz"]) for r in rows
-            if r["controller"] == controller and r["keeps_up"] == "yes"]
+            if r["controller"] == controller and r["keeps_up"] == "yes"
+            and r["scheduler"] == "other"]
     return max(kept) if kept else None
 
 
@@ -259,6 +269,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="plant rates to try with the Python controllers, Hz")
     p.add_argument("--repeats", type=int, default=1,
                    help="with node and node-signed: pairs per rate, alternating (default 1)")
+    p.add_argument("--fifo", type=int, default=0, metavar="PRIORITY",
+                   help="also run each node run with the plant and the node under SCHED_FIFO "
+                        "at this priority (chrt; needs CAP_SYS_NICE), beside the default "
+                        "scheduler's run (default 0: not)")
     p.add_argument("--student", type=Path, default=None,
                    help="node-student: the student checkpoint (default: the cached one of "
                         "`python -m ftc.experiments.adaptive train`)")
@@ -270,8 +284,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error(f"--repeats must be at least 1, not {args.repeats}")
+    if not 0 <= args.fifo <= 99:
+        p.error(f"--fifo must be a SCHED_FIFO priority in 1..99 (0: not), not {args.fifo}")
+    load_start = os.getloadavg()[0]
     rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
-                              echo=True, repeats=args.repeats, student=args.student)
+                              echo=True, repeats=args.repeats, student=args.student,
+                              fifo=args.fifo)
     for controller in dict.fromkeys(args.controllers):
         best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
@@ -310,8 +328,12 @@ def main(argv: list[str] | None = None) -> int:
             f"latency: state received to command sent\n"
             f"# command: scripts/bench_realtime.py --controllers {' '.join(args.controllers)} "
             f"--steps {args.steps} --rates {' '.join(f'{r:g}' for r in args.rates)} "
-            f"--python-rates {' '.join(f'{r:g}' for r in args.python_rates)}\n"
-            f"# commit: {git_revision()}\n"), rows)
+            f"--python-rates {' '.join(f'{r:g}' for r in args.python_rates)}"
+            + (f" --fifo {args.fifo}" if args.fifo else "")
+            + (f" --student {args.student}" if args.student else "") + "\n"
+            f"# commit: {git_revision()}\n"
+            f"# date: {time.strftime('%Y-%m-%d', time.gmtime())}, load average "
+            f"{load_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n"), rows)
     if args.figure and first_log is not None:
         first_log, first = first_log
         import matplotlib
