@@ -203,11 +203,8 @@ def student_weights(student: Path | None, out: Path) -> str:
 
 def student_name(student: Path | None) -> str:
     """How the result file names the student flown: the given file, or the cache's."""
-    if student is not None:
-        return str(student)
-    from ftc.control.agents.learned.adaptive_policy import default_checkpoint
-
-    return f"the cached default checkpoint ({default_checkpoint(DEFAULT_CACHE).name})"
+    # (not the cache's file name: its hex key reads as a commit hash in the docs)
+    return str(student) if student is not None else "the cached default checkpoint"
 
 
 def measure(controllers: list[str], steps: int, rates: list[float],
