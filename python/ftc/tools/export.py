@@ -92,17 +92,18 @@ def checkpoint_path(given: Path) -> Path:
 
 def load_student(path: Path) -> HistoryPolicy | None:
     """The adaptive student of a checkpoint ``python -m ftc.experiments.adaptive
-    train`` wrote (a record with a ``policy`` and no run ``format``), or None
-    when ``path`` holds anything else; CheckpointError if its student does
-    not load."""
+    train`` wrote (a record whose ``policy`` holds a ``config`` and a ``state``,
+    and no run ``format``), or None when ``path`` holds anything else;
+    CheckpointError if its student does not load."""
     if not path.is_file():
         return None
     try:
         record = torch.load(path, weights_only=True)
     except Exception:  # noqa: BLE001 - not ours to judge: load_policy says why
         return None
-    if not isinstance(record, dict) or "format" in record or \
-            not isinstance(record.get("policy"), dict):
+    student = record.get("policy") if isinstance(record, dict) else None
+    if not isinstance(student, dict) or "format" in record or \
+            not {"config", "state"} <= set(student):  # HistoryPolicy.record()'s
         return None
     try:
         student = HistoryPolicy.from_record(record["policy"])
