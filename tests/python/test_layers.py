@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "python" / "ftc"
 NATIVE = {"ftc._core", "ftc._learn", "ftc.plant_state_t", "ftc.valve_command_t", "ftc.plant_control_t",
           "ftc.policy_ack_t",
-          "ftc.policy_t"}
+          "ftc.policy_t", "ftc.policy_v2_t"}
 # Modules that pull in torch, imported inside the one function that needs them, so
 # that a tool's --help, parsing and refusals do not pay torch's start-up (1.3 s of
 # CPU a process; the test suite starts hundreds). grimp still sees these imports.
