@@ -23,11 +23,11 @@ Valves FromCode(int code) {
 TEST(LinearConduitStep, AMemberThatLeavesATiedGroupAtTheStartRejoinsIt) {
   // Full tanks, all open ones tied. A member whose pump draws more than its share
   // of the group's rate while the sinks' inflow is still 0 leaves the group at
-  // t = 0 (its root x_lead - x_k starts at 0), then catches up with it as the
-  // inflow grows and rejoins: the two end the step tied, as CVODE and the
-  // independent reference simulation (tests/python/reference_sim.py) give them
-  // (0.99887458 and 0.99361839). Without watching that root from the start, the
-  // closed form let the member rise past the group: a split of 2e-3 and 7e-5 m.
+  // t = 0, then rejoins it as the inflow grows (its root, the leave condition,
+  // falls to 0): the two end the step tied, as CVODE and the independent
+  // reference simulation (tests/python/reference_sim.py) give them (0.99887458
+  // and 0.99361839). A closed form that missed the rejoin let the member rise
+  // past the group: a split of 2e-3 and 7e-5 m.
   struct Case {
     int code;
     Vec6 resistance, pump;
