@@ -83,6 +83,7 @@ std::uint64_t ModeKey(const Valves& u, const Mode& mode, std::uint32_t active) {
     k |= static_cast<std::uint64_t>(mode.sink[i]) << (12 + i);
     k |= static_cast<std::uint64_t>(mode.pinned[i]) << (18 + i);
     k |= static_cast<std::uint64_t>(mode.pumping[i]) << (24 + i);
+    k |= static_cast<std::uint64_t>(mode.left[i]) << (30 + kNumRoots + i);  // after active
   }
   return k | static_cast<std::uint64_t>(active) << 30;
 }
@@ -402,8 +403,7 @@ class ModeSolution {
   // Watches the open functions positive in g (values at a time before any
   // crossing): as CVODE reactivates a root function that was 0 (or below) at a
   // restart once it has moved above 0, a later downward crossing of it ends the
-  // mode too (e.g. a sink that left a tied group at its start and catches up
-  // with the group within the step).
+  // mode too.
   void ArmOpen(const RootVector& g) {
     for (int r = 0; r < open_count_; ++r) watched_[open_[r]] = g[open_[r]] > 0.0;
   }
@@ -497,11 +497,11 @@ class ModeSolution {
       }
       // As CVODE at a restart: a function not positive where the mode begins
       // is not watched (the level roots carry an offset so that an empty
-      // tank's is). A function exactly at 0 that rises at once (a member that
-      // leaves a tied group, its root x_lead - x_k at 0) is watched from the
-      // start: CVODE's first internal step, a fraction of the grid's, sees it
-      // above 0 and reactivates it, so its return to 0 (the member catching up
-      // with the group) is an event.
+      // tank's is). A function exactly at 0 that rises at once is watched from
+      // the start: CVODE's first internal step, a fraction of the grid's, sees
+      // it above 0 and reactivates it, so its return to 0 is an event. (A
+      // member that leaves a tie does not start so: its root is the leave
+      // condition, positive where it leaves; dynamics.cpp.)
       if (g0[m] == 0.0 && lin + sum > 0.0) watched_[m] = true;
     }
   }
