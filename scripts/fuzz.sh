@@ -22,7 +22,7 @@ seconds="${1:-60}"
 shift || true
 targets=("$@")
 [ ${#targets[@]} -eq 0 ] && targets=(fuzz_messages fuzz_scenario fuzz_valve_command \
-  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack)
+  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack fuzz_signed)
 limit=(-max_total_time="$seconds")
 [ -n "${FUZZ_RUNS:-}" ] && limit=(-runs="$FUZZ_RUNS")
 
@@ -57,7 +57,7 @@ for t in "${targets[@]}"; do
     echo "$t: FOUND A CRASH (see build-fuzz/$t.log, inputs in $crashes)"
     status=1
   fi
-  grep -E "^stat::number_of_executed_units|^stat::peak_rss_mb|Done [0-9]+ runs" "build-fuzz/$t.log" || true
+  grep -E "^stat::number_of_executed_units|^stat::average_exec_per_sec|^stat::peak_rss_mb|Done [0-9]+ runs" "build-fuzz/$t.log" || true
   tail -n 1 "build-fuzz/$t.log"
 done
 exit $status

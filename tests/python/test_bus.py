@@ -439,18 +439,30 @@ def test_python_signing_matches_rfc_4231_and_refuses_tamper_replay_and_stale(tmp
     assert hmac.new(b"Jefe", b"what do ya want for nothing?", hashlib.sha256).hexdigest() == \
         "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
     key, now = bytes(range(32)), 1_760_000_000_000_000
-    sender, receiver = Auth(key), Auth(key)
+
+    def receiver_since(start: int = 0) -> Auth:  # a receiver that started at `start`
+        return Auth(key, not_before_us=start)
+
+    sender, receiver = Auth(key), receiver_since()
     msg = sender.sign("X_COMMAND", b"payload", now)
     assert receiver.verify("X_COMMAND", msg, now) == (b"payload", "")
     assert receiver.verify("X_COMMAND", msg, now) == (None, "replay")
     for i in range(len(msg)):
         bad = bytearray(msg)
         bad[i] ^= 1
-        assert Auth(key).verify("X_COMMAND", bytes(bad), now)[1] == "bad signature"
-    assert Auth(key).verify("X_CONTROL", msg, now)[1] == "bad signature"
-    assert Auth(key).verify("X_COMMAND", b"payload", now)[1] == "bad signature"
+        assert receiver_since().verify("X_COMMAND", bytes(bad), now)[1] == "bad signature"
+    assert receiver_since().verify("X_CONTROL", msg, now)[1] == "bad signature"
+    assert receiver_since().verify("X_COMMAND", b"payload", now)[1] == "bad signature"
     late = sender.sign("X_COMMAND", b"payload", now)
-    assert Auth(key).verify("X_COMMAND", late, now + 31_000_000)[1] == "old timestamp"
+    assert receiver_since().verify("X_COMMAND", late, now + 31_000_000)[1] == "old timestamp"
+    # signed before the receiver started (a restarted one): a replay, though never
+    # seen; signed after: taken. By default a receiver starts with its process.
+    before = sender.sign("X_COMMAND", b"payload", now + 1_000)
+    after = sender.sign("X_COMMAND", b"payload", now + 3_000)
+    assert receiver_since(now + 2_000).verify("X_COMMAND", before, now + 4_000) == (None, "replay")
+    assert receiver_since(now + 2_000).verify("X_COMMAND", after, now + 4_000)[1] == ""
+    assert Auth(key).verify("X_COMMAND", after, now + 4_000) == (None, "replay")
+    assert Auth(key).verify("X_COMMAND", Auth(key).sign("X_COMMAND", b"p"))[1] == ""
     path = tmp_path / "key"
     path.write_text(key.hex())
     path.chmod(0o640)
@@ -664,3 +676,113 @@ def test_with_a_key_a_realtime_run_refuses_everything_a_neighbour_sends(tmp_path
     assert int(row["refused_bad_signature"]) == 5  # the forged states
     assert int(last.bad_signature) == commands  # the plant's own count
     assert "the link refused states (5 bad signature)" in stderr
+
+
+def _control(session: int, seq: int, command: int) -> bytes:
+    msg = plant_control_t()
+    msg.utime, msg.session, msg.seq, msg.command = time.time_ns() // 1000, session, seq, command
+    return msg.encode()
+
+
+def test_with_a_key_a_restarted_plant_refuses_what_was_signed_before_it_started(tmp_path,
+                                                                                 scenarios):
+    """A neighbour without the key records a controller's signed OPEN and command
+    off the bus, and replays them to a plant restarted with the same key file
+    (well within the 30 s window): the new plant has seen no timestamp of that
+    link yet, so only its own start time can tell them replays. They are
+    refused and counted as replays; the plant neither follows that session nor
+    steps."""
+    from ftc.plant.signing import TRAILER_BYTES, Auth, new_key
+
+    url, prefix = private_lcm_url(), private_prefix()
+    key = new_key()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(key.hex())
+    key_file.chmod(0o600)
+    lc = lcm.LCM(url)
+    states: list = []
+    lc.subscribe(prefix + "STATE",
+                 lambda _c, d: states.append(plant_state_t.decode(d[:-TRAILER_BYTES])))
+
+    def start() -> subprocess.Popen:
+        return subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                                 "--lcm-url", url, "--prefix", prefix, "--key-file",
+                                 str(key_file)], stderr=subprocess.PIPE, text=True)
+
+    def ask(auth, channel: str, make, seq: int):
+        """Sends a freshly signed make() until the plant answers seq."""
+        deadline = time.monotonic() + 20
+        while True:
+            assert time.monotonic() < deadline, "the plant does not answer"
+            lc.publish(prefix + channel, auth.sign(prefix + channel, make()))
+            lc.handle_timeout(100)
+            answers = [s for s in states if s.command_seq == seq]
+            if answers:
+                return answers[-1]
+
+    session = 0x5EED
+    controller = Auth(key)
+    plant = start()
+    try:
+        ask(controller, "CONTROL", lambda: _control(session, 1, plant_control_t.OPEN), 1)
+        cmd = valve_command_t()
+        cmd.session, cmd.seq, cmd.num_valves, cmd.valve = session, 2, 6, [1] * 6
+        recorded = [controller.sign(prefix + "CONTROL", _control(session, 1, plant_control_t.OPEN)),
+                    controller.sign(prefix + "COMMAND", cmd.encode())]
+        lc.publish(prefix + "COMMAND", recorded[1])
+        stepped = ask(controller, "CONTROL", lambda: _control(session, 3, plant_control_t.HELLO), 3)
+        assert stepped.step == 1 and stepped.session == session  # the command was applied
+        plant.kill()
+        plant.wait()
+        states.clear()
+        plant = start()
+        other = Auth(key)  # another keyed party: sees the new plant up
+        ask(other, "CONTROL", lambda: _control(0, 1, plant_control_t.HELLO), 1)
+        for data, channel in zip(recorded, ("CONTROL", "COMMAND")):
+            lc.publish(prefix + channel, data)  # the neighbour's replay, byte for byte
+        time.sleep(0.3)
+        after = ask(other, "CONTROL", lambda: _control(0, 2, plant_control_t.HELLO), 2)
+    finally:
+        plant.kill()
+        plant.wait()
+    assert after.session != session and after.step == 0, "the replayed session was followed"
+    assert after.replayed == 2 and after.bad_signature == 0
+
+
+def test_a_key_file_is_a_small_regular_file_everywhere(tmp_path, scenarios):
+    """A directory, a FIFO, an empty or oversized file as --key-file: one line
+    naming the file and exit 2 in every process (a directory threw out of the
+    policy node's and lcm_echo's main, exit 134; a FIFO blocked every process
+    for good). A symbolic link is followed: its target counts."""
+    import os
+
+    from ftc.common.build_info import echo_binary
+    from ftc.plant.signing import load_key, new_key
+
+    key = new_key()
+    cases = {"dir": tmp_path / "dir", "fifo": tmp_path / "fifo", "empty": tmp_path / "empty",
+             "big": tmp_path / "big"}
+    cases["dir"].mkdir(mode=0o700)
+    os.mkfifo(cases["fifo"], 0o600)
+    cases["empty"].write_text("")
+    cases["big"].write_text(key.hex() * 100)
+    good, link = tmp_path / "good", tmp_path / "link"
+    good.write_text(key.hex() + "\n")
+    for p in (cases["empty"], cases["big"], good):
+        p.chmod(0o600)
+    link.symlink_to(good)
+    assert load_key(link) == key
+    expected = {"dir": "not a regular file", "fifo": "not a regular file",
+                "empty": "at least 32 hex digits", "big": "6400 bytes"}
+    url = private_lcm_url()
+    for name, path in cases.items():
+        with pytest.raises(ValueError, match=f"{path}: .*{expected[name]}"):
+            load_key(path)
+        for cmd in ([str(policy_node_binary()), "--policy", str(tmp_path / "p.txt")],
+                    [str(echo_binary())],
+                    [str(plant_binary()), "--scenario", str(scenarios / "single.toml")]):
+            run = subprocess.run(cmd + ["--lcm-url", url, "--key-file", str(path)],
+                                 capture_output=True, text=True, timeout=10)
+            lines = run.stderr.strip().splitlines()
+            assert run.returncode == 2 and len(lines) == 1, (cmd[0], name, run.stderr)
+            assert str(path) in lines[0] and expected[name] in lines[0], lines
