@@ -25,7 +25,7 @@ import pytest
 from ftc.common.build_info import plant_binary, policy_node_binary
 from ftc.plant import launch, private_lcm_url, private_prefix
 from ftc.plant.realtime_link import RealtimeLink
-from ftc.plant.wire import check_state
+from ftc.plant.wire import check_state, decode_state
 from ftc.plant_control_t import plant_control_t
 from ftc.plant_state_t import plant_state_t
 from ftc.policy_t import policy_t
@@ -87,6 +87,36 @@ def test_python_state_check_refuses_what_would_crash_a_decoder():
     assert "fingerprint" in check_state(_policy_header(0, 0, 40))
     assert "bytes where" in check_state(_state()[:-1])
     assert check_state(b"") is not None
+    # well formed but not this plant's shape: refused by decode_state
+    assert check_state(_state(tanks=3)) is None
+    assert decode_state(_state(tanks=3)) == (None, "num_tanks 3, num_engines 2 (this plant has "
+                                                   "6 and 2)")
+    assert decode_state(_state())[0].num_tanks == 6
+
+
+def test_replay_skips_a_state_of_another_shape(tmp_path):
+    """A neighbour's well-formed state of 3 tanks on the recorded STATE channel:
+    ftc.replay ended in a traceback (exit 1); it is skipped and named."""
+    import sys
+
+    path = tmp_path / "shapes.lcmlog"
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    for k in range(11):
+        s = plant_state_t()
+        s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
+        s.level = s.true_level = [1.0 - 0.01 * k] * 6
+        s.valve, s.deficit = [0] * 6, [0.0, 0.0]
+        log.write_event(1000 * k, "RUN_STATE", s.encode())
+    other = plant_state_t.decode(_state(0, 12, tanks=3))
+    other.step = 11  # the step after the last: a new row, of 3 levels
+    log.write_event(20_000, "RUN_STATE", other.encode())
+    log.close()
+    run = subprocess.run([sys.executable, "-m", "ftc.replay", str(path)], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "10 plant steps" in run.stdout
+    assert "1 messages on RUN_STATE are not plant states" in run.stdout
+    assert "num_tanks 3, num_engines 2" in run.stdout
 
 
 def test_the_policy_node_survives_hostile_messages_with_bounded_memory(tmp_path, scenarios):
@@ -343,12 +373,14 @@ def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
             lc.publish(link.prefix + "STATE", _state(link.session, seq))
         lc.publish(link.prefix + "STATE", _state(0, last + 1))  # another session
         lc.publish(link.prefix + "STATE", b"\x00" * 40)
+        # well formed, the session's next seq, but 3 tanks: no state of this plant
+        lc.publish(link.prefix + "STATE", _state(link.session, last + 1, tanks=3))
         got = []
         while len(got) < 10:
             got += link.next_states()
         seqs = [s.seq for s in got]
         assert seqs == list(range(last + 1, last + 1 + len(seqs)))  # the plant's, in order
-        assert link.refused == {"bad decode": 1, "other session": 1, "stale": 2, "seq jump": 1,
+        assert link.refused == {"bad decode": 2, "other session": 1, "stale": 2, "seq jump": 1,
                                 "bad signature": 0, "replay": 0, "old timestamp": 0}
     finally:
         link.close()
