@@ -818,3 +818,57 @@ def test_a_key_file_is_a_small_regular_file_everywhere(tmp_path, scenarios):
             lines = run.stderr.strip().splitlines()
             assert run.returncode == 2 and len(lines) == 1, (cmd[0], name, run.stderr)
             assert str(path) in lines[0] and expected[name] in lines[0], lines
+
+
+def test_a_forged_ack_is_seen_as_conflicting_answers_not_taken(tmp_path):
+    """Without a key a neighbour answers every push 'accepted' before the node:
+    a push of NaN weights with a correct checksum (which the node rejects) was
+    reported accepted. The node's own answer contradicts the forger's: the push
+    reports the conflict (no verdict), and the push tool exits 1."""
+    import sys
+    import threading
+
+    from ftc.policy_ack_t import policy_ack_t
+
+    url, prefix = private_lcm_url(), private_prefix()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, [6, 6], np.zeros(42, np.float32), version=1)
+    params = np.zeros(42, np.float32)
+    params[7] = np.nan
+    bad = tmp_path / "nan.txt"
+    pw.write_weights(bad, [6, 6], params, version=9)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    stop = threading.Event()
+
+    def forger():
+        lc = lcm.LCM(url)
+
+        def answer(_c, data):
+            m = policy_t.decode(data)
+            ack = policy_ack_t()
+            ack.version, ack.push_utime, ack.accepted, ack.reason = m.version, m.utime, True, ""
+            lc.publish(prefix + "POLICY_ACK", ack.encode())
+
+        lc.subscribe(prefix + "POLICY", answer)
+        while not stop.is_set():
+            lc.handle_timeout(20)
+
+    thread = threading.Thread(target=forger)
+    thread.start()
+    try:
+        time.sleep(0.5)  # both subscribed
+        outcome = pw.push(url, prefix, pw.policy_message([6, 6], params, version=9), timeout=2)
+        tool = subprocess.run([sys.executable, "-m", "ftc.tools.policy_weights", "push", str(bad),
+                               "--lcm-url", url, "--prefix", prefix], cwd=REPO,
+                              capture_output=True, text=True, timeout=60)
+    finally:
+        stop.set()
+        thread.join()
+        node.send_signal(2)
+        _, err = node.communicate(timeout=10)
+    assert "rejected policy version 9: parameter 7 is not finite" in err
+    assert outcome.accepted is None and outcome.conflict, outcome
+    assert "conflicting answers" in outcome.describe() and "not finite" in outcome.describe()
+    assert tool.returncode == 1 and "conflicting answers" in tool.stderr, tool.stderr
