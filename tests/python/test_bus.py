@@ -872,3 +872,51 @@ def test_a_forged_ack_is_seen_as_conflicting_answers_not_taken(tmp_path):
     assert outcome.accepted is None and outcome.conflict, outcome
     assert "conflicting answers" in outcome.describe() and "not finite" in outcome.describe()
     assert tool.returncode == 1 and "conflicting answers" in tool.stderr, tool.stderr
+
+
+# liblcm reassembles a fragmented message in a buffer of the size its first
+# fragment declares (at most LCM_MAX_MESSAGE_SIZE, 256 MB) and keeps up to
+# 16 MB of other partial messages: what a receiver can be made to hold before
+# any code of ours sees a byte (docs/deploy.md, "Memory").
+LIBLCM_REASSEMBLY_MB = 256 + 16
+
+
+@pytest.mark.slow
+def test_an_oversize_fragmented_message_never_completed_is_liblcms_memory_not_more(tmp_path):
+    """A neighbour sends raw LCM fragments of a 200 MB policy_t on the node's
+    POLICY channel, all but the last, paced so that the kernel drops few: the
+    node keeps running, and its peak RSS stays under its own bound plus what
+    liblcm's reassembly may hold (measured 114 MB)."""
+    import socket
+
+    url, prefix = private_lcm_url(), private_prefix()
+    group, port = re.match(r"udpm://([\d.]+):(\d+)", url).groups()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, [6, 6], np.zeros(42, np.float32), version=1)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)  # this host only
+    try:
+        time.sleep(1.0)  # subscribed
+        total, size = 200 << 20, 60_000
+        count = (total + size - 1) // size
+        channel = (prefix + "POLICY").encode() + b"\0"
+        for i in range(count - 1):  # LCM's long header: magic "LC03", seqno, size, offset, no, of
+            header = struct.pack(">IIIIHH", 0x4C433033, 7, total, i * size, i, count)
+            sock.sendto(header + (channel if i == 0 else b"") + b"\x11" * size,
+                        (group, int(port)))
+            if i % 4 == 0:
+                time.sleep(0.002)
+        time.sleep(0.5)
+        assert node.poll() is None
+        peak = _peak_rss_mb(node.pid)
+        # and it still takes (and answers) a push
+        answer = pw.push(url, prefix, pw.policy_message([6, 6], np.zeros(42, np.float32), 2))
+    finally:
+        sock.close()
+        node.send_signal(2)
+        node.communicate(timeout=10)
+    assert answer.accepted, answer
+    assert peak < NODE_RSS_BOUND_MB + LIBLCM_REASSEMBLY_MB, f"peak RSS {peak:.0f} MB"
