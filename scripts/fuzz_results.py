@@ -26,14 +26,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 # target -> what it decodes, and which receivers run that decoder
 COVERS = {
-    "fuzz_valve_command": "wire::Decode<valve_command_t>: the plant; lcm_echo",
-    "fuzz_plant_control": "wire::Decode<plant_control_t>: the plant; lcm_echo",
+    "fuzz_valve_command": "`wire::Decode<valve_command_t>`: the plant; lcm_echo",
+    "fuzz_plant_control": "`wire::Decode<plant_control_t>`: the plant; lcm_echo",
     "fuzz_messages": "the plant's command handling (decode; ValvesFromCommand)",
-    "fuzz_plant_state": "wire::Decode<plant_state_t>: the policy node",
-    "fuzz_policy": "wire::Decode<policy_t>: the policy node's pushes",
-    "fuzz_policy_ack": "wire::Decode<policy_ack_t>",
-    "fuzz_signed": "signing::Verifier then every Decode: the keyed plant; node; lcm_echo",
-    "fuzz_py_wire": "decode_state; decode_ack; Auth.verify: the Python links; ftc.replay; "
+    "fuzz_plant_state": "`wire::Decode<plant_state_t>`: the policy node",
+    "fuzz_policy": "`wire::Decode<policy_t>`: the policy node's pushes",
+    "fuzz_policy_ack": "`wire::Decode<policy_ack_t>`",
+    "fuzz_signed": "`signing::Verifier` then every `wire::Decode`: the keyed plant; node; lcm_echo",
+    "fuzz_py_wire": "`decode_state`; `decode_ack`; `Auth.verify`: the Python links; ftc.replay; "
                     "the push tool",
     "fuzz_scenario": "the scenario file parser",
 }
