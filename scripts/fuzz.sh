@@ -9,7 +9,8 @@
 #
 # Targets: fuzz_messages (the plant's command handling), fuzz_scenario, one
 # per message decoder (fuzz_valve_command, fuzz_plant_control, fuzz_plant_state,
-# fuzz_policy, fuzz_policy_ack: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h),
+# fuzz_policy, fuzz_policy_ack: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h;
+# fuzz_policy_v2: cpp/policy/push_wire.h),
 # fuzz_signed (the keyed receivers' signature check, then decoding) and
 # fuzz_py_wire (the Python receivers' decoding and check: the links, ftc.replay
 # and the push tool; atheris, installed into .venv when missing).
@@ -25,7 +26,7 @@ seconds="${1:-60}"
 shift || true
 targets=("$@")
 [ ${#targets[@]} -eq 0 ] && targets=(fuzz_messages fuzz_scenario fuzz_valve_command \
-  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack fuzz_signed fuzz_py_wire)
+  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack fuzz_policy_v2 fuzz_signed fuzz_py_wire)
 limit=(-max_total_time="$seconds")
 [ -n "${FUZZ_RUNS:-}" ] && limit=(-runs="$FUZZ_RUNS")
 

@@ -32,6 +32,7 @@ COVERS = {
     "fuzz_plant_state": "`wire::Decode<plant_state_t>`: the policy node",
     "fuzz_policy": "`wire::Decode<policy_t>`: the policy node's pushes",
     "fuzz_policy_ack": "`wire::Decode<policy_ack_t>`",
+    "fuzz_policy_v2": "`DecodePolicyV2`: the policy node's history-window pushes",
     "fuzz_signed": "`signing::Verifier` then every `wire::Decode`: the keyed plant; node; lcm_echo",
     "fuzz_py_wire": "`decode_state`; `decode_ack`; `Auth.verify`: the Python links; ftc.replay; "
                     "the push tool",
