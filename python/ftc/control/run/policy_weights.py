@@ -224,12 +224,19 @@ class PushOutcome:
     version: int
     accepted: bool | None
     reason: str = ""
+    conflict: bool = False  # answers that contradict each other (a forger's among them)
 
     def describe(self) -> str:
+        if self.conflict:
+            return f"version {self.version}: {self.reason}"
         if self.accepted is None:
             return f"version {self.version}: no answer from a policy node ({self.reason})"
         return (f"version {self.version} " + ("accepted" if self.accepted
                                               else f"rejected: {self.reason}"))
+
+
+# after a push's first answer, how long to listen for a contradicting one
+CONFLICT_WAIT_S = 0.1
 
 
 def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
@@ -261,11 +268,24 @@ def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
         deadline = time.monotonic() + timeout
         while not answers and time.monotonic() < deadline:
             lc.handle_timeout(max(1, int(1000 * (deadline - time.monotonic()))))
+        # Without a key a neighbour that reads the push can answer it first; the
+        # node's own answer follows within milliseconds: listen a little longer
+        # for one that contradicts it.
+        if answers:
+            deadline = min(deadline, time.monotonic() + CONFLICT_WAIT_S)
+        while answers and time.monotonic() < deadline:
+            lc.handle_timeout(max(1, int(1000 * (deadline - time.monotonic()))))
     finally:
         lc.unsubscribe(sub)
     if not answers:
         return PushOutcome(message.version, None, f"nothing on {prefix}POLICY_ACK within "
                                                   f"{timeout:g} s")
+    verdicts = {(bool(a.accepted), a.reason) for a in answers}
+    if len(verdicts) > 1:
+        said = "; ".join("accepted" if ok else f"rejected: {why}" for ok, why in sorted(verdicts))
+        return PushOutcome(message.version, None,
+                           f"conflicting answers on {prefix}POLICY_ACK ({said}): foreign traffic "
+                           "on the bus (a bus key keeps it out: docs/deploy.md)", conflict=True)
     return PushOutcome(message.version, bool(answers[0].accepted), answers[0].reason)
 
 
