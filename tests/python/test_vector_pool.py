@@ -367,6 +367,34 @@ def test_sb3_ppo_collects_through_the_adapter_the_pools_own_steps():
     assert buf.episode_starts[1:].sum() > 0  # episodes ended (and SB3 saw them end)
 
 
+def test_the_adapters_arrays_are_its_own_and_match_a_same_step_pool(tmp_path):
+    # PoolVecEnv's pool hands over its own arrays, overwritten by the next step;
+    # what SB3 keeps (the observation, each terminal observation) must be copies:
+    # after the next step they still equal what a copy=True pool returned.
+    from ftc.plant.sb3_vec import PoolVecEnv
+
+    path = str(_short(SCENARIOS / "single.toml", tmp_path))
+    venv = PoolVecEnv(num_envs=4, scenario=path, plant_seed=3)
+    twin = FuelTransferVectorEnv(4, path, plant_seed=3, autoreset="same_step")
+    kept, ends = [venv.reset()], 0
+    np.testing.assert_array_equal(kept[0], twin.reset()[0])
+    for a in _random_actions(150, 4, seed=5).astype(np.float32):  # SB3 hands floats
+        obs, reward, dones, infos = venv.step(a)
+        want_obs, want_r, term, trunc, info = twin.step(a)
+        np.testing.assert_array_equal(reward, want_r.astype(np.float32))
+        np.testing.assert_array_equal(dones, term | trunc)
+        for i in np.flatnonzero(dones):
+            ends += 1
+            assert infos[i]["TimeLimit.truncated"] == bool(trunc[i])
+            kept.append(infos[i]["terminal_observation"])
+            kept.append(info["final_obs"][i])
+        kept.append(obs)
+        kept.append(want_obs)
+    assert ends > 4  # episodes ended (64-step intervals)
+    for ours, theirs in zip(kept[1::2], kept[2::2]):
+        np.testing.assert_array_equal(ours, theirs)
+
+
 @pytest.mark.slow
 def test_sb3_ppo_learns_to_close_the_valves_of_healthy_plants_through_the_adapter():
     # Healthy plants: all valves closed is optimal (plant-model.md: 2.690 per step
