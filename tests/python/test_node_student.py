@@ -9,7 +9,6 @@ from __future__ import annotations
 import re
 import signal
 import subprocess
-import threading
 import time
 from pathlib import Path
 
@@ -17,16 +16,15 @@ import lcm
 import numpy as np
 import pytest
 import torch
+from bus_tap import BusTap
 
 from ftc.common.build_info import plant_binary, policy_node_binary
 from ftc.common.errors import UsageError
 from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, StudentConfig
 from ftc.learning.ppo import ActorCritic
 from ftc.plant import private_lcm_url, private_prefix
-from ftc.plant_state_t import plant_state_t
 from ftc.tools import policy_weights as pw
 from ftc.tools.export import main as export_main
-from ftc.valve_command_t import valve_command_t
 
 SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) ")
 # float32 in both, but torch and Eigen sum the 144 products of a unit in other
@@ -54,34 +52,7 @@ def _export(student: HistoryPolicy, tmp_path: Path, name: str) -> Path:
     return weights
 
 
-class _Bus:
-    """Records a private plant's states (level, step, episode by seq) and the
-    node's commands (state_seq, valves) in order."""
-
-    def __init__(self, url: str, prefix: str) -> None:
-        self.lc = lcm.LCM(url)
-        self.states: dict[int, tuple[np.ndarray, int, int]] = {}
-        self.commands: list[tuple[int, np.ndarray]] = []
-        self.lc.subscribe(prefix + "STATE", self._state)
-        self.lc.subscribe(prefix + "COMMAND", self._command)
-        self.stop = False
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _state(self, channel, data):
-        s = plant_state_t.decode(data)
-        self.states[s.seq] = (np.array(s.level), s.step, s.episode)
-
-    def _command(self, channel, data):
-        c = valve_command_t.decode(data)
-        self.commands.append((c.state_seq, np.array(c.valve, np.int8)))
-
-    def _spin(self):
-        while not self.stop:
-            self.lc.handle_timeout(20)
-
-
-def _replay(student: HistoryPolicy, bus: _Bus, reverse: bool = False):
+def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
     """Python's student on the states the node acted on, in order: the window
     started where the real-time loop starts an episode (the first state, a
     state of step 0 or of another episode) and pushed with the command sent on
@@ -115,7 +86,7 @@ def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path,
     weights = _export(student, tmp_path, "student")
     assert pw.read_policy(weights).window == 12
     url, prefix = private_lcm_url(), private_prefix()
-    bus = _Bus(url, prefix)
+    bus = BusTap(url, prefix)
     # short intervals: the run crosses several episode starts (the window refilled)
     plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
                               "--mode", "realtime", "--rate", "200", "--watchdog", "1",
