@@ -79,6 +79,15 @@ def _peak_rss_mb(pid: int) -> float:
     raise AssertionError("no VmHWM")
 
 
+def _logged_state(k: int) -> plant_state_t:
+    """Step k of a recorded run of the plant: 6 tanks draining 0.01 a step."""
+    s = plant_state_t()
+    s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
+    s.level = s.true_level = [1.0 - 0.01 * k] * 6
+    s.valve, s.deficit = [0] * 6, [0.0, 0.0]
+    return s
+
+
 def test_python_state_check_refuses_what_would_crash_a_decoder():
     assert check_state(_state()) is None
     bad = bytearray(_state())
@@ -103,11 +112,7 @@ def test_replay_skips_a_state_of_another_shape(tmp_path):
     path = tmp_path / "shapes.lcmlog"
     log = lcm.EventLog(str(path), "w", overwrite=True)
     for k in range(11):
-        s = plant_state_t()
-        s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
-        s.level = s.true_level = [1.0 - 0.01 * k] * 6
-        s.valve, s.deficit = [0] * 6, [0.0, 0.0]
-        log.write_event(1000 * k, "RUN_STATE", s.encode())
+        log.write_event(1000 * k, "RUN_STATE", _logged_state(k).encode())
     other = plant_state_t.decode(_state(0, 12, tanks=3))
     other.step = 11  # the step after the last: a new row, of 3 levels
     log.write_event(20_000, "RUN_STATE", other.encode())
@@ -625,11 +630,7 @@ def test_replay_reads_a_keyed_plants_signed_states(tmp_path):
     auth, path = Auth(bytes(32)), tmp_path / "signed.lcmlog"
     log = lcm.EventLog(str(path), "w", overwrite=True)
     for k in range(11):
-        s = plant_state_t()
-        s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
-        s.level = s.true_level = [1.0 - 0.01 * k] * 6
-        s.valve, s.deficit = [0] * 6, [0.0, 0.0]
-        log.write_event(1000 * k, "RUN_STATE", auth.sign("RUN_STATE", s.encode()))
+        log.write_event(1000 * k, "RUN_STATE", auth.sign("RUN_STATE", _logged_state(k).encode()))
     log.write_event(20_000, "RUN_STATE", b"\x05" * 300)  # a neighbour's garbage
     log.close()
     traj = read_log(path)
