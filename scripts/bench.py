@@ -61,14 +61,18 @@ rounds. Figures (the Speed issue's targets; docs/benchmarks.md quotes them):
   vector_steps_per_s        the batched plant pool (FuelTransferVectorEnv, closed form), env
                             steps/s with random valves, the best of N >= 1024 envs at 1 or 2
                             threads (vector_steps_per_s_nN_tT: every N from 1 to 4096),
-                            aim >= 1,000,000 (scripts/bench_vector.py)
-  vector_over_core_env      that rate over gym.make("ftc/FuelTransferCore-v0")'s, measured in
-                            the same rounds, aim >= 50 (vector_steps_per_cpu_s: the pool's
-                            steps per CPU-second, 1024 envs, 1 thread: an unshared core's rate;
-                            vector_over_core_env_per_cpu_s: over the Core env's, per CPU-second)
+                            blocks of 128 steps from fresh plants, aim >= 1,000,000
+                            (scripts/bench_vector.py; vector_cpu_share: the CPU seconds
+                            its process got per wall second, 2 = both cores)
+  vector_over_core_env      that rate over gym.make("ftc/FuelTransferCore-v0")'s, stepped
+                            the same way in the same rounds, aim >= 50 (vector_steps_per_cpu_s:
+                            the pool's steps per CPU-second, 1024 envs, 1 thread: an unshared
+                            core's rate; vector_over_core_env_per_cpu_s: over the Core env's)
   sb3_pool_over_subproc_rollouts  SB3 PPO's collect_rollouts through PoolVecEnv over
                             SubprocVecEnv of Core envs, 16 envs each, aim >= 20
-                            (sb3_pool_learn_steps_per_s: PPO.learn, updates included)
+                            (sb3_pool_learn_steps_per_s: PPO.learn, updates included;
+                            _n8, _n64: the ratio with 8 and 64 envs each; _per_cpu_s: per
+                            CPU-second of every process each uses, the workers' included)
   vector_closed_form_level_error_m / _reward_error   the largest difference of the
                             pool's closed-form envs from its CVODE envs over the suite
                             (vector_load_average_before/_after: the 1-minute load average
@@ -503,27 +507,38 @@ def bench_vector(rounds: int) -> list[Figure]:
     import bench_vector as bv
 
     load_before = os.getloadavg()[0]
-    rows, core = bv.scaling(rounds)
+    rows, core, core_rate = bv.scaling(rounds)
     load_after = os.getloadavg()[0]
     rate = {(int(r["threads"]), int(r["num_envs"])): float(r["steps_per_s"]) for r in rows}
-    best = max(v for (t, n), v in rate.items() if n >= 1024)
-    sb3 = bv.sb3_rates(16, rounds)
+    row = {(int(r["threads"]), int(r["num_envs"])): r for r in rows}
+    best_key = max((key for key in rate if key[1] >= 1024), key=rate.get)
+    best = rate[best_key]
+    one_core = float(row[(1, 1024)]["steps_per_cpu_s"])
+    sb3 = {n: bv.sb3_rates(n, rounds) for n in bv.SB3_SIZES}
     level, reward, ends = bv.closed_form_error()
     med = statistics.median
     return ([Figure("vector_steps_per_s", best, "steps/s", ">= 1000000"),
              Figure("vector_over_core_env", best / med(core), "ratio", ">= 50"),
              Figure("core_env_steps_per_s", med(core), "steps/s", rounds=core),
-             Figure("vector_steps_per_cpu_s", med(bv.CPU_RATE), "steps/s", rounds=bv.CPU_RATE),
-             Figure("vector_over_core_env_per_cpu_s", med(bv.CPU_RATE) / med(bv.CORE_CPU_RATE),
+             # CPU seconds the best configuration's process got per wall second (2 = both cores)
+             Figure("vector_cpu_share", float(row[best_key]["cpu_share"]), "cpus"),
+             Figure("vector_steps_per_cpu_s", one_core, "steps/s"),
+             Figure("vector_over_core_env_per_cpu_s", one_core / med(core_rate.cpu_rates),
                     "ratio")]
             + [Figure(f"vector_steps_per_s_n{n}_t{t}", v, "steps/s")
                for (t, n), v in sorted(rate.items())]
-            + [Figure("sb3_pool_over_subproc_rollouts", sb3["pool"] / sb3["subproc"], "ratio",
-                      ">= 20"),
-               Figure("sb3_pool_rollout_steps_per_s", sb3["pool"], "steps/s"),
-               Figure("sb3_subproc_rollout_steps_per_s", sb3["subproc"], "steps/s"),
-               Figure("sb3_pool_learn_steps_per_s", sb3["learn"], "steps/s"),
-               Figure("vector_closed_form_level_error_m", level, "m"),
+            + [Figure("sb3_pool_over_subproc_rollouts", sb3[16]["pool"] / sb3[16]["subproc"],
+                      "ratio", ">= 20"),
+               Figure("sb3_pool_rollout_steps_per_s", sb3[16]["pool"], "steps/s"),
+               Figure("sb3_subproc_rollout_steps_per_s", sb3[16]["subproc"], "steps/s"),
+               Figure("sb3_pool_learn_steps_per_s", sb3[16]["learn"], "steps/s"),
+               Figure("sb3_pool_over_subproc_rollouts_per_cpu_s",
+                      sb3[16]["pool_cpu"] / sb3[16]["subproc_cpu"], "ratio")]
+            + [Figure(f"sb3_pool_over_subproc_rollouts_n{n}{per}",
+                      r["pool" + cpu] / r["subproc" + cpu], "ratio")
+               for n, r in sorted(sb3.items()) if n != 16
+               for per, cpu in (("", ""), ("_per_cpu_s", "_cpu"))]
+            + [Figure("vector_closed_form_level_error_m", level, "m"),
                Figure("vector_closed_form_reward_error", reward, "reward"),
                Figure("vector_closed_form_episode_ends_differing", ends, "steps"),
                # the machine's 1-minute load average around the scaling table (2 cores)

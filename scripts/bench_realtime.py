@@ -4,7 +4,11 @@ mode at rising rates, driven by
 
     node   build/policy_node flying a policy (a fresh ActorCritic, seed 0,
            exported as the node reads it) for --steps steps;
-    node-signed  the same with a bus key (plant and node --key-file): every
+    node-student  build/policy_node flying the adaptive student (its history
+           window: docs/adaptive.md), exported by ftc.export from --student
+           (default: the checkpoint `python -m ftc.experiments.adaptive train`
+           cached for its default options), for --steps steps;
+    node-signed  the same as node with a bus key (plant and node --key-file): every
            message signed and checked (HMAC-SHA256), for the signing's cost
            side by side with node at the same rates (with both, each rate runs
            --repeats pairs, node and node-signed alternating ABBA, and the
@@ -20,6 +24,8 @@ mode at rising rates, driven by
            --realtime RATE, the same run: PPO updates and the guided fit (DAgger
            with the planner) after each interval, off the control loop.
 
+    .venv/bin/python scripts/bench_realtime.py --controllers node-student --rates 100 \
+        --steps 5000 --results docs/results/node_student.csv
     .venv/bin/python scripts/bench_realtime.py [--controllers node ppo mpc] [--steps 5000]
         [--rates 100 200 500 1000 2000] [--python-rates 20 50 100 200]
         [--results docs/results/realtime.csv] [--figure docs/figures/realtime_latency.png]
@@ -44,6 +50,7 @@ import re
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -64,18 +71,22 @@ SUMMARY = re.compile(r"steps (\d+) deadline_misses (\d+) latency_p50_us (\d+) "
                      r"latency_p99_us (\d+) latency_max_us (\d+) auth_us_per_step ([\d.]+)")
 SIGNING_BUDGET = (0.05, 20.0)  # signing may cost the node 5% of its p99 latency, or 20 us
 MISS_LIMIT = 0.001  # the aim: fewer than 0.1% of the steps missed
+DEFAULT_CACHE = "~/.cache/ftc/adaptive"  # where `python -m ftc.experiments.adaptive train` caches
 
 
 def run_rate(weights: Path, rate: float, steps: int, log: Path,
-             key_file: Path | None = None) -> dict:
+             key_file: Path | None = None, name: str = "node", fifo: int = 0) -> dict:
+    """One node run; with ``fifo`` the plant and the node under SCHED_FIFO at that
+    priority (chrt), as a real-time deployment schedules its control loop."""
     url, prefix = private_lcm_url(), private_prefix()
     keyed = ["--key-file", str(key_file)] if key_file else []
-    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(REPO / "scenarios" /
+    chrt = ["chrt", "-f", str(fifo)] if fifo else []
+    plant = subprocess.Popen([*chrt, str(plant_binary()), "--scenario", str(REPO / "scenarios" /
                               "single.toml"), "--mode", "realtime", "--rate", str(rate),
                               "--watchdog", "1", "--lcm-url", url, "--prefix", prefix, *keyed],
                              stderr=subprocess.DEVNULL)
     try:
-        out = subprocess.run([str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
+        out = subprocess.run([*chrt, str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
                               url, "--prefix", prefix, "--steps", str(steps),
                               "--latency-log", str(log), *keyed], capture_output=True, text=True,
                              timeout=steps / rate + 60)
@@ -86,14 +97,16 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
     if out.returncode or not m:
         raise SystemExit(f"bench_realtime: the node failed at {rate} Hz: {out.stderr.strip()}")
     n, misses, p50, p99, worst = map(int, m.groups()[:5])
-    row = _row("node-signed" if key_file else "node", rate, n, misses, p50, p99, worst)
+    row = _row(name, rate, n, misses, p50, p99, worst,
+               scheduler=f"fifo {fifo}" if fifo else "other")
     row["auth_us_per_step"] = m.group(6)
     return row
 
 
 def _row(controller: str, rate: float, n: int, misses: int, p50: float, p99: float,
-         worst: float) -> dict:
-    return {"controller": controller, "rate_hz": f"{rate:g}", "steps": str(n),
+         worst: float, scheduler: str = "other") -> dict:
+    return {"controller": controller, "scheduler": scheduler, "rate_hz": f"{rate:g}",
+            "steps": str(n),
             "deadline_misses": str(misses), "miss_fraction": f"{misses / n:.4f}",
             "latency_p50_us": f"{p50:.0f}", "latency_p99_us": f"{p99:.0f}",
             "latency_max_us": f"{worst:.0f}",
@@ -149,6 +162,7 @@ def signing_cost(rows: list[dict]) -> list[dict]:
     each, the difference, the budget (max(5% of the unsigned p99, 20 us)) and
     whether it is met, and the signed node's median time in HMAC per step."""
     out = []
+    rows = [r for r in rows if r["scheduler"] == "other"]
     for rate in dict.fromkeys(r["rate_hz"] for r in rows):
         plain = [float(r["latency_p99_us"]) for r in rows
                  if r["rate_hz"] == rate and r["controller"] == "node"]
@@ -171,9 +185,32 @@ def signing_cost(rows: list[dict]) -> list[dict]:
     return out
 
 
+def student_weights(student: Path | None, out: Path) -> str:
+    """Exports the adaptive student (``student``, or the cached checkpoint of
+    the default training options) to ``out`` with ftc.export; returns the
+    checkpoint's path. Exits naming the train command when there is none."""
+    from ftc.control.agents.learned.adaptive_policy import TRAIN_COMMAND, default_checkpoint
+    from ftc.tools.export import main as export
+
+    path = student or default_checkpoint(DEFAULT_CACHE)
+    if not path.is_file():
+        raise SystemExit(f"bench_realtime: no student checkpoint at {path}; build it with "
+                         f"`{TRAIN_COMMAND}` or give --student")
+    if export([str(path), "--weights", str(out)]) != 0:
+        raise SystemExit(f"bench_realtime: ftc.export could not export {path}")
+    return str(path)
+
+
+def student_name(student: Path | None) -> str:
+    """How the result file names the student flown: the given file, or the cache's."""
+    # (not the cache's file name: its hex key reads as a commit hash in the docs)
+    return str(student) if student is not None else "the cached default checkpoint"
+
+
 def measure(controllers: list[str], steps: int, rates: list[float],
             python_rates: list[float], echo: bool = False,
-            repeats: int = 1) -> tuple[list[dict], Any]:
+            repeats: int = 1, student: Path | None = None,
+            fifo: int = 0) -> tuple[list[dict], Any]:
     """Every controller at every rate: the table's rows, and the node's latencies
     at its lowest rate with that row (or None)."""
     torch.manual_seed(0)
@@ -181,17 +218,24 @@ def measure(controllers: list[str], steps: int, rates: list[float],
     with tempfile.TemporaryDirectory() as tmp:
         weights = Path(tmp) / "policy.txt"
         policy_weights.write_weights(weights, *policy_weights.actor_layers(ActorCritic()))
+        student_file = Path(tmp) / "student.txt"
+        if "node-student" in controllers:
+            print(f"bench_realtime: node-student flies {student_weights(student, student_file)}",
+                  flush=True)
         key_file = Path(tmp) / "bus.key"
         key_file.write_text(new_key().hex())
         key_file.chmod(0o600)
-        runs = _node_runs(controllers, rates, repeats)
-        runs += [(c, rate) for c in controllers if not c.startswith("node")
+        runs = [(c, rate, f) for c, rate in _node_runs(controllers, rates, repeats)
+                for f in ((0, fifo) if fifo else (0,))]  # each scheduler beside the other
+        runs += [(c, rate, 0) for c in controllers if not c.startswith("node")
                  for rate in sorted(python_rates)]
-        for controller, rate in runs:
+        for controller, rate, f in runs:
             if controller.startswith("node"):
                 log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
-                rows.append(run_rate(weights, rate, steps, log,
-                                     key_file if controller == "node-signed" else None))
+                rows.append(run_rate(student_file if controller == "node-student" else weights,
+                                     rate, steps, log,
+                                     key_file if controller == "node-signed" else None,
+                                     name=controller, fifo=f))
                 if first_log is None:
                     first_log = (np.loadtxt(log), rows[-1])
             else:
@@ -204,13 +248,15 @@ def measure(controllers: list[str], steps: int, rates: list[float],
 def highest_rate(rows: list[dict], controller: str) -> float | None:
     """The highest rate at which ``controller`` missed fewer than 0.1% of its deadlines."""
     kept = [float(r["rate_hz"]) for r in rows
-            if r["controller"] == controller and r["keeps_up"] == "yes"]
+            if r["controller"] == controller and r["keeps_up"] == "yes"
+            and r["scheduler"] == "other"]
     return max(kept) if kept else None
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--controllers", nargs="+", choices=["node", "node-signed", *PYTHON_RUNS],
+    p.add_argument("--controllers", nargs="+",
+                   choices=["node", "node-signed", "node-student", *PYTHON_RUNS],
                    default=["node", *PYTHON_RUNS], help="which controllers (default all)")
     p.add_argument("--steps", type=int, default=5000,
                    help="the node's steps per rate (default 5000)")
@@ -220,6 +266,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="plant rates to try with the Python controllers, Hz")
     p.add_argument("--repeats", type=int, default=1,
                    help="with node and node-signed: pairs per rate, alternating (default 1)")
+    p.add_argument("--fifo", type=int, default=0, metavar="PRIORITY",
+                   help="also run each node run with the plant and the node under SCHED_FIFO "
+                        "at this priority (chrt; needs CAP_SYS_NICE), beside the default "
+                        "scheduler's run (default 0: not)")
+    p.add_argument("--student", type=Path, default=None,
+                   help="node-student: the student checkpoint (default: the cached one of "
+                        "`python -m ftc.experiments.adaptive train`)")
     p.add_argument("--results", type=Path, help="write the table as a result file")
     p.add_argument("--signing-results", type=Path,
                    help="write the signing's cost per rate (node against node-signed) as a "
@@ -228,8 +281,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error(f"--repeats must be at least 1, not {args.repeats}")
+    if not 0 <= args.fifo <= 99:
+        p.error(f"--fifo must be a SCHED_FIFO priority in 1..99 (0: not), not {args.fifo}")
+    load_start = os.getloadavg()[0]
     rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
-                              echo=True, repeats=args.repeats)
+                              echo=True, repeats=args.repeats, student=args.student,
+                              fifo=args.fifo)
     for controller in dict.fromkeys(args.controllers):
         best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
@@ -260,13 +317,20 @@ def main(argv: list[str] | None = None) -> int:
         write_result_file(args.results, (
             f"# what: controllers on the plant in real-time mode, single fault: node = "
             f"build/policy_node, {args.steps} steps per rate, a fresh 6-64-64-16-16-6 policy; "
+            + (f"node-student = build/policy_node flying the adaptive student (a window of 12 "
+               f"steps, 144-128-128-6) of {student_name(args.student)}; "
+               if "node-student" in args.controllers else "") +
             f"ppo = ftc.controller ppo-offline learning on, mpc = ftc.mpc oracle-mpc, robust = "
             f"ftc.controller ppo-robust (guided fits), 2 x 256 steps and the evaluations; "
             f"latency: state received to command sent\n"
             f"# command: scripts/bench_realtime.py --controllers {' '.join(args.controllers)} "
             f"--steps {args.steps} --rates {' '.join(f'{r:g}' for r in args.rates)} "
-            f"--python-rates {' '.join(f'{r:g}' for r in args.python_rates)}\n"
-            f"# commit: {git_revision()}\n"), rows)
+            f"--python-rates {' '.join(f'{r:g}' for r in args.python_rates)}"
+            + (f" --fifo {args.fifo}" if args.fifo else "")
+            + (f" --student {args.student}" if args.student else "") + "\n"
+            f"# commit: {git_revision()}\n"
+            f"# date: {time.strftime('%Y-%m-%d', time.gmtime())}, load average "
+            f"{load_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n"), rows)
     if args.figure and first_log is not None:
         first_log, first = first_log
         import matplotlib

@@ -10,9 +10,10 @@ ratios are the figures to trust, absolute rates move with the load):
 
   pool steps/s     FuelTransferVectorEnv.step (Python call, action check and the
                    C++ step of N envs, closed form), random valves, single fault,
-                   N envs and 1 or 2 C++ threads; and per CPU-second (process
-                   time, 1024 envs, 1 thread): the rate of one unshared core
-  core env         gym.make("ftc/FuelTransferCore-v0") stepped with random valves
+                   N envs and 1 or 2 C++ threads, in blocks of 128 steps from fresh
+                   plants (Rate); and per CPU-second of the process: the rate of
+                   unshared cores, and the CPU share the process got
+  core env         gym.make("ftc/FuelTransferCore-v0") stepped the same way
                    (and per CPU-second)
   sb3 rollouts     SB3 PPO's collect_rollouts (policy forward passes included)
                    through PoolVecEnv, and through SubprocVecEnv over N Core envs;
@@ -27,6 +28,7 @@ a result file, with --figure its plot; docs/benchmarks.md renders both.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -45,57 +47,79 @@ import ftc  # noqa: E402,F401  (registers the ids)
 from ftc.plant.vector import FuelTransferVectorEnv  # noqa: E402
 
 SIZES = (1, 4, 16, 64, 256, 1024, 4096)
-SECONDS = 0.25  # per measurement
-# the last scaling()'s steps per CPU-second: the pool (1024 envs, 1 thread), the Core env
-CPU_RATE: list[float] = []
-CORE_CPU_RATE: list[float] = []
+SECONDS = 0.25  # per measurement (whole blocks: at least one)
+BLOCK = 128     # steps of a block, from fresh plants (age 0)
+SB3_SIZES = (8, 16, 64)  # envs of the SB3 comparison (bench.py)
 
 
-def _actions(n: int, batches: int = 16) -> list[np.ndarray]:
+class Rate:
+    """One measure: blocks of BLOCK steps with seeded random valves, each from fresh
+    plants (age 0, seed 0; the fresh start untimed), repeated until SECONDS of
+    stepping are timed. Every measure steps the same part of the plant's life, so
+    its work per step does not depend on how fast it ran: a rate measured for a
+    fixed time instead ages a fast env further than a slow one, and the faster the
+    machine the older (a Core env ages ~10 intervals in 0.25 s), which moved the
+    ratios with the load. A call returns env steps per wall second; the same
+    blocks' steps per CPU-second of this process (every thread) go to .cpu_rates,
+    and the CPU seconds the process got per wall second (2.0: both cores) to
+    .cpu_shares."""
+
+    def __init__(self, start: Callable[[], None], step: Callable[[int], None], envs: int,
+                 seconds: float = SECONDS) -> None:
+        self.start, self.step, self.envs, self.seconds = start, step, envs, seconds
+        self.cpu_rates: list[float] = []
+        self.cpu_shares: list[float] = []
+
+    def __call__(self) -> float:
+        wall = cpu = 0.0
+        blocks = 0
+        while blocks == 0 or wall < self.seconds:
+            self.start()
+            t, c = time.perf_counter(), time.process_time()
+            for k in range(BLOCK):
+                self.step(k)
+            wall += time.perf_counter() - t
+            cpu += time.process_time() - c
+            blocks += 1
+        steps = blocks * BLOCK * self.envs
+        self.cpu_rates.append(steps / max(cpu, 1e-9))
+        self.cpu_shares.append(cpu / wall)
+        return steps / wall
+
+
+def _actions(n: int, batches: int = BLOCK) -> list[np.ndarray]:
     rng = np.random.default_rng(0)
     return [rng.integers(0, 2, (n, 6), dtype=np.int8) for _ in range(batches)]
 
 
-def pool_rate(n: int, threads: int, seconds: float = SECONDS,
-              clock: Callable[[], float] = time.perf_counter) -> Callable[[], float]:
-    """Steps/s of the pool; with clock=time.process_time, steps per CPU-second of
-    this process (every thread): what a core gives when it is not shared."""
+def pool_rate(n: int, threads: int, seconds: float = SECONDS) -> Rate:
+    """The pool of n envs (single fault, closed form) on `threads` C++ threads."""
     env = FuelTransferVectorEnv(n, "single", threads=threads, copy=False)
-    env.reset(seed=0)
     actions = _actions(n)
-
-    def run() -> float:
-        steps, start, used = 0, time.perf_counter(), clock()
-        while time.perf_counter() - start < seconds:
-            for a in actions:
-                env.step(a)
-            steps += len(actions)
-        return steps * n / (clock() - used)
-    return run
+    return Rate(lambda: env.reset(seed=0), lambda k: env.step(actions[k]), n, seconds)
 
 
-def core_env_rate(seconds: float = SECONDS,
-                  clock: Callable[[], float] = time.perf_counter) -> Callable[[], float]:
+def core_env_rate(seconds: float = SECONDS) -> Rate:
+    """gym.make("ftc/FuelTransferCore-v0"), single fault, the same blocks (a
+    finished episode is reset within the block, as the pool's env is)."""
     env = gym.make("ftc/FuelTransferCore-v0")
-    env.reset(seed=0)
-    actions = _actions(1, 256)
+    actions = [a[0] for a in _actions(1)]
 
-    def run() -> float:
-        steps, start, used = 0, time.perf_counter(), clock()
-        while time.perf_counter() - start < seconds:
-            for a in actions:
-                _, _, term, trunc, _ = env.step(a[0])
-                if term or trunc:
-                    env.reset()
-            steps += len(actions)
-        return steps / (clock() - used)
-    return run
+    def step(k: int) -> None:
+        _, _, term, trunc, _ = env.step(actions[k])
+        if term or trunc:
+            env.reset()
+    return Rate(lambda: env.reset(seed=0), step, 1, seconds)
 
 
 def sb3_rates(n: int, rounds: int, n_steps: int = 128) -> dict[str, float]:
     """env steps/s of PPO's collect_rollouts through the pool and through
     SubprocVecEnv over n Core envs (alternating rounds), and of PPO.learn
-    (rollouts and updates) through the pool."""
+    (rollouts and updates) through the pool; and the two rollouts' env steps per
+    CPU-second of every process they use (this one, and SubprocVecEnv's
+    workers): under load n worker processes get n shares of the machine where
+    the pool's one process gets one, so the wall ratio falls with the load and
+    the CPU ratio does not."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import CallbackList
@@ -110,13 +134,18 @@ def sb3_rates(n: int, rounds: int, n_steps: int = 128) -> dict[str, float]:
     subproc_env = make_vec_env("ftc/FuelTransferCore-v0", n_envs=n, vec_env_cls=SubprocVecEnv)
     subproc = PPO("MlpPolicy", subproc_env, n_steps=n_steps, seed=0, device="cpu")
 
-    def collect(model: PPO) -> Callable[[], float]:
+    workers = [p.pid for p in subproc_env.processes]
+    cpu_rates: dict[str, list[float]] = {"pool": [], "subproc": []}
+
+    def collect(model: PPO, name: str, pids: list[int]) -> Callable[[], float]:
         total, callback = model._setup_learn(10**9, CallbackList([]))
         callback.on_training_start(locals(), globals())
 
         def run() -> float:
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time() + _cpu_seconds(pids)
             model.collect_rollouts(model.env, callback, model.rollout_buffer, n_steps)
+            used = time.process_time() + _cpu_seconds(pids) - cpu
+            cpu_rates[name].append(n_steps * n / max(used, 1e-9))
             return n_steps * n / (time.perf_counter() - start)
         return run
 
@@ -126,11 +155,23 @@ def sb3_rates(n: int, rounds: int, n_steps: int = 128) -> dict[str, float]:
         return 2 * n_steps * n / (time.perf_counter() - start)
 
     try:
-        a, b, c = _rounds(rounds, collect(pool), collect(subproc), learn)
+        a, b, c = _rounds(rounds, collect(pool, "pool", []), collect(subproc, "subproc", workers),
+                          learn)
     finally:
         subproc_env.close()
     med = statistics.median
-    return {"pool": med(a), "subproc": med(b), "learn": med(c)}
+    return {"pool": med(a), "subproc": med(b), "learn": med(c),
+            "pool_cpu": med(cpu_rates["pool"]), "subproc_cpu": med(cpu_rates["subproc"])}
+
+
+def _cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU seconds of these processes so far (/proc/PID/stat)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for pid in pids:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14, 15)
+    return total / tick
 
 
 def closed_form_error(steps: int = 500, seeds: int = 2) -> tuple[float, float, int]:
@@ -177,21 +218,25 @@ def _rounds(rounds: int, *measures: Callable[[], float]) -> list[list[float]]:
     return out
 
 
-def scaling(rounds: int, sizes: tuple[int, ...] = SIZES) -> tuple[list[dict], list[float]]:
-    """Rows (threads, num_envs, steps_per_s) and the Core env's rates, every
-    measure of a round taken side by side."""
+def scaling(rounds: int, sizes: tuple[int, ...] = SIZES) -> tuple[list[dict], list[float], Rate]:
+    """Rows (threads, num_envs, steps_per_s, over_core_env, steps_per_cpu_s,
+    cpu_share), the Core env's rates (steps per wall second) and its Rate (per
+    CPU-second: .cpu_rates), every measure of a round taken side by side."""
     keys = [(t, n) for t in (1, 2) for n in sizes]
-    measures = [pool_rate(n, t) for t, n in keys] + [core_env_rate()]
+    pools = {key: pool_rate(key[1], key[0]) for key in keys}
+    core = core_env_rate()
+    measures = [pools[key] for key in keys] + [core]
     for m in measures:
-        m()  # warm up
-    *pool, core = _rounds(rounds, *measures)
-    global CPU_RATE, CORE_CPU_RATE  # noqa: PLW0603  (read by bench.py beside the rows)
-    CPU_RATE, CORE_CPU_RATE = _rounds(rounds, pool_rate(1024, 1, clock=time.process_time),
-                                      core_env_rate(clock=time.process_time))
-    rows = [{"threads": t, "num_envs": n, "steps_per_s": f"{statistics.median(r):.0f}",
-             "over_core_env": f"{statistics.median(r) / statistics.median(core):.1f}"}
-            for (t, n), r in zip(keys, pool)]
-    return rows, core
+        m()  # warm up (the prepared modes of age 0); not kept
+        m.cpu_rates.clear(), m.cpu_shares.clear()
+    *walls, core_walls = _rounds(rounds, *measures)
+    med = statistics.median
+    rows = [{"threads": t, "num_envs": n, "steps_per_s": f"{med(r):.0f}",
+             "over_core_env": f"{med(r) / med(core_walls):.1f}",
+             "steps_per_cpu_s": f"{med(pools[(t, n)].cpu_rates):.0f}",
+             "cpu_share": f"{med(pools[(t, n)].cpu_shares):.2f}"}
+            for (t, n), r in zip(keys, walls)]
+    return rows, core_walls, core
 
 
 def write_figure(rows: list[dict], path: Path) -> None:
@@ -259,10 +304,10 @@ def main() -> int:
             parser.error("--figure-only needs --results and --figure")
         write_figure(read_rows(args.results), args.figure)
         return 0
-    rows, core = scaling(args.rounds, tuple(args.sizes))
-    print(f"core env: {statistics.median(core):.0f} steps/s; per CPU-second: pool (1024 envs, "
-          f"1 thread) {statistics.median(CPU_RATE):.0f}, core env "
-          f"{statistics.median(CORE_CPU_RATE):.0f}")
+    rows, core, core_rate = scaling(args.rounds, tuple(args.sizes))
+    core_text = (f"the Core env {statistics.median(core):.0f} steps/s, "
+                 f"{statistics.median(core_rate.cpu_rates):.0f} per CPU-second")
+    print(core_text)
     for r in rows:
         print(r)
     if args.results:
@@ -270,13 +315,13 @@ def main() -> int:
 
         from ftc.common.build_info import git_revision
 
-        provenance = (f"# what: FuelTransferVectorEnv.step rate (env steps/s), random valves, "
-                      f"single fault, closed form, median of {args.rounds} alternating rounds; "
-                      f"over_core_env: over gym.make('ftc/FuelTransferCore-v0') measured in the "
-                      f"same rounds ({statistics.median(core):.0f} steps/s); per CPU-second "
-                      f"(process time, 1 thread): the pool at 1024 envs "
-                      f"{statistics.median(CPU_RATE):.0f}, the Core env "
-                      f"{statistics.median(CORE_CPU_RATE):.0f}\n"
+        provenance = (f"# what: FuelTransferVectorEnv.step rate (env steps per wall second), "
+                      f"random valves, single fault, closed form, blocks of {BLOCK} steps from "
+                      f"fresh plants (age 0), median of {args.rounds} alternating rounds; "
+                      f"over_core_env: over gym.make('ftc/FuelTransferCore-v0') stepped the "
+                      f"same way in the same rounds ({core_text}); steps_per_cpu_s: per "
+                      f"CPU-second of the process (every thread); cpu_share: CPU seconds the "
+                      f"process got per wall second (2 = both cores)\n"
                       f"# command: scripts/bench_vector.py --rounds {args.rounds} --sizes "
                       f"{' '.join(map(str, args.sizes))}\n"
                       f"# commit: {git_revision()}\n# date: {time.strftime('%Y-%m-%d')}\n")

@@ -7,9 +7,13 @@
 #   bash scripts/fuzz.sh 60 fuzz_scenario
 #   FUZZ_RUNS=10000000 bash scripts/fuzz.sh 0 fuzz_policy   # a number of inputs instead
 #
-# Targets: fuzz_messages (the plant's command handling), fuzz_scenario, and one
+# Targets: fuzz_messages (the plant's command handling), fuzz_scenario, one
 # per message decoder (fuzz_valve_command, fuzz_plant_control, fuzz_plant_state,
-# fuzz_policy, fuzz_policy_ack: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h).
+# fuzz_policy, fuzz_policy_ack: bounded decoding, cpp/plant/lcm/wire.h, tests/fuzz/wire_harness.h;
+# fuzz_policy_v2: cpp/policy/push_wire.h),
+# fuzz_signed (the keyed receivers' signature check, then decoding) and
+# fuzz_py_wire (the Python receivers' decoding and check: the links, ftc.replay
+# and the push tool; atheris, installed into .venv when missing).
 #
 # Builds into build-fuzz/ (-DFTC_FUZZ=ON), never part of the default build or
 # test command. Seeds: tests/fuzz/corpus/<target>/ (committed); the growing
@@ -22,7 +26,7 @@ seconds="${1:-60}"
 shift || true
 targets=("$@")
 [ ${#targets[@]} -eq 0 ] && targets=(fuzz_messages fuzz_scenario fuzz_valve_command \
-  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack)
+  fuzz_plant_control fuzz_plant_state fuzz_policy fuzz_policy_ack fuzz_policy_v2 fuzz_signed fuzz_py_wire)
 limit=(-max_total_time="$seconds")
 [ -n "${FUZZ_RUNS:-}" ] && limit=(-runs="$FUZZ_RUNS")
 
@@ -40,7 +44,12 @@ fi
 lcm_cmake="$(.venv/bin/python -c 'import lcm, os; print(os.path.join(os.path.dirname(os.path.dirname(lcm.__file__)), "lib", "lcm", "cmake"))')"
 cmake -S . -B build-fuzz -Dlcm_DIR="$lcm_cmake" -DFTC_FUZZ=ON -DFTC_BUILD_TESTS=OFF -DFTC_BUILD_PYTHON=OFF \
   -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_C_COMPILER=clang -DCMAKE_CXX_COMPILER=clang++ >/dev/null
-cmake --build build-fuzz -j2 --target "${targets[@]}"
+native=()
+for t in "${targets[@]}"; do [[ "$t" == fuzz_py_* ]] || native+=("$t"); done
+[ ${#native[@]} -gt 0 ] && cmake --build build-fuzz -j2 --target "${native[@]}"
+if [[ " ${targets[*]}" == *" fuzz_py_"* ]] && ! .venv/bin/python -c "import atheris" 2>/dev/null; then
+  .venv/bin/python -m pip install -q atheris
+fi
 
 status=0
 for t in "${targets[@]}"; do
@@ -52,12 +61,14 @@ for t in "${targets[@]}"; do
   [ -f "tests/fuzz/${t#fuzz_}.dict" ] && dict=(-dict="tests/fuzz/${t#fuzz_}.dict")
   echo "== $t: ${limit[*]}, seeds $seeds"
   # -jobs=1: the machine has 2 cores and other work on it.
-  if ! ./build-fuzz/"$t" "$corpus" "$seeds" "${dict[@]}" -rss_limit_mb=512 "${limit[@]}" \
+  run=(./build-fuzz/"$t")
+  [[ "$t" == fuzz_py_* ]] && run=(.venv/bin/python "tests/fuzz/$t.py")
+  if ! "${run[@]}" "$corpus" "$seeds" "${dict[@]}" -rss_limit_mb=512 "${limit[@]}" \
       -artifact_prefix="$crashes" -print_final_stats=1 2>"build-fuzz/$t.log"; then
     echo "$t: FOUND A CRASH (see build-fuzz/$t.log, inputs in $crashes)"
     status=1
   fi
-  grep -E "^stat::number_of_executed_units|^stat::peak_rss_mb|Done [0-9]+ runs" "build-fuzz/$t.log" || true
+  grep -E "^stat::number_of_executed_units|^stat::average_exec_per_sec|^stat::peak_rss_mb|Done [0-9]+ runs" "build-fuzz/$t.log" || true
   tail -n 1 "build-fuzz/$t.log"
 done
 exit $status

@@ -15,7 +15,7 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 
 apt_packages=(libsundials-dev libeigen3-dev libcli11-dev libgtest-dev libtomlplusplus-dev libssl-dev
-              cmake g++ make iproute2 curl xz-utils)
+              cmake g++ make ccache iproute2 curl xz-utils)
 missing=()
 for p in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -3,6 +3,7 @@
 
 #include "learning/tanh_mlp.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -54,10 +55,65 @@ std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>&
   return h;
 }
 
-std::unique_ptr<Policy> Policy::Make(std::vector<int> widths, std::vector<float> params,
-                                     std::int64_t version, std::string* error) {
-  if (widths.size() < 2 || widths.front() != kTanks || widths.back() != kTanks) {
-    *error = "widths must run from 6 (the levels) to 6 (the valves)";
+std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>& params,
+                       int window) {
+  std::uint64_t h = Checksum(widths, params);  // FNV-1a continues from its state
+  const auto b = Le32(static_cast<std::uint32_t>(window));
+  Mix(&h, b.data(), b.size());
+  return h;
+}
+
+History::History() : slots_(static_cast<std::size_t>(kMaxWindow) * kStepFeatures, 0.0f) {}
+
+void History::Scale(const std::array<double, kTanks>& level, float* out) {
+  for (int i = 0; i < kTanks; ++i) {
+    // float32 first, then clip and 2 x - 1 in float32: NumPy's roundings
+    const float x = std::min(std::max(static_cast<float>(level[i]), 0.0f), 1.0f);
+    out[i] = 2.0f * x - 1.0f;
+  }
+}
+
+void History::Start(const std::array<double, kTanks>& level) {
+  float step[kStepFeatures];
+  Scale(level, step);
+  for (int i = kTanks; i < kStepFeatures; ++i) step[i] = -1.0f;  // closed
+  for (int k = 0; k < kMaxWindow; ++k)
+    std::copy(step, step + kStepFeatures, slots_.data() + k * kStepFeatures);
+  newest_ = 0;
+  level_ = level;
+}
+
+void History::Push(const std::array<double, kTanks>& level,
+                   const std::array<std::int8_t, kTanks>& valves) {
+  newest_ = (newest_ + kMaxWindow - 1) % kMaxWindow;  // the oldest slot becomes the newest
+  float* step = slots_.data() + newest_ * kStepFeatures;
+  Scale(level, step);
+  for (int i = 0; i < kTanks; ++i) step[kTanks + i] = valves[i] ? 1.0f : -1.0f;
+  level_ = level;
+}
+
+void History::Newest(int window, float* out) const {
+  for (int k = 0; k < window; ++k) {
+    const float* step = slots_.data() + ((newest_ + k) % kMaxWindow) * kStepFeatures;
+    std::copy(step, step + kStepFeatures, out + k * kStepFeatures);
+  }
+}
+
+std::unique_ptr<Policy> Policy::Make(int window, std::vector<int> widths,
+                                     std::vector<float> params, std::int64_t version,
+                                     std::string* error) {
+  if (window < 0 || window > kMaxWindow) {
+    *error = "a window of " + std::to_string(window) + " steps (allowed: 0.." +
+             std::to_string(kMaxWindow) + ")";
+    return nullptr;
+  }
+  const int input = InputWidth(window);
+  if (widths.size() < 2 || widths.front() != input || widths.back() != kTanks) {
+    *error = "widths must run from " + std::to_string(input) +
+             (window == 0 ? " (the levels)"
+                          : " (a window of " + std::to_string(window) +
+                                " steps of levels and valves)") +
+             " to 6 (the valves)";
     return nullptr;
   }
   for (int w : widths) {
@@ -78,20 +134,23 @@ std::unique_ptr<Policy> Policy::Make(std::vector<int> widths, std::vector<float>
       return nullptr;
     }
   }
-  return std::unique_ptr<Policy>(new Policy(std::move(widths), std::move(params), version));
+  return std::unique_ptr<Policy>(
+      new Policy(window, std::move(widths), std::move(params), version));
 }
 
 struct Policy::Net {
   Net(const std::vector<int>& widths, std::vector<float>* params)
       : grads(params->size()), chain(widths, /*tanh_last=*/false, params->data(), grads.data()),
-        input(1, kTanks) {}
+        input(1, widths.front()) {}
   std::vector<float> grads;  // the chain's gradient buffer: unused when acting
   learn::TanhChain chain;
   learn::MatrixRM input;
 };
 
-Policy::Policy(std::vector<int> widths, std::vector<float> params, std::int64_t version)
-    : widths_(std::move(widths)),
+Policy::Policy(int window, std::vector<int> widths, std::vector<float> params,
+               std::int64_t version)
+    : window_(window),
+      widths_(std::move(widths)),
       params_(std::move(params)),
       version_(version),
       net_(std::make_unique<Net>(widths_, &params_)) {}
@@ -99,7 +158,22 @@ Policy::Policy(std::vector<int> widths, std::vector<float> params, std::int64_t 
 Policy::~Policy() = default;
 
 std::array<std::int8_t, kTanks> Policy::Act(const std::array<double, kTanks>& level) {
+  if (window_ != 0) {  // the first step of an episode
+    History history;
+    history.Start(level);
+    return Act(history);
+  }
   for (int i = 0; i < kTanks; ++i) net_->input(0, i) = static_cast<float>(2.0 * level[i] - 1.0);
+  return Decide();
+}
+
+std::array<std::int8_t, kTanks> Policy::Act(const History& history) {
+  if (window_ == 0) return Act(history.level());
+  history.Newest(window_, net_->input.data());  // row-major (1, 12 W): the slots in order
+  return Decide();
+}
+
+std::array<std::int8_t, kTanks> Policy::Decide() {
   const auto& logits = net_->chain.Forward(net_->input);
   std::array<std::int8_t, kTanks> u{};
   for (int i = 0; i < kTanks; ++i) u[i] = logits(0, i) > 0.0f ? 1 : 0;
@@ -121,6 +195,8 @@ std::unique_ptr<Policy> Policy::FromFile(const std::string& path, std::string* e
   std::vector<int> widths;
   std::vector<float> params;
   std::int64_t version = 0;
+  int format = 0, window = 0;
+  bool have_window = false;
   std::size_t expected = 0;
   bool have_checksum = false;
   std::uint64_t checksum = 0;
@@ -130,9 +206,12 @@ std::unique_ptr<Policy> Policy::FromFile(const std::string& path, std::string* e
     std::istringstream fields(text);
     fields >> word;
     if (line == 1) {
-      int format = 0;
-      if (word != "ftc-policy" || !(fields >> format) || format != 1)
-        return fail(line, "not an ftc-policy 1 weights file (first line: 'ftc-policy 1')");
+      if (word != "ftc-policy" || !(fields >> format) || (format != 1 && format != 2))
+        return fail(line, "not an ftc-policy weights file (first line: 'ftc-policy 1' or "
+                          "'ftc-policy 2')");
+    } else if (word == "window" && format == 2) {
+      if (!(fields >> window)) return fail(line, "window: an integer expected");
+      have_window = true;
     } else if (word == "version") {
       if (!(fields >> version)) return fail(line, "version: an integer expected");
     } else if (word == "widths") {
@@ -160,10 +239,11 @@ std::unique_ptr<Policy> Policy::FromFile(const std::string& path, std::string* e
     return fail(line, "params says " + std::to_string(expected) + " values, the file holds " +
                           std::to_string(params.size()) + " (truncated?)");
   if (!have_checksum) return fail(line, "no checksum line");
-  if (Checksum(widths, params) != checksum)
+  if (format == 2 && !have_window) return fail(line, "no window line (ftc-policy 2 needs one)");
+  if ((format == 2 ? Checksum(widths, params, window) : Checksum(widths, params)) != checksum)
     return fail(line, "checksum mismatch: the weights were changed or truncated");
   std::string why;
-  auto policy = Make(std::move(widths), std::move(params), version, &why);
+  auto policy = Make(window, std::move(widths), std::move(params), version, &why);
   if (!policy) return fail(line, why);
   return policy;
 }

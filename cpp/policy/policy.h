@@ -1,10 +1,13 @@
 // The deterministic policy of the embedded controller: the exported actor
-// (levels -> 2 x - 1 -> dense tanh layers -> 6 logits; a valve opens where its
-// logit is positive), read from the weights file ftc.export writes or from a
-// pushed policy_t, checked whole before use. No LCM in here, and no Eigen in
-// this header: the arithmetic (learning/tanh_mlp.h) is compiled with the
-// learning kernels' flags (-march=native), whose Eigen types must not meet
-// those of code compiled without them.
+// (its input -> dense tanh layers -> 6 logits; a valve opens where its logit
+// is positive), read from the weights file ftc.export writes or from a pushed
+// policy_t / policy_v2_t, checked whole before use. Its input is either the
+// newest levels mapped to 2 x - 1 (window 0: the PPO policies) or a window of
+// the last W steps of levels and valve commands (the adaptive student,
+// python/ftc/learning/history_policy.py), kept by History. No LCM in here,
+// and no Eigen in this header: the arithmetic (learning/tanh_mlp.h) is
+// compiled with the learning kernels' flags (-march=native), whose Eigen
+// types must not meet those of code compiled without them.
 #pragma once
 
 #include <array>
@@ -17,34 +20,92 @@
 namespace ftc::policy {
 
 constexpr int kTanks = 6;
+constexpr int kStepFeatures = 2 * kTanks;  // one step of history: levels, then valves
+// The longest window a policy may read (policy_v2_t::MAX_WINDOW); History keeps
+// this many steps whatever the flying policy reads, so a pushed policy with
+// another window finds the episode's history as it would have kept it.
+constexpr int kMaxWindow = 256;
 
 // FNV-1a 64 of the widths (int32 little-endian) then the params (float32
-// little-endian): the checksum of the weights file and of policy_t.
+// little-endian): the checksum of an ftc-policy 1 weights file and of policy_t.
 std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>& params);
+
+// The same, continued with the window (int32 little-endian): the checksum of
+// an ftc-policy 2 weights file and of policy_v2_t.
+std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>& params,
+                       int window);
+
+// The input width of a policy reading `window` steps (0: the levels alone).
+inline int InputWidth(int window) { return window == 0 ? kTanks : kStepFeatures * window; }
+
+// The last kMaxWindow steps an episode went through, as the adaptive student's
+// HistoryWindow keeps them for one plant: slot k holds the levels acted on k
+// steps ago and the valves commanded on the step that led to them (closed for
+// the episode's first levels), each clipped to [0, 1] and mapped to 2 x - 1 in
+// float32 (the same roundings as NumPy's float32 arithmetic there).
+class History final {
+ public:
+  History();
+
+  // An episode begins at `level`: every slot holds these levels, valves closed.
+  void Start(const std::array<double, kTanks>& level);
+
+  // After commanding `valves` the plant published `level`: it becomes slot 0.
+  void Push(const std::array<double, kTanks>& level,
+            const std::array<std::int8_t, kTanks>& valves);
+
+  // The newest `window` slots (1..kMaxWindow), newest first, into out
+  // (kStepFeatures x window floats): the student's input.
+  void Newest(int window, float* out) const;
+
+  // The levels of slot 0, in metres, as published.
+  const std::array<double, kTanks>& level() const { return level_; }
+
+ private:
+  static void Scale(const std::array<double, kTanks>& level, float* out);
+
+  std::vector<float> slots_;  // kMaxWindow x kStepFeatures, a ring
+  int newest_ = 0;            // the ring index of slot 0
+  std::array<double, kTanks> level_{};
+};
 
 class Policy {
  public:
-  // A policy of these widths and params, or null with the reason in *error:
-  // widths must run 6 -> ... -> 6 with every width in 1..4096, params must
-  // hold exactly their weights and biases, every value finite.
+  // A policy of this window, widths and params, or null with the reason in
+  // *error: window must be in 0..kMaxWindow, widths must run InputWidth(window)
+  // -> ... -> 6 with every width in 1..4096, params must hold exactly their
+  // weights and biases, every value finite.
+  static std::unique_ptr<Policy> Make(int window, std::vector<int> widths,
+                                      std::vector<float> params, std::int64_t version,
+                                      std::string* error);
+  // The same with window 0 (a policy of the levels).
   static std::unique_ptr<Policy> Make(std::vector<int> widths, std::vector<float> params,
-                                      std::int64_t version, std::string* error);
+                                      std::int64_t version, std::string* error) {
+    return Make(0, std::move(widths), std::move(params), version, error);
+  }
 
-  // Reads the weights file (the format of docs/deploy.md); null with the reason
-  // (naming the file and line) in *error.
+  // Reads the weights file (the format of docs/deploy.md: ftc-policy 1, or 2
+  // with a window); null with the reason (naming the file and line) in *error.
   static std::unique_ptr<Policy> FromFile(const std::string& path, std::string* error);
 
-  // Valve commands (0/1) for tank levels in metres.
+  // Valve commands (0/1) for tank levels in metres (a policy of window 0).
   std::array<std::int8_t, kTanks> Act(const std::array<double, kTanks>& level);
+
+  // Valve commands (0/1) for the history: its newest `window()` steps, or
+  // its newest levels for window 0.
+  std::array<std::int8_t, kTanks> Act(const History& history);
 
   ~Policy();
   std::int64_t version() const { return version_; }
+  int window() const { return window_; }
   const std::vector<int>& widths() const { return widths_; }
 
  private:
-  Policy(std::vector<int> widths, std::vector<float> params, std::int64_t version);
+  Policy(int window, std::vector<int> widths, std::vector<float> params, std::int64_t version);
+  std::array<std::int8_t, kTanks> Decide();
 
   struct Net;  // the layers (policy.cpp)
+  int window_;
   std::vector<int> widths_;
   std::vector<float> params_;
   std::int64_t version_;

@@ -1,14 +1,23 @@
 // build/policy_node: the embedded controller. It flies a policy exported by
 // ftc.export (--weights) on a plant in real-time mode over LCM: every state
-// the plant publishes gets one valve command, computed from the newest state,
-// and a pushed policy_t replaces the policy between two steps (or is rejected
-// with a logged reason). At exit it prints one line:
+// the plant publishes gets one valve command, computed from the newest state
+// (and, for a policy with a history window, from the states acted on before
+// it in the episode and the commands sent on them), and a pushed policy_t or
+// policy_v2_t replaces the policy between two steps (or is rejected with a
+// logged reason). At exit it prints one line:
 //   steps N deadline_misses M latency_p50_us A latency_p99_us B latency_max_us C
 //   auth_us_per_step D
 // (latency: from a state's arrival, before its check and decode, to its
 // command's send; D: the time spent signing and checking messages per step,
 // 0 without a key). A deadline miss is a plant step taken without the command answering the
 // state before it (the next state's command_seq is older than that command).
+//
+// The history is kept as ftc.control.run.realtime's loop keeps the adaptive
+// student's (python/ftc/control/agents/learned/adaptive_policy.py): a state
+// acted on that opens an episode (step 0, another episode, or the session's
+// first) starts it; any other state acted on is pushed with the command sent
+// on the state acted on before it. States never acted on (newest-wins) do not
+// enter it, as they do not in Python.
 //
 // The node opens a control session of its own (OPEN with a random 64-bit id,
 // re-sent until the plant answers in it) and acts only on states of that
@@ -40,6 +49,7 @@
 #include "plant/lcm/signing.h"
 #include "plant/lcm/wire.h"
 #include "policy/policy.h"
+#include "policy/push_wire.h"
 
 namespace {
 
@@ -52,6 +62,15 @@ constexpr std::int64_t kMaxSeqJump = 1 << 16;
 // the session came for kSessionLost (a restarted plant follows no session).
 constexpr auto kOpenRetry = std::chrono::milliseconds(250);
 constexpr auto kSessionLost = std::chrono::seconds(2);
+// The socket's receive buffer unless the URL sets one (recv_buf_size): a
+// pushed student (143 kB) reaches the node as ~100 UDP fragments of 1.4 kB,
+// which the kernel's default buffer (rmem_default, 208 kB, counting each
+// fragment at its allocation's size) did not always hold while the node was
+// not scheduled on a loaded machine, and a push with one fragment lost is lost
+// whole (measured under a load of 11 to 14: 3 of 6 runs of
+// test_node_student.py lost a push, 0 of 4 with this buffer). 4 MB holds
+// several maximal pushes (1 MB each).
+constexpr int kReceiveBufferBytes = 4 << 20;
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
@@ -156,6 +175,7 @@ class Node {
   void Open(Clock::time_point now) {
     if (open_) {  // the plant stopped answering in our session: open it again
       open_ = false;
+      acted_ = false;  // the history starts again with the next state acted on
       std::cerr << "policy_node: no state of session " << session_ << " for "
                 << std::chrono::duration_cast<std::chrono::seconds>(kSessionLost).count()
                 << " s; opening it again\n";
@@ -221,41 +241,74 @@ class Node {
     received_ = arrived;
   }
 
+  // A push's fields, whichever version of the message carried them.
+  struct Push {
+    std::int64_t utime = 0, version = 0, checksum = 0;
+    int window = 0;
+    bool v2 = false;
+    std::vector<int> widths;
+    std::vector<float> params;
+  };
+
+  // Decodes a policy_v2_t (told by its fingerprint) or a policy_t; "" or the reason.
+  static std::string DecodePush(const void* data, std::size_t size, Push* out) {
+    std::string why;
+    if (ftc::policy::IsPolicyV2(data, size)) {
+      ftc::policy_v2_t m{};
+      if (!ftc::policy::DecodePolicyV2(data, size, &m, &why)) return why;
+      *out = {m.utime, m.version, m.checksum, m.window, true,
+              std::vector<int>(m.widths.begin(), m.widths.end()),
+              std::vector<float>(m.params.begin(), m.params.end())};
+      return {};
+    }
+    ftc::policy_t m{};
+    if (!ftc::wire::Decode(data, size, &m, &why))
+      return why + " (nor a " + ftc::policy_v2_t::getTypeName() + ")";
+    *out = {m.utime, m.version, m.checksum, 0, false,
+            std::vector<int>(m.widths.begin(), m.widths.end()),
+            std::vector<float>(m.params.begin(), m.params.end())};
+    return {};
+  }
+
   void OnPolicy(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
-    ftc::policy_t msg{};
+    Push m;
     std::string why;
     std::size_t size = 0;
     if (!Authentic(rbuf, channel, &size)) {
       Ack(0, 0, "bad signature, replayed or stale");
       return;
     }
-    if (!ftc::wire::Decode(rbuf->data, size, &msg, &why)) {
+    why = DecodePush(rbuf->data, size, &m);
+    if (!why.empty()) {
       ++bad_decode_;
       why = "undecodable push (" + std::to_string(rbuf->data_size) + " bytes): " + why;
       log_.Refused("rejected an " + why + " on " + channel);
       Ack(0, 0, why);
       return;
     }
-    const ftc::policy_t* m = &msg;
-    std::vector<int> widths(m->widths.begin(), m->widths.end());
-    std::vector<float> params(m->params.begin(), m->params.end());
-    if (m->version <= policy_->version()) {
-      why = "version " + std::to_string(m->version) + " is not above the running " +
+    const auto expected = m.v2 ? ftc::policy::Checksum(m.widths, m.params, m.window)
+                               : ftc::policy::Checksum(m.widths, m.params);
+    if (m.version <= policy_->version()) {
+      why = "version " + std::to_string(m.version) + " is not above the running " +
             std::to_string(policy_->version());
-    } else if (static_cast<std::uint64_t>(m->checksum) != ftc::policy::Checksum(widths, params)) {
+    } else if (static_cast<std::uint64_t>(m.checksum) != expected) {
       why = "checksum mismatch (corrupted in transit or made by other code)";
     }
     std::unique_ptr<ftc::policy::Policy> next;
-    if (why.empty()) next = ftc::policy::Policy::Make(widths, params, m->version, &why);
+    if (why.empty())
+      next = ftc::policy::Policy::Make(m.window, std::move(m.widths), std::move(m.params),
+                                       m.version, &why);
     if (!next) {
-      std::cerr << "policy_node: rejected policy version " << m->version << ": " << why
+      std::cerr << "policy_node: rejected policy version " << m.version << ": " << why
                 << "; keeping version " << policy_->version() << "\n";
-      Ack(m->version, m->utime, why);
+      Ack(m.version, m.utime, why);
       return;
     }
     policy_ = std::move(next);  // between two states: the next one is acted on by it
-    std::cerr << "policy_node: policy version " << policy_->version() << " in use\n";
-    Ack(m->version, m->utime, "");
+    std::cerr << "policy_node: policy version " << policy_->version() << " in use"
+              << (policy_->window() ? " (window " + std::to_string(policy_->window()) + ")" : "")
+              << "\n";
+    Ack(m.version, m.utime, "");
   }
 
   // Answers a push: accepted when `why` is empty.
@@ -275,7 +328,14 @@ class Node {
   void Act() {
     std::array<double, ftc::policy::kTanks> level{};
     std::copy(pending_->level.begin(), pending_->level.end(), level.begin());
-    const auto u = policy_->Act(level);
+    if (!acted_ || pending_->step == 0 || pending_->episode != episode_)
+      history_.Start(level);
+    else
+      history_.Push(level, last_u_);
+    const auto u = policy_->Act(history_);
+    acted_ = true;
+    episode_ = pending_->episode;
+    last_u_ = u;
     ftc::valve_command_t cmd{};
     cmd.utime = WallMicros();
     cmd.session = session_;
@@ -295,6 +355,10 @@ class Node {
   std::string command_channel_, control_channel_, ack_channel_;
   std::unique_ptr<ftc::policy::Policy> policy_;
   std::optional<ftc::plant_state_t> pending_;
+  ftc::policy::History history_;  // of the states acted on in this episode
+  bool acted_ = false;            // on a state of this session
+  std::int32_t episode_ = 0;      // of the state acted on last
+  std::array<std::int8_t, ftc::policy::kTanks> last_u_{};  // the command sent on it
   Clock::time_point received_;
   const std::int64_t session_ = RandomSession();
   bool open_ = false;
@@ -326,7 +390,8 @@ int main(int argc, char** argv) {
   std::string policy_path, url, prefix = "FTC_", latency_log, key_file;
   std::int64_t max_steps = 0;
   CLI::App app{"The embedded controller: flies an exported policy (ftc.export --weights) on a "
-               "plant in real-time mode over LCM; takes pushed policy_t weights between steps"};
+               "plant in real-time mode over LCM; takes pushed policy_t / policy_v2_t weights "
+               "between steps"};
   app.add_option("--policy", policy_path, "weights file written by ftc.export --weights")
       ->required();
   app.add_option("--lcm-url", url, "LCM provider URL (must keep ttl=0: loopback only)")
@@ -362,6 +427,8 @@ int main(int argc, char** argv) {
     std::cerr << "policy_node: " << error << "\n";
     return 2;
   }
+  if (url.find("recv_buf_size=") == std::string::npos)
+    url += "&recv_buf_size=" + std::to_string(kReceiveBufferBytes);  // (ttl=0 gave it a '?')
   lcm::LCM lcm(url);
   if (!lcm.good()) {
     std::cerr << "policy_node: cannot open LCM at " << url << "\n";

@@ -104,6 +104,31 @@ TEST(Dynamics, MemberWhosePumpOutrunsTheGroupLeavesIt) {
   EXPECT_NEAR(dx[1], 0.0, kExact);
 }
 
+TEST(Dynamics, AMemberThatLeftATieRejoinsWhenItsPumpNoLongerOutrunsTheGroup) {
+  // Tanks 2 and 3 tied at 0.8, tank 1 a sink at x1: q1 = 0.1 (0.8 - x1). Tank 3
+  // pumps 0.05 and tank 2 nothing, so with tank 3 in the group rho = (q1 + 0.05) / 2
+  // and tank 3 leaves while 0.05 > rho, i.e. q1 < 0.05, x1 > 0.3. Its root is that
+  // condition, 0.05 - rho (less half the leave margin): 5e-4 at x1 = 0.31, whether
+  // tank 3 sits one ulp above, at or one ulp below tank 2 (the tie's rounding
+  // cannot put it on the wrong side, as it could the gap x2 - x3), and -5e-4 once
+  // tank 1 is at 0.29, where ComputeMode takes tank 3 back into the group.
+  const PlantParams p;
+  const Valves u = MakeValves({1, 1, 1, 0, 0, 0});
+  const double margin = 0.5 * 1e-12 * 0.05;  // dynamics.cpp: half of kLeaveMargin * s
+  for (const double x3 : {std::nextafter(0.8, 1.0), 0.8, std::nextafter(0.8, 0.0)}) {
+    const Vec6 x = MakeLevels({0.31, 0.8, x3, 1.0, 1.0, 1.0});
+    const Mode mode = ComputeMode(x, u, p);
+    ASSERT_TRUE(mode.sink[2] && mode.left[2]);
+    ASSERT_TRUE(mode.source[1] && !mode.left[0]);
+    EXPECT_NEAR(RootFunctions(x, u, p, mode)[kTanks + 2], 5e-4 - margin, 1e-15);
+    Vec6 later = x;
+    later[0] = 0.29;
+    EXPECT_NEAR(RootFunctions(later, u, p, mode)[kTanks + 2], -5e-4 - margin, 1e-15);
+    const Mode rejoined = ComputeMode(later, u, p);
+    EXPECT_TRUE(rejoined.source[1] && rejoined.source[2] && !rejoined.left[2]);
+  }
+}
+
 TEST(Dynamics, AMemberThatDrawsNothingStaysWhenTheTieIsBrokenByOneUlp) {
   // As above, but tank 3 one ulp above tank 2 (where a located root can leave
   // them): tank 3 leaves, and the sink it becomes sits above the group, so its

@@ -13,6 +13,7 @@
 
 #include "plant/core/degradation.h"
 #include "plant/core/integrator.h"
+#include "plant/core/linear_step.h"
 
 namespace ftc {
 namespace {
@@ -83,6 +84,45 @@ TEST(Integrator, PumpingMemberLeavesAndTheGapFollowsTheAnalyticLaw) {
   const double x2 = 0.8 - 0.025 * (1 - (1 - std::exp(-0.2)) / 0.2);
   EXPECT_NEAR(r.x[1], x2, kLevelTol);
   EXPECT_NEAR(r.x[1] - r.x[2], 0.25 * (1 - std::exp(-0.2)), kLevelTol);
+}
+
+TEST(Integrator, AMemberThatLeavesATieItJustReachedRejoinsIt) {
+  // Tanks 1, 2 and 5 open. Tank 5 (the source, 0.02 m^3/s to E2 after tank 4's
+  // 0.03) starts `off` above tank 1 and falls onto it; tank 2, a sink `gap`
+  // below, drains at 0.05 - q2 with q2 = 0.1 (x_ref - x2). At the tie tank 5
+  // leaves iff its draw outruns the pair: 0.02 > (q2 + 0.02) / 2, i.e. q2 < 0.02.
+  // The gap x_ref - x2 grows at 0.04 - 1.5 q2 ~ 0.01 m/s, so where the tie comes
+  // with q2 just below 0.02, q2 passes 0.02 within milliseconds, tank 5 rejoins
+  // after a dip of ~1e-9 m, and from then on can never leave again (q2 only
+  // grows): the exact solution ends the step with tanks 1 and 5 tied. The
+  // scan puts the tie on both sides of q2 = 0.02. Before the rejoin was the
+  // leave condition (dynamics.cpp, RootsOf) 222 of these 603 steps missed it
+  // (tank 5 ended ~4e-4 m above tank 1, or over 1000 events were refused as
+  // chattering: the tie's gap root, in the levels' rounding noise, crossing 0).
+  PlantParams p;
+  p.pump[3] = 0.03;
+  const Valves u = MakeValves({1, 1, 0, 0, 1, 0});
+  StepIntegrator integrator;
+  int cases = 0;
+  for (const double off : {1e-4, 3e-4, 1e-3}) {
+    for (int k = 0; k <= 200; ++k) {
+      const double gap = 0.2 - off * (0.7 + 0.2 * k / 200.0);
+      const Vec6 x0 = MakeLevels({0.5, 0.5 - gap, 0.0, 0.8, 0.5 + off, 0.8});
+      const StepResult r = integrator.Step(x0, u, p);
+      // tied: CVODE's levels within a few atol (1e-10 m) of each other, with
+      // margin; the missed rejoin gave 4e-4 m
+      EXPECT_NEAR(r.x[4], r.x[0], 1e-8) << "off " << off << " gap " << gap;
+      EXPECT_LE(r.events, 10) << "off " << off << " gap " << gap;
+      // fuel balance: exact up to rounding (integrator.cpp's linear invariant)
+      EXPECT_NEAR(x0.sum() - r.x.sum(), r.supplied.sum(), 1e-12);
+      // the closed form, exact where it locates the same switches
+      const LinearStepResult closed = LinearConduitStep(x0, u, p, 1.0);
+      ASSERT_EQ(closed.t, 1.0);
+      EXPECT_LT((closed.x - r.x).cwiseAbs().maxCoeff(), kLevelTol);
+      ++cases;
+    }
+  }
+  EXPECT_EQ(cases, 603);
 }
 
 TEST(Integrator, SinkReachingTheConduitLevelSwapsRoles) {

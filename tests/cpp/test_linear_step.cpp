@@ -23,11 +23,11 @@ Valves FromCode(int code) {
 TEST(LinearConduitStep, AMemberThatLeavesATiedGroupAtTheStartRejoinsIt) {
   // Full tanks, all open ones tied. A member whose pump draws more than its share
   // of the group's rate while the sinks' inflow is still 0 leaves the group at
-  // t = 0 (its root x_lead - x_k starts at 0), then catches up with it as the
-  // inflow grows and rejoins: the two end the step tied, as CVODE and the
-  // independent reference simulation (tests/python/reference_sim.py) give them
-  // (0.99887458 and 0.99361839). Without watching that root from the start, the
-  // closed form let the member rise past the group: a split of 2e-3 and 7e-5 m.
+  // t = 0, then rejoins it as the inflow grows (its root, the leave condition,
+  // falls to 0): the two end the step tied, as CVODE and the independent
+  // reference simulation (tests/python/reference_sim.py) give them (0.99887458
+  // and 0.99361839). A closed form that missed the rejoin let the member rise
+  // past the group: a split of 2e-3 and 7e-5 m.
   struct Case {
     int code;
     Vec6 resistance, pump;
@@ -54,6 +54,35 @@ TEST(LinearConduitStep, AMemberThatLeavesATiedGroupAtTheStartRejoinsIt) {
     ASSERT_EQ(closed.t, 1.0);
     // CVODE's tolerance (2.5e-8 m per step measured, integrator.cpp), with margin
     EXPECT_LT((closed.x - reference.x).cwiseAbs().maxCoeff(), 1e-7) << "valves " << c.code;
+  }
+}
+
+TEST(LinearConduitStep, AMemberThatLeavesATieFromOneUlpAboveItRejoinsIt) {
+  // Tanks 1, 2 and 5 open; tanks 1 and 5 tied at 0.5, tank 5 one ulp above, at
+  // or one ulp below tank 1 (where a located root leaves a tie). Tank 5 draws
+  // 0.02 (E2's demand after tank 4's 0.03), tank 1 nothing, and tank 2, a sink
+  // 0.2 - rise below, receives q2 = 0.1 (0.2 - rise) < 0.02: tank 5 leaves the
+  // pair at once, and rejoins it when q2, growing at ~1e-3 m^3/s^2, passes its
+  // draw, after a dip of 0.005 rise^2 (below 1e-8 m; test_integrator.cpp's
+  // family). The exact solution ends the step tied; the closed form rejoins at
+  // the dip's bottom where it is within the tie tolerance (1e-9 m), and CVODE
+  // agrees. One ulp above, a rejoin root that was the gap x1 - x5 started
+  // below 0, was never watched, and tank 5 ended 4.4e-4 m above tank 1.
+  PlantParams p;
+  p.pump[3] = 0.03;
+  const Valves u = FromCode(0b010011);
+  for (const double rise : {2e-6, 5e-6, 1e-5, 2e-5, 5e-5}) {
+    for (const double x5 : {std::nextafter(0.5, 1.0), 0.5, std::nextafter(0.5, 0.0)}) {
+      Vec6 x0;
+      x0 << 0.5, 0.3 + rise, 0.0, 0.8, x5, 0.8;
+      const LinearStepResult closed = LinearConduitStep(x0, u, p, 1.0);
+      ASSERT_EQ(closed.t, 1.0);
+      EXPECT_LE(std::abs(closed.x[4] - closed.x[0]), 1e-9) << "rise " << rise;
+      StepIntegrator cvode;
+      const StepResult reference = cvode.Step(x0, u, p, 1.0);
+      // CVODE's tolerance (2.5e-8 m per step measured, integrator.cpp), with margin
+      EXPECT_LT((closed.x - reference.x).cwiseAbs().maxCoeff(), 1e-7) << "rise " << rise;
+    }
   }
 }
 

@@ -1,5 +1,6 @@
 // The embedded controller's policy (cpp/policy/policy.h): its arithmetic on
-// hand-made weights with known actions, and the checks that refuse bad ones.
+// hand-made weights with known actions, the history window's order, and the
+// checks that refuse bad ones.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -9,6 +10,7 @@
 #include <sstream>
 
 #include "policy/policy.h"
+#include "policy/push_wire.h"
 
 namespace ftc::policy {
 namespace {
@@ -97,9 +99,138 @@ TEST(Policy, ReadsAWeightsFileAndNamesWhatIsWrongWithABadOne) {
   EXPECT_FALSE(Policy::FromFile(Write("cut.txt", text.substr(0, text.size() / 2)), &error));
   EXPECT_NE(error.find("cut.txt"), std::string::npos) << error;
   EXPECT_FALSE(Policy::FromFile(Write("other.txt", "hello\n"), &error));
-  EXPECT_NE(error.find("not an ftc-policy 1"), std::string::npos) << error;
+  EXPECT_NE(error.find("not an ftc-policy weights file"), std::string::npos) << error;
   EXPECT_FALSE(Policy::FromFile(::testing::TempDir() + "missing.txt", &error));
   EXPECT_NE(error.find("cannot open"), std::string::npos) << error;
+}
+
+// One dense layer from a window of 2 steps (24 inputs) to 6 logits that copies
+// input `from + i` to logit i (W = a shifted identity, b = 0).
+std::vector<float> Picks(int inputs, int from) {
+  std::vector<float> p(static_cast<std::size_t>(inputs + 1) * 6, 0.0f);
+  for (int i = 0; i < 6; ++i) p[static_cast<std::size_t>((from + i) * 6 + i)] = 1.0f;
+  return p;
+}
+
+TEST(History, TheWindowIsNewestFirstLevelsThenValves) {
+  // slot 0 is the input's first 12 floats (levels, then the valves commanded
+  // before them), slot 1 the next 12: a policy reading slot 1's levels opens
+  // where the tank was above half one step ago, one reading slot 0's valves
+  // repeats the last command, one reading slot 0's levels looks at now
+  std::string error;
+  auto older = Policy::Make(2, {24, 6}, Picks(24, 12), 1, &error);
+  auto command = Policy::Make(2, {24, 6}, Picks(24, 6), 1, &error);
+  auto now = Policy::Make(2, {24, 6}, Picks(24, 0), 1, &error);
+  ASSERT_TRUE(older && command && now) << error;
+  History h;
+  h.Start({0.2, 0.7, 0.2, 0.7, 0.2, 0.7});
+  EXPECT_EQ(older->Act(h), (std::array<std::int8_t, 6>{0, 1, 0, 1, 0, 1}));
+  EXPECT_EQ(command->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));  // closed
+  h.Push({0.9, 0.1, 0.9, 0.1, 0.9, 0.1}, {1, 1, 0, 0, 1, 0});
+  EXPECT_EQ(now->Act(h), (std::array<std::int8_t, 6>{1, 0, 1, 0, 1, 0}));
+  EXPECT_EQ(older->Act(h), (std::array<std::int8_t, 6>{0, 1, 0, 1, 0, 1}));
+  EXPECT_EQ(command->Act(h), (std::array<std::int8_t, 6>{1, 1, 0, 0, 1, 0}));
+  // around the ring many times: still the last two steps, in order
+  for (int k = 0; k < 3 * kMaxWindow + 1; ++k)
+    h.Push({0.2, 0.2, 0.2, 0.2, 0.2, 0.2}, {0, 0, 0, 0, 0, 0});
+  h.Push({0.8, 0.8, 0.8, 0.8, 0.8, 0.8}, {0, 1, 0, 1, 0, 1});
+  EXPECT_EQ(now->Act(h), (std::array<std::int8_t, 6>{1, 1, 1, 1, 1, 1}));
+  EXPECT_EQ(older->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
+  EXPECT_EQ(command->Act(h), (std::array<std::int8_t, 6>{0, 1, 0, 1, 0, 1}));
+  // a new episode: every slot its first levels, the valves closed
+  h.Start({0.6, 0.6, 0.6, 0.4, 0.4, 0.4});
+  EXPECT_EQ(older->Act(h), (std::array<std::int8_t, 6>{1, 1, 1, 0, 0, 0}));
+  EXPECT_EQ(command->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
+}
+
+TEST(History, ScalesAsNumPysFloat32) {
+  // float32 first, clipped, 2 x - 1 in float32: 0.1 as float32 is
+  // 0.100000001490116..., so the input is 2 * that - 1 rounded to float32
+  std::array<float, 12> out{};
+  History h;
+  h.Start({0.1, -0.5, 1.5, 0.0, 1.0, 0.3});
+  h.Newest(1, out.data());
+  EXPECT_EQ(out[0], 2.0f * 0.1f - 1.0f);
+  EXPECT_EQ(out[1], -1.0f);  // clipped to 0
+  EXPECT_EQ(out[2], 1.0f);   // clipped to 1
+  EXPECT_EQ(out[5], 2.0f * 0.3f - 1.0f);
+  for (int i = 6; i < 12; ++i) EXPECT_EQ(out[i], -1.0f);
+}
+
+TEST(Policy, AWindowNeedsItsInputWidth) {
+  std::string error;
+  EXPECT_FALSE(Policy::Make(12, {6, 6}, Identity(), 1, &error));
+  EXPECT_EQ(error, "widths must run from 144 (a window of 12 steps of levels and valves) to 6 "
+                   "(the valves)");
+  EXPECT_FALSE(Policy::Make(kMaxWindow + 1, {6, 6}, Identity(), 1, &error));
+  EXPECT_NE(error.find("a window of 257 steps (allowed: 0..256)"), std::string::npos) << error;
+  EXPECT_FALSE(Policy::Make(-1, {6, 6}, Identity(), 1, &error));
+}
+
+TEST(Policy, ReadsAWindowedWeightsFile) {
+  const auto p = Picks(24, 12);
+  const std::vector<int> widths{24, 6};
+  auto text = [&](std::uint64_t sum, const std::string& window_line) {
+    std::ostringstream out;
+    out << "ftc-policy 2\nversion 7\n" << window_line << "widths 24 6\nparams " << p.size()
+        << "\n";
+    for (float v : p) out << v << " ";
+    out << "\nchecksum " << std::hex << sum << "\n";
+    return out.str();
+  };
+  std::string error;
+  auto policy = Policy::FromFile(Write("w.txt", text(Checksum(widths, p, 2), "window 2\n")),
+                                 &error);
+  ASSERT_TRUE(policy) << error;
+  EXPECT_EQ(policy->window(), 2);
+  EXPECT_EQ(policy->version(), 7);
+  // the checksum covers the window, and the policy_t checksum is not accepted
+  EXPECT_NE(Checksum(widths, p, 2), Checksum(widths, p, 3));
+  EXPECT_FALSE(Policy::FromFile(Write("w3.txt", text(Checksum(widths, p, 2), "window 3\n")),
+                                &error));
+  EXPECT_NE(error.find("checksum mismatch"), std::string::npos) << error;
+  EXPECT_FALSE(Policy::FromFile(Write("w1.txt", text(Checksum(widths, p), "window 2\n")), &error));
+  EXPECT_NE(error.find("checksum mismatch"), std::string::npos) << error;
+  EXPECT_FALSE(Policy::FromFile(Write("w0.txt", text(Checksum(widths, p, 2), "")), &error));
+  EXPECT_NE(error.find("no window line"), std::string::npos) << error;
+}
+
+TEST(PushWire, APolicyV2IsCheckedBeforeDecodingAndToldFromAPolicyT) {
+  policy_v2_t m{};
+  m.version = 3;
+  m.window = 2;
+  m.num_widths = 2;
+  m.widths = {24, 6};
+  m.params = Picks(24, 12);
+  m.num_params = static_cast<std::int32_t>(m.params.size());
+  std::vector<unsigned char> buf(static_cast<std::size_t>(m.getEncodedSize()));
+  m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+  policy_v2_t out{};
+  std::string why;
+  ASSERT_TRUE(DecodePolicyV2(buf.data(), buf.size(), &out, &why)) << why;
+  EXPECT_EQ(out.window, 2);
+  EXPECT_EQ(out.params, m.params);
+  EXPECT_TRUE(IsPolicyV2(buf.data(), buf.size()));
+  // num_params (after the fingerprint, utime, version, window, num_widths and
+  // the widths) declared as 250 million: refused by the count, nothing allocated
+  const std::size_t at = 8 + 8 + 8 + 4 + 4 + 2 * 4;
+  std::vector<unsigned char> hostile(buf.begin(), buf.begin() + static_cast<long>(at) + 4);
+  hostile[at] = 0x0e;
+  hostile[at + 1] = 0xe6;
+  hostile[at + 2] = 0xb2;
+  hostile[at + 3] = 0x80;
+  EXPECT_FALSE(DecodePolicyV2(hostile.data(), hostile.size(), &out, &why));
+  EXPECT_EQ(why, "num_params is 250000000 (allowed: 0..262144)");
+  EXPECT_FALSE(DecodePolicyV2(buf.data(), buf.size() - 1, &out, &why));
+  policy_t old{};
+  old.num_widths = 2;
+  old.widths = {6, 6};
+  old.params = Identity();
+  old.num_params = static_cast<std::int32_t>(old.params.size());
+  std::vector<unsigned char> v1(static_cast<std::size_t>(old.getEncodedSize()));
+  old.encode(v1.data(), 0, static_cast<int>(v1.size()));
+  EXPECT_FALSE(IsPolicyV2(v1.data(), v1.size()));
+  EXPECT_FALSE(IsPolicyV2(v1.data(), 4));  // shorter than a fingerprint
 }
 
 }  // namespace

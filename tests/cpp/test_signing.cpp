@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <cstdint>
 #include <cstdio>
@@ -80,7 +81,7 @@ TEST(Signing, ASignedMessageVerifiesOnceAndOnlyAsSent) {
   ASSERT_EQ(msg.size(), kPayload.size() + kTrailerBytes);
   std::size_t n = 0;
   {
-    Verifier v(kKey);
+    Verifier v(kKey, kDefaultWindowUs, 0);
     EXPECT_EQ(v.Verify(kChannel, msg.data(), msg.size(), kNow, &n), Verdict::kOk);
     EXPECT_EQ(n, kPayload.size());
     // the same bytes again: a replay
@@ -89,14 +90,14 @@ TEST(Signing, ASignedMessageVerifiesOnceAndOnlyAsSent) {
   for (std::size_t i = 0; i < msg.size(); ++i) {  // any tampered byte
     auto bad = msg;
     bad[i] ^= 0x01;
-    Verifier v(kKey);
+    Verifier v(kKey, kDefaultWindowUs, 0);
     EXPECT_EQ(v.Verify(kChannel, bad.data(), bad.size(), kNow, &n), Verdict::kBadSignature) << i;
   }
-  Verifier v(kKey);
+  Verifier v(kKey, kDefaultWindowUs, 0);
   EXPECT_EQ(v.Verify("RUN_CONTROL", msg.data(), msg.size(), kNow, &n), Verdict::kBadSignature);
   EXPECT_EQ(v.Verify(kChannel, kPayload.data(), kPayload.size(), kNow, &n),
             Verdict::kBadSignature);  // unsigned
-  Verifier other(Key(32, 0x43));
+  Verifier other(Key(32, 0x43), kDefaultWindowUs, 0);
   EXPECT_EQ(other.Verify(kChannel, msg.data(), msg.size(), kNow, &n), Verdict::kBadSignature);
 }
 
@@ -105,7 +106,7 @@ TEST(Signing, TimestampsRisePerLinkAndOldOnesAreStale) {
   const auto first = signer.Sign(kChannel, kPayload.data(), kPayload.size(), kNow);
   const auto second = signer.Sign(kChannel, kPayload.data(), kPayload.size(), kNow);  // same clock
   std::size_t n = 0;
-  Verifier v(kKey, 30'000'000);
+  Verifier v(kKey, 30'000'000, 0);
   EXPECT_EQ(v.Verify(kChannel, second.data(), second.size(), kNow, &n), Verdict::kOk);
   // the earlier one after the later: a replay, though never seen
   EXPECT_EQ(v.Verify(kChannel, first.data(), first.size(), kNow, &n), Verdict::kReplay);
@@ -122,6 +123,29 @@ TEST(Signing, TimestampsRisePerLinkAndOldOnesAreStale) {
   EXPECT_EQ(v.Verify(kChannel, fresh.data(), fresh.size(), kNow + 29'000'000, &n), Verdict::kOk);
 }
 
+TEST(Signing, WhatWasSignedBeforeTheReceiverStartedIsAReplay) {
+  // a plant or node restarted with the same key file has seen no timestamp of
+  // any link: its start time is every link's floor
+  Signer signer(kKey, 5);
+  const auto before = signer.Sign(kChannel, kPayload.data(), kPayload.size(), kNow);
+  const auto after = signer.Sign(kChannel, kPayload.data(), kPayload.size(), kNow + 2'000);
+  std::size_t n = 0;
+  Verifier restarted(kKey, kDefaultWindowUs, kNow + 1'000);
+  EXPECT_EQ(restarted.Verify(kChannel, before.data(), before.size(), kNow + 3'000, &n),
+            Verdict::kReplay);
+  EXPECT_EQ(restarted.Verify(kChannel, after.data(), after.size(), kNow + 3'000, &n),
+            Verdict::kOk);
+  // by default the floor is this process's start: a message signed now passes,
+  // one signed before it started does not
+  Signer now_signer(kKey, 6);
+  const auto fresh =
+      now_signer.Sign(kChannel, kPayload.data(), kPayload.size(), WallMicros());
+  Verifier v(kKey);
+  EXPECT_EQ(v.Verify(kChannel, fresh.data(), fresh.size(), WallMicros(), &n), Verdict::kOk);
+  EXPECT_EQ(v.Verify(kChannel, after.data(), after.size(), kNow + 3'000, &n), Verdict::kReplay);
+  EXPECT_LE(kProcessStartUs, WallMicros());
+}
+
 TEST(Signing, AKeyFileOthersCanReadIsRefused) {
   const std::string path = testing::TempDir() + "/ftc_bus_key";
   std::ofstream(path) << std::string(64, 'a') << "\n";
@@ -134,6 +158,42 @@ TEST(Signing, AKeyFileOthersCanReadIsRefused) {
   std::ofstream(path) << "abcd\n";
   EXPECT_NE(LoadKey(path, &key).find("at least 32 hex digits"), std::string::npos);
   std::remove(path.c_str());
+}
+
+TEST(Signing, AKeyFileIsARegularFileOfAtMost4096Bytes) {
+  // what a careless or hostile setup may give as --key-file: each a one-line
+  // refusal naming the file (a directory threw out of main, exit 134; a FIFO
+  // blocked the process for good; a device would be read without end)
+  const std::string dir = testing::TempDir() + "/ftc_key_cases";
+  mkdir(dir.c_str(), 0700);
+  Key key;
+  EXPECT_NE(LoadKey(dir, &key).find(dir + ": the key file is not a regular file"),
+            std::string::npos);
+  const std::string fifo = dir + "/fifo";
+  std::remove(fifo.c_str());
+  ASSERT_EQ(mkfifo(fifo.c_str(), 0600), 0);
+  EXPECT_NE(LoadKey(fifo, &key).find("not a regular file"), std::string::npos);
+  const std::string empty = dir + "/empty";
+  std::ofstream(empty).close();
+  chmod(empty.c_str(), 0600);
+  EXPECT_NE(LoadKey(empty, &key).find("at least 32 hex digits"), std::string::npos);
+  const std::string big = dir + "/big";
+  std::ofstream(big) << std::string(5000, 'a');
+  chmod(big.c_str(), 0600);
+  EXPECT_NE(LoadKey(big, &key).find("5000 bytes"), std::string::npos);
+  // a symbolic link is followed: its target's mode and contents count
+  const std::string good = dir + "/good", link = dir + "/link";
+  std::ofstream(good) << std::string(64, 'b') << "\n";
+  chmod(good.c_str(), 0600);
+  std::remove(link.c_str());
+  ASSERT_EQ(symlink(good.c_str(), link.c_str()), 0);
+  EXPECT_EQ(LoadKey(link, &key), "");
+  EXPECT_EQ(key, Key(32, 0xbb));
+  chmod(good.c_str(), 0640);
+  EXPECT_NE(LoadKey(link, &key).find("readable or writable by others"), std::string::npos);
+  EXPECT_NE(LoadKey(dir + "/none", &key).find("cannot read the key file"), std::string::npos);
+  for (const auto& f : {fifo, empty, big, link, good}) std::remove(f.c_str());
+  rmdir(dir.c_str());
 }
 
 }  // namespace

@@ -55,6 +55,9 @@ def _private_run_cache(tmp_path_factory):
     import os
 
     os.environ["FTC_RUN_CACHE"] = str(tmp_path_factory.mktemp("run-cache"))
+    # SB3's learn() makes a log directory (tempdir/SB3-<time>) when no logger is
+    # given: keep those in this session's tmp too, not one left in /tmp per call
+    os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3-logs"))
 
 
 @pytest.fixture

@@ -25,7 +25,7 @@ import pytest
 from ftc.common.build_info import plant_binary, policy_node_binary
 from ftc.plant import launch, private_lcm_url, private_prefix
 from ftc.plant.realtime_link import RealtimeLink
-from ftc.plant.wire import check_state
+from ftc.plant.wire import check_state, decode_state
 from ftc.plant_control_t import plant_control_t
 from ftc.plant_state_t import plant_state_t
 from ftc.policy_t import policy_t
@@ -79,6 +79,15 @@ def _peak_rss_mb(pid: int) -> float:
     raise AssertionError("no VmHWM")
 
 
+def _logged_state(k: int) -> plant_state_t:
+    """Step k of a recorded run of the plant: 6 tanks draining 0.01 a step."""
+    s = plant_state_t()
+    s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
+    s.level = s.true_level = [1.0 - 0.01 * k] * 6
+    s.valve, s.deficit = [0] * 6, [0.0, 0.0]
+    return s
+
+
 def test_python_state_check_refuses_what_would_crash_a_decoder():
     assert check_state(_state()) is None
     bad = bytearray(_state())
@@ -87,6 +96,30 @@ def test_python_state_check_refuses_what_would_crash_a_decoder():
     assert "fingerprint" in check_state(_policy_header(0, 0, 40))
     assert "bytes where" in check_state(_state()[:-1])
     assert check_state(b"") is not None
+    # well formed but not this plant's shape: refused by decode_state
+    assert check_state(_state(tanks=3)) is None
+    assert decode_state(_state(tanks=3)) == (None, "num_tanks 3, num_engines 2 (this plant has "
+                                                   "6 and 2)")
+    assert decode_state(_state())[0].num_tanks == 6
+
+
+def test_replay_skips_a_state_of_another_shape(tmp_path):
+    """A neighbour's well-formed state of 3 tanks on the recorded STATE channel:
+    ftc.replay ended in a traceback (exit 1, in read_log); it is skipped and
+    named (ftc.replay's summary prints the first such message)."""
+    from ftc.plant.log import read_log
+
+    path = tmp_path / "shapes.lcmlog"
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    for k in range(11):
+        log.write_event(1000 * k, "RUN_STATE", _logged_state(k).encode())
+    other = plant_state_t.decode(_state(0, 12, tanks=3))
+    other.step = 11  # the step after the last: a new row, of 3 levels
+    log.write_event(20_000, "RUN_STATE", other.encode())
+    log.close()
+    traj = read_log(path)
+    assert len(traj) == 10 and traj.undecodable == 1
+    assert "num_tanks 3, num_engines 2" in traj.first_undecodable
 
 
 def test_the_policy_node_survives_hostile_messages_with_bounded_memory(tmp_path, scenarios):
@@ -343,12 +376,14 @@ def test_forged_states_neither_stop_nor_poison_a_realtime_controller():
             lc.publish(link.prefix + "STATE", _state(link.session, seq))
         lc.publish(link.prefix + "STATE", _state(0, last + 1))  # another session
         lc.publish(link.prefix + "STATE", b"\x00" * 40)
+        # well formed, the session's next seq, but 3 tanks: no state of this plant
+        lc.publish(link.prefix + "STATE", _state(link.session, last + 1, tanks=3))
         got = []
         while len(got) < 10:
             got += link.next_states()
         seqs = [s.seq for s in got]
         assert seqs == list(range(last + 1, last + 1 + len(seqs)))  # the plant's, in order
-        assert link.refused == {"bad decode": 1, "other session": 1, "stale": 2, "seq jump": 1,
+        assert link.refused == {"bad decode": 2, "other session": 1, "stale": 2, "seq jump": 1,
                                 "bad signature": 0, "replay": 0, "old timestamp": 0}
     finally:
         link.close()
@@ -439,18 +474,30 @@ def test_python_signing_matches_rfc_4231_and_refuses_tamper_replay_and_stale(tmp
     assert hmac.new(b"Jefe", b"what do ya want for nothing?", hashlib.sha256).hexdigest() == \
         "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
     key, now = bytes(range(32)), 1_760_000_000_000_000
-    sender, receiver = Auth(key), Auth(key)
+
+    def receiver_since(start: int = 0) -> Auth:  # a receiver that started at `start`
+        return Auth(key, not_before_us=start)
+
+    sender, receiver = Auth(key), receiver_since()
     msg = sender.sign("X_COMMAND", b"payload", now)
     assert receiver.verify("X_COMMAND", msg, now) == (b"payload", "")
     assert receiver.verify("X_COMMAND", msg, now) == (None, "replay")
     for i in range(len(msg)):
         bad = bytearray(msg)
         bad[i] ^= 1
-        assert Auth(key).verify("X_COMMAND", bytes(bad), now)[1] == "bad signature"
-    assert Auth(key).verify("X_CONTROL", msg, now)[1] == "bad signature"
-    assert Auth(key).verify("X_COMMAND", b"payload", now)[1] == "bad signature"
+        assert receiver_since().verify("X_COMMAND", bytes(bad), now)[1] == "bad signature"
+    assert receiver_since().verify("X_CONTROL", msg, now)[1] == "bad signature"
+    assert receiver_since().verify("X_COMMAND", b"payload", now)[1] == "bad signature"
     late = sender.sign("X_COMMAND", b"payload", now)
-    assert Auth(key).verify("X_COMMAND", late, now + 31_000_000)[1] == "old timestamp"
+    assert receiver_since().verify("X_COMMAND", late, now + 31_000_000)[1] == "old timestamp"
+    # signed before the receiver started (a restarted one): a replay, though never
+    # seen; signed after: taken. By default a receiver starts with its process.
+    before = sender.sign("X_COMMAND", b"payload", now + 1_000)
+    after = sender.sign("X_COMMAND", b"payload", now + 3_000)
+    assert receiver_since(now + 2_000).verify("X_COMMAND", before, now + 4_000) == (None, "replay")
+    assert receiver_since(now + 2_000).verify("X_COMMAND", after, now + 4_000)[1] == ""
+    assert Auth(key).verify("X_COMMAND", after, now + 4_000) == (None, "replay")
+    assert Auth(key).verify("X_COMMAND", Auth(key).sign("X_COMMAND", b"p"))[1] == ""
     path = tmp_path / "key"
     path.write_text(key.hex())
     path.chmod(0o640)
@@ -583,11 +630,7 @@ def test_replay_reads_a_keyed_plants_signed_states(tmp_path):
     auth, path = Auth(bytes(32)), tmp_path / "signed.lcmlog"
     log = lcm.EventLog(str(path), "w", overwrite=True)
     for k in range(11):
-        s = plant_state_t()
-        s.seq, s.step, s.num_tanks, s.num_engines = k + 1, k, 6, 2
-        s.level = s.true_level = [1.0 - 0.01 * k] * 6
-        s.valve, s.deficit = [0] * 6, [0.0, 0.0]
-        log.write_event(1000 * k, "RUN_STATE", auth.sign("RUN_STATE", s.encode()))
+        log.write_event(1000 * k, "RUN_STATE", auth.sign("RUN_STATE", _logged_state(k).encode()))
     log.write_event(20_000, "RUN_STATE", b"\x05" * 300)  # a neighbour's garbage
     log.close()
     traj = read_log(path)
@@ -664,3 +707,215 @@ def test_with_a_key_a_realtime_run_refuses_everything_a_neighbour_sends(tmp_path
     assert int(row["refused_bad_signature"]) == 5  # the forged states
     assert int(last.bad_signature) == commands  # the plant's own count
     assert "the link refused states (5 bad signature)" in stderr
+
+
+def _control(session: int, seq: int, command: int) -> bytes:
+    msg = plant_control_t()
+    msg.utime, msg.session, msg.seq, msg.command = time.time_ns() // 1000, session, seq, command
+    return msg.encode()
+
+
+def test_with_a_key_a_restarted_plant_refuses_what_was_signed_before_it_started(tmp_path,
+                                                                                 scenarios):
+    """A neighbour without the key records a controller's signed OPEN and command
+    off the bus, and replays them to a plant restarted with the same key file
+    (well within the 30 s window): the new plant has seen no timestamp of that
+    link yet, so only its own start time can tell them replays. They are
+    refused and counted as replays; the plant neither follows that session nor
+    steps."""
+    from ftc.plant.signing import TRAILER_BYTES, Auth, new_key
+
+    url, prefix = private_lcm_url(), private_prefix()
+    key = new_key()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(key.hex())
+    key_file.chmod(0o600)
+    lc = lcm.LCM(url)
+    states: list = []
+    lc.subscribe(prefix + "STATE",
+                 lambda _c, d: states.append(plant_state_t.decode(d[:-TRAILER_BYTES])))
+
+    def start() -> subprocess.Popen:
+        return subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                                 "--lcm-url", url, "--prefix", prefix, "--key-file",
+                                 str(key_file)], stderr=subprocess.PIPE, text=True)
+
+    def ask(auth, channel: str, make, seq: int):
+        """Sends a freshly signed make() until the plant answers seq."""
+        deadline = time.monotonic() + 20
+        while True:
+            assert time.monotonic() < deadline, "the plant does not answer"
+            lc.publish(prefix + channel, auth.sign(prefix + channel, make()))
+            lc.handle_timeout(100)
+            answers = [s for s in states if s.command_seq == seq]
+            if answers:
+                return answers[-1]
+
+    session = 0x5EED
+    controller = Auth(key)
+    plant = start()
+    try:
+        ask(controller, "CONTROL", lambda: _control(session, 1, plant_control_t.OPEN), 1)
+        cmd = valve_command_t()
+        cmd.session, cmd.seq, cmd.num_valves, cmd.valve = session, 2, 6, [1] * 6
+        recorded = [controller.sign(prefix + "CONTROL", _control(session, 1, plant_control_t.OPEN)),
+                    controller.sign(prefix + "COMMAND", cmd.encode())]
+        lc.publish(prefix + "COMMAND", recorded[1])
+        stepped = ask(controller, "CONTROL", lambda: _control(session, 3, plant_control_t.HELLO), 3)
+        assert stepped.step == 1 and stepped.session == session  # the command was applied
+        plant.kill()
+        plant.wait()
+        states.clear()
+        plant = start()
+        other = Auth(key)  # another keyed party: sees the new plant up
+        ask(other, "CONTROL", lambda: _control(0, 1, plant_control_t.HELLO), 1)
+        for data, channel in zip(recorded, ("CONTROL", "COMMAND")):
+            lc.publish(prefix + channel, data)  # the neighbour's replay, byte for byte
+        time.sleep(0.3)
+        after = ask(other, "CONTROL", lambda: _control(0, 2, plant_control_t.HELLO), 2)
+    finally:
+        plant.kill()
+        plant.wait()
+    assert after.session != session and after.step == 0, "the replayed session was followed"
+    assert after.replayed == 2 and after.bad_signature == 0
+
+
+def test_a_key_file_is_a_small_regular_file_everywhere(tmp_path, scenarios):
+    """A directory, a FIFO, an empty or oversized file as --key-file: one line
+    naming the file and exit 2 in every process (a directory threw out of the
+    policy node's and lcm_echo's main, exit 134; a FIFO blocked every process
+    for good). A symbolic link is followed: its target counts."""
+    import os
+
+    from ftc.common.build_info import echo_binary
+    from ftc.plant.signing import load_key, new_key
+
+    key = new_key()
+    cases = {"dir": tmp_path / "dir", "fifo": tmp_path / "fifo", "empty": tmp_path / "empty",
+             "big": tmp_path / "big"}
+    cases["dir"].mkdir(mode=0o700)
+    os.mkfifo(cases["fifo"], 0o600)
+    cases["empty"].write_text("")
+    cases["big"].write_text(key.hex() * 100)
+    good, link = tmp_path / "good", tmp_path / "link"
+    good.write_text(key.hex() + "\n")
+    for p in (cases["empty"], cases["big"], good):
+        p.chmod(0o600)
+    link.symlink_to(good)
+    assert load_key(link) == key
+    expected = {"dir": "not a regular file", "fifo": "not a regular file",
+                "empty": "at least 32 hex digits", "big": "6400 bytes"}
+    url = private_lcm_url()
+    for name, path in cases.items():
+        with pytest.raises(ValueError, match=f"{path}: .*{expected[name]}"):
+            load_key(path)
+        for cmd in ([str(policy_node_binary()), "--policy", str(tmp_path / "p.txt")],
+                    [str(echo_binary())],
+                    [str(plant_binary()), "--scenario", str(scenarios / "single.toml")]):
+            run = subprocess.run(cmd + ["--lcm-url", url, "--key-file", str(path)],
+                                 capture_output=True, text=True, timeout=10)
+            lines = run.stderr.strip().splitlines()
+            assert run.returncode == 2 and len(lines) == 1, (cmd[0], name, run.stderr)
+            assert str(path) in lines[0] and expected[name] in lines[0], lines
+
+
+def test_a_forged_ack_is_seen_as_conflicting_answers_not_taken(tmp_path):
+    """Without a key a neighbour answers every push 'accepted' before the node:
+    a push of NaN weights with a correct checksum (which the node rejects) was
+    reported accepted. The node's own answer contradicts the forger's: the push
+    reports the conflict (no verdict), and the push tool exits 1."""
+    import sys
+    import threading
+
+    from ftc.policy_ack_t import policy_ack_t
+
+    url, prefix = private_lcm_url(), private_prefix()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, [6, 6], np.zeros(42, np.float32), version=1)
+    params = np.zeros(42, np.float32)
+    params[7] = np.nan
+    bad = tmp_path / "nan.txt"
+    pw.write_weights(bad, [6, 6], params, version=9)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    stop = threading.Event()
+
+    def forger():
+        lc = lcm.LCM(url)
+
+        def answer(_c, data):
+            m = policy_t.decode(data)
+            ack = policy_ack_t()
+            ack.version, ack.push_utime, ack.accepted, ack.reason = m.version, m.utime, True, ""
+            lc.publish(prefix + "POLICY_ACK", ack.encode())
+
+        lc.subscribe(prefix + "POLICY", answer)
+        while not stop.is_set():
+            lc.handle_timeout(20)
+
+    thread = threading.Thread(target=forger)
+    thread.start()
+    try:
+        time.sleep(0.5)  # both subscribed
+        outcome = pw.push(url, prefix, pw.policy_message([6, 6], params, version=9), timeout=2)
+        tool = subprocess.run([sys.executable, "-m", "ftc.tools.policy_weights", "push", str(bad),
+                               "--lcm-url", url, "--prefix", prefix], cwd=REPO,
+                              capture_output=True, text=True, timeout=60)
+    finally:
+        stop.set()
+        thread.join()
+        node.send_signal(2)
+        _, err = node.communicate(timeout=10)
+    assert "rejected policy version 9: parameter 7 is not finite" in err
+    assert outcome.accepted is None and outcome.conflict, outcome
+    assert "conflicting answers" in outcome.describe() and "not finite" in outcome.describe()
+    assert tool.returncode == 1 and "conflicting answers" in tool.stderr, tool.stderr
+
+
+# liblcm reassembles a fragmented message in a buffer of the size its first
+# fragment declares (at most LCM_MAX_MESSAGE_SIZE, 256 MB) and keeps up to
+# 16 MB of other partial messages: what a receiver can be made to hold before
+# any code of ours sees a byte (docs/deploy.md, "Memory").
+LIBLCM_REASSEMBLY_MB = 256 + 16
+
+
+@pytest.mark.slow
+def test_an_oversize_fragmented_message_never_completed_is_liblcms_memory_not_more(tmp_path):
+    """A neighbour sends raw LCM fragments of a 200 MB policy_t on the node's
+    POLICY channel, all but the last, paced so that the kernel drops few: the
+    node keeps running, and its peak RSS stays under its own bound plus what
+    liblcm's reassembly may hold (measured 114 MB)."""
+    import socket
+
+    url, prefix = private_lcm_url(), private_prefix()
+    group, port = re.match(r"udpm://([\d.]+):(\d+)", url).groups()
+    path = tmp_path / "p.txt"
+    pw.write_weights(path, [6, 6], np.zeros(42, np.float32), version=1)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(path), "--lcm-url", url,
+                             "--prefix", prefix], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)  # this host only
+    try:
+        time.sleep(1.0)  # subscribed
+        total, size = 200 << 20, 60_000
+        count = (total + size - 1) // size
+        channel = (prefix + "POLICY").encode() + b"\0"
+        for i in range(count - 1):  # LCM's long header: magic "LC03", seqno, size, offset, no, of
+            header = struct.pack(">IIIIHH", 0x4C433033, 7, total, i * size, i, count)
+            sock.sendto(header + (channel if i == 0 else b"") + b"\x11" * size,
+                        (group, int(port)))
+            if i % 4 == 0:
+                time.sleep(0.002)
+        time.sleep(0.5)
+        assert node.poll() is None
+        peak = _peak_rss_mb(node.pid)
+        # and it still takes (and answers) a push
+        answer = pw.push(url, prefix, pw.policy_message([6, 6], np.zeros(42, np.float32), 2))
+    finally:
+        sock.close()
+        node.send_signal(2)
+        node.communicate(timeout=10)
+    assert answer.accepted, answer
+    assert peak < NODE_RSS_BOUND_MB + LIBLCM_REASSEMBLY_MB, f"peak RSS {peak:.0f} MB"

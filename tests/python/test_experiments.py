@@ -311,7 +311,9 @@ def test_replay_summary_and_truncated_log_error(tmp_path, write_state_log):
 
 
 def test_model_search_quick_ranks_the_grid_into_the_report(fixture_run):
-    results = ex.model_search(fixture_run, ex.QUICK_MODEL_SEARCH, jobs=1)
+    from ftc.experiments.model_search import model_search  # the function, not the module
+
+    results = model_search(fixture_run, ex.QUICK_MODEL_SEARCH, jobs=1)
     assert [r["rank"] for r in results] == [1, 2]
     assert results[0]["r2_mean"] >= results[1]["r2_mean"] > 0.9
     assert len(ex.ModelSearchConfig().grid()) == 5 * 2 * 2 * 3  # the paper's grid

@@ -11,7 +11,6 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -19,9 +18,8 @@ import lcm
 import numpy as np
 import pytest
 import torch
+from bus_tap import BusTap
 
-from ftc.plant_state_t import plant_state_t
-from ftc.valve_command_t import valve_command_t
 from ftc.common.build_info import plant_binary, policy_node_binary
 from ftc.common.errors import UsageError
 from ftc.learning.ppo import ActorCritic
@@ -90,39 +88,13 @@ def test_the_node_refuses_a_bad_weights_file_with_one_line(tmp_path):
     assert out.stderr.count("\n") == 1 and "checksum mismatch" in out.stderr
 
 
-class _Bus:
-    """Records the states and commands of one private plant (prefix)."""
-
-    def __init__(self, url: str, prefix: str) -> None:
-        self.lc = lcm.LCM(url)
-        self.states: dict[int, np.ndarray] = {}
-        self.commands: list[tuple[int, np.ndarray]] = []  # (state_seq, valves)
-        self.lc.subscribe(prefix + "STATE", self._state)
-        self.lc.subscribe(prefix + "COMMAND", self._command)
-        self.stop = False
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _state(self, channel, data):
-        s = plant_state_t.decode(data)
-        self.states[s.seq] = np.array(s.level)
-
-    def _command(self, channel, data):
-        c = valve_command_t.decode(data)
-        self.commands.append((c.state_seq, np.array(c.valve, np.int8)))
-
-    def _spin(self):
-        while not self.stop:
-            self.lc.handle_timeout(50)
-
-
 @pytest.mark.subprocess
 def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path, scenarios):
     url, prefix = private_lcm_url(), private_prefix()
     first, second = _policy(1), _policy(2)
     path = tmp_path / "p.txt"
     pw.write_weights(path, *first, version=1)
-    bus = _Bus(url, prefix)
+    bus = BusTap(url, prefix)
     plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
                               "--mode", "realtime", "--rate", "50", "--watchdog", "1",
                               "--lcm-url", url, "--prefix", prefix], stderr=subprocess.PIPE)
@@ -161,7 +133,7 @@ def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path,
     # the first up to the push, the second after it, never a mixture within a step
     switched = None
     for state_seq, valves in bus.commands:
-        level = bus.states[state_seq][None]
+        level = bus.states[state_seq][0][None]
         old = pw.actions(*first, level)[0]
         new = pw.actions(*second, level)[0]
         if np.array_equal(old, new):

@@ -119,28 +119,13 @@ def test_each_env_is_the_single_env_bit_for_bit_on_every_suite_scenario(tmp_path
             np.testing.assert_array_equal(g[:, i], w, err_msg=f"{path.name}: {what}")
 
 
-# A known defect of the plant's root functions (cpp/plant/core/dynamics.cpp, RootsOf),
-# reached by check/noise-10.toml under these actions (its env, seed 7, step 563): a
-# tank that leaves a tied group by a margin of 1.6e-4 (relative) rejoins it 1.56 ms
-# later after a dip of ~1e-9 m, ten times CVODE's atol. CVODE restarts with the
-# tank one ulp above the group, the rejoin root starts below zero and is never
-# watched (roots fire falling only), and the tank stays 4e-4 m off the group: the
-# CVODE plant ends the step 9.7e-5 m from the closed form, which here agrees with
-# tests/python/reference_sim.py to 1e-10 m (it is right only because its levels
-# tie exactly; from CVODE's state it errs as much). A fix is a rejoin root that is
-# the leave condition itself; until then this case is stated, not hidden.
-ROOT_DEFECT = "check-noise-10.toml"
-
-
 def test_closed_form_stays_within_the_stated_tolerance_of_cvode(tmp_path):
     # The closed form is exact where CVODE is within its tolerances (rtol 1e-8,
     # atol 1e-10: 2.5e-8 m per step measured in integrator.cpp); over 640 steps (10
     # intervals: pumps die, demand outgrows them, tied groups split and rejoin) the
     # two trajectories' levels stay within 1e-6 m and their episodes end at the same
     # steps. (docs/benchmarks.md quotes the maximum measured over the suite.)
-    every = _scenario_files(tmp_path)
-    files = [f for f in every if f.name != ROOT_DEFECT]
-    assert len(files) == len(every) - 1
+    files = _scenario_files(tmp_path)
     actions = _random_actions(640, len(files), seed=1)
     cvode, closed = (_pool_trajectory(FuelTransferVectorEnv(
         len(files), [str(f) for f in files], method=m, threads=2), actions)
@@ -152,13 +137,22 @@ def test_closed_form_stays_within_the_stated_tolerance_of_cvode(tmp_path):
     assert np.abs(cvode[0] - closed[0]).max() > 0  # not the same code path by accident
 
 
-@pytest.mark.xfail(strict=True, reason="the rejoin-root defect of ROOT_DEFECT's comment")
 def test_the_rejoin_after_a_near_tie_is_found_by_cvode(tmp_path):
+    # check/noise-10.toml under the test above's actions (its env, seed 7) reaches, at
+    # step 563, a tank that falls onto a group, leaves the tie at once (its draw
+    # outruns the group by 1.6e-4, relative) and should rejoin it 1.56 ms later after
+    # a dip of ~1e-9 m. While the rejoin root was the tank's gap below the group,
+    # starting in the levels' rounding noise, CVODE restarted with the tank one ulp
+    # above the group, never saw the root and left the tank 4e-4 m above the group:
+    # 9.7e-5 m from the closed form at the end of that step. The root is now the
+    # leave condition itself (dynamics.cpp, RootsOf; tests/cpp/test_integrator.cpp
+    # scans the mechanism). The trajectories agree within 1e-6 m, as everywhere.
     files = _scenario_files(tmp_path)
-    assert files[7].name == ROOT_DEFECT  # the env the defect was found in
+    assert files[7].name == "check-noise-10.toml"  # the env the defect was found in
     actions = _random_actions(640, len(files), seed=1)[:, 7:8]
     cvode, closed = (_pool_trajectory(FuelTransferVectorEnv(
         1, [str(files[7])], method=m, plant_seed=7), actions) for m in ("cvode", "closed_form"))
+    assert np.abs(cvode[0][563] - closed[0][563]).max() < 1e-6  # the step of the defect
     assert np.abs(cvode[0] - closed[0]).max() < 1e-6
 
 
@@ -371,6 +365,34 @@ def test_sb3_ppo_collects_through_the_adapter_the_pools_own_steps():
     rewards = np.array([replay.step(a)[1] for a in actions], np.float32)
     np.testing.assert_array_equal(rewards, buf.rewards)
     assert buf.episode_starts[1:].sum() > 0  # episodes ended (and SB3 saw them end)
+
+
+def test_the_adapters_arrays_are_its_own_and_match_a_same_step_pool(tmp_path):
+    # PoolVecEnv's pool hands over its own arrays, overwritten by the next step;
+    # what SB3 keeps (the observation, each terminal observation) must be copies:
+    # after the next step they still equal what a copy=True pool returned.
+    from ftc.plant.sb3_vec import PoolVecEnv
+
+    path = str(_short(SCENARIOS / "single.toml", tmp_path))
+    venv = PoolVecEnv(num_envs=4, scenario=path, plant_seed=3)
+    twin = FuelTransferVectorEnv(4, path, plant_seed=3, autoreset="same_step")
+    kept, ends = [venv.reset()], 0
+    np.testing.assert_array_equal(kept[0], twin.reset()[0])
+    for a in _random_actions(150, 4, seed=5).astype(np.float32):  # SB3 hands floats
+        obs, reward, dones, infos = venv.step(a)
+        want_obs, want_r, term, trunc, info = twin.step(a)
+        np.testing.assert_array_equal(reward, want_r.astype(np.float32))
+        np.testing.assert_array_equal(dones, term | trunc)
+        for i in np.flatnonzero(dones):
+            ends += 1
+            assert infos[i]["TimeLimit.truncated"] == bool(trunc[i])
+            kept.append(infos[i]["terminal_observation"])
+            kept.append(info["final_obs"][i])
+        kept.append(obs)
+        kept.append(want_obs)
+    assert ends > 4  # episodes ended (64-step intervals)
+    for ours, theirs in zip(kept[1::2], kept[2::2]):
+        np.testing.assert_array_equal(ours, theirs)
 
 
 @pytest.mark.slow

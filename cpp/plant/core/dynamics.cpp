@@ -29,6 +29,25 @@
 // the closed-form steps of linear_step.cpp sample); and at a located root
 // x_eq <= -kRootOffset, so the inflow at x = 0 is below the draw and
 // ComputeMode pins the tank: the located root always changes the mode.
+//
+// A member that leaves a tied group (its pump outruns the group) becomes a
+// sink at the group's level, within kTieTolerance of it and often one ulp
+// above or below. The ordinary sink root, its gap x_ref - x_k below the group,
+// starts there in the levels' rounding noise: CVODE's first steps see it cross
+// 0 on noise, and a restart can leave the tank one ulp above the group, the
+// root below 0 and so never watched (roots fire falling only). Where the
+// tank's dip below the group is short (check/noise-10: 1e-9 m deep, 1.5 ms
+// long) its rejoining was then never located, and the tank stayed above the
+// group as a sink, 1e-4 m off within a step. So the root of such a sink
+// (Mode::left) is the condition that made it leave: s_k - c_k rho', with rho'
+// the rate of the group with the tank back in it. It is positive where the
+// mode starts (that is why the tank left), and the gap can return to 0 only
+// once it is not (the gap's rate is (s_k/c_k - rho_G') minus a positive
+// multiple of the gap, and s_k/c_k - rho_G' has its sign, rho_G' the group's
+// rate without the tank's inflow). Where it reaches 0 the tank is at most
+// its dip below the group: ComputeMode takes it back into the group if that
+// is within kTieTolerance (the model's resolution of a tie), else keeps it
+// as an ordinary sink whose gap root is then clear of the noise.
 #include "plant/core/dynamics.h"
 
 #include <algorithm>
@@ -57,6 +76,8 @@ struct Evaluation {
   Vec6 want = Vec6::Zero();  // min(p_i, remaining demand) each pump would draw
   double xref = 0;           // level of the source group (conduit potential / g)
   double rho = 0;            // common fall rate of the source group, m/s
+  double group_draw = 0;     // pumped by the source group, m^3/s
+  double group_area = 0;     // the source group's cross-section, m^2
   bool any_sink = false;
   int group_size = 0;
 };
@@ -114,6 +135,8 @@ Evaluation Evaluate(const Vec6& x, const PlantParams& p, const Mode& mode) {
       }
     }
     e.rho = (inflow_total + draw) / area;
+    e.group_draw = draw;
+    e.group_area = area;
     for (int i = 0; i < kTanks; ++i) {
       if (mode.source[i]) e.flows.conduit[i] = -(p.area[i] * e.rho - e.flows.supply[i]);
     }
@@ -209,6 +232,7 @@ Mode ComputeMode(const Vec6& x, const Valves& u, const PlantParams& p) {
         if (m.source[i] && s > 0 && s - p.area[i] * rho > kLeaveMargin * s) {
           m.source[i] = false;
           m.sink[i] = true;
+          m.left[i] = true;
           changed = true;
         }
       }
@@ -271,6 +295,16 @@ std::array<double, kNumRoots> RootsOf(const Evaluation& e, const Vec6& x, const 
     double& b = r[kTanks + i];
     if (mode.pinned[i]) {
       b = e.want[i] - e.flows.conduit[i] + kRootOffset;  // inflow exceeds the pump draw
+    } else if (mode.left[i]) {
+      // Its pump no longer outruns the group it would rejoin (file header).
+      // Half ComputeMode's margin: where this is <= 0 the tank stays in the
+      // group, and where the tank left it is at least half the margin.
+      const double s = e.flows.supply[i];
+      double others = 0;  // the other sinks' inflow
+      for (int k = 0; k < kTanks; ++k)
+        if (k != i && mode.sink[k]) others += e.flows.conduit[k];
+      const double rho = (others + e.group_draw + s) / (e.group_area + p.area[i]);
+      b = s - p.area[i] * rho - 0.5 * kLeaveMargin * s;
     } else if (mode.sink[i]) {
       b = e.xref - x[i];  // rises to the conduit level: joins the group
     } else if (mode.source[i]) {

@@ -28,6 +28,10 @@ struct Mode {
   std::array<bool, kTanks> source{};
   // Open tanks below the conduit potential (receive inflow).
   std::array<bool, kTanks> sink{};
+  // Sinks that were tied with the group (within kTieTolerance) and left it
+  // because their own pump outruns it: they rejoin when it no longer does
+  // (their root function is that condition, not their level; dynamics.cpp).
+  std::array<bool, kTanks> left{};
   // Empty tanks pinned at 0 whose pump passes on their conduit inflow
   // (inflow not larger than what the pump would draw).
   std::array<bool, kTanks> pinned{};
@@ -60,9 +64,9 @@ constexpr int kNumRoots = 2 * kTanks;
 // Root functions g(x) whose sign change ends the current mode: a pumping tank
 // reaching 0 (for a sink still being filled, a level below 0 is an
 // integration error and does not count: dynamics.cpp), a sink reaching the
-// conduit level, a pinned tank's inflow crossing its pump draw, a
-// source-group member leaving. Entries that cannot fire under `mode` are held
-// at a constant 1.
+// conduit level, a sink that left a tie no longer outrunning the group, a
+// pinned tank's inflow crossing its pump draw, a source-group member leaving.
+// Entries that cannot fire under `mode` are held at a constant 1.
 std::array<double, kNumRoots> RootFunctions(const Vec6& x, const Valves& u, const PlantParams& p,
                                             const Mode& mode);
 

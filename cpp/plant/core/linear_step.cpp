@@ -83,6 +83,7 @@ std::uint64_t ModeKey(const Valves& u, const Mode& mode, std::uint32_t active) {
     k |= static_cast<std::uint64_t>(mode.sink[i]) << (12 + i);
     k |= static_cast<std::uint64_t>(mode.pinned[i]) << (18 + i);
     k |= static_cast<std::uint64_t>(mode.pumping[i]) << (24 + i);
+    k |= static_cast<std::uint64_t>(mode.left[i]) << (30 + kNumRoots + i);  // after active
   }
   return k | static_cast<std::uint64_t>(active) << 30;
 }
@@ -327,18 +328,18 @@ bool Prepare(const Valves& u, const PlantParams& p, const Mode& mode, std::uint3
 // gradients along the nodes).
 class ModeSolution {
  public:
-  // Prepares the mode at x (from this thread's cache of prepared modes).
+  // Prepares the mode at x (from `cache`, the calling thread's prepared modes).
   // Returns false where the mode is not handled (a pinned tank upstream of a
   // pump that cannot cover its engine's demand) or M has no real,
   // well-conditioned eigenbasis.
   bool Build(const Vec6& x, const Valves& u, const PlantParams& p, std::uint64_t params_hash,
-             const Mode& mode) {
+             const Mode& mode, PreparedCache& cache) {
     psi_t_ = -1;  // the memo of Psi (below) is the last mode's
     Vec6 f0;
     std::array<double, kNumRoots> g0;
     std::uint32_t active = 0;
     FieldAndRoots(x, p, mode, &f0, &g0, &active);
-    prep_ = &ThreadCache().Get(u, p, params_hash, mode, active);
+    prep_ = &cache.Get(u, p, params_hash, mode, active);
     if (!prep_->ok) return false;
     Start(x, f0, g0);
     return true;
@@ -402,8 +403,7 @@ class ModeSolution {
   // Watches the open functions positive in g (values at a time before any
   // crossing): as CVODE reactivates a root function that was 0 (or below) at a
   // restart once it has moved above 0, a later downward crossing of it ends the
-  // mode too (e.g. a sink that left a tied group at its start and catches up
-  // with the group within the step).
+  // mode too.
   void ArmOpen(const RootVector& g) {
     for (int r = 0; r < open_count_; ++r) watched_[open_[r]] = g[open_[r]] > 0.0;
   }
@@ -497,11 +497,11 @@ class ModeSolution {
       }
       // As CVODE at a restart: a function not positive where the mode begins
       // is not watched (the level roots carry an offset so that an empty
-      // tank's is). A function exactly at 0 that rises at once (a member that
-      // leaves a tied group, its root x_lead - x_k at 0) is watched from the
-      // start: CVODE's first internal step, a fraction of the grid's, sees it
-      // above 0 and reactivates it, so its return to 0 (the member catching up
-      // with the group) is an event.
+      // tank's is). A function exactly at 0 that rises at once is watched from
+      // the start: CVODE's first internal step, a fraction of the grid's, sees
+      // it above 0 and reactivates it, so its return to 0 is an event. (A
+      // member that leaves a tie does not start so: its root is the leave
+      // condition, positive where it leaves; dynamics.cpp.)
       if (g0[m] == 0.0 && lin + sum > 0.0) watched_[m] = true;
     }
   }
@@ -545,8 +545,10 @@ class ModeSolution {
 
 }  // namespace
 
+// A plant's stepper keeps only its parameters' hash: the mode's solution is
+// rebuilt at every segment (ModeSolution::Build), so it lives on the stack of
+// Step, hot in the cache, and a pool of thousands of plants carries no copy of it.
 struct LinearStepper::Impl {
-  ModeSolution solution;
   PlantParams params;  // the last step's, and their hash
   std::uint64_t params_hash = HashParams(PlantParams{});
 };
@@ -566,14 +568,16 @@ LinearStepResult LinearStepper::Step(const Vec6& x0, const Valves& u, const Plan
   LinearStepResult r;
   r.x = x0;
   ClampLevels(r.x.data(), p.height);
-  ModeSolution& solution = impl_->solution;
+  ModeSolution solution;
+  PreparedCache& cache = ThreadCache();  // one thread-local look-up a step
   if (!SameParams(p, impl_->params)) {
     impl_->params = p;
     impl_->params_hash = HashParams(p);
   }
   while (r.t < dt) {
     const Mode mode = ComputeMode(r.x, u, p);
-    if (!solution.Build(r.x, u, p, impl_->params_hash, mode)) return r;  // the caller integrates the rest
+    // a mode not handled here: the caller integrates the rest
+    if (!solution.Build(r.x, u, p, impl_->params_hash, mode, cache)) return r;
     const double remaining = dt - r.t;
     if (solution.NoCrossingWithin(remaining)) {  // the grid would find nothing
       r.x = solution.Levels(remaining);

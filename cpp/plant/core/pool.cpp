@@ -2,6 +2,7 @@
 #include "plant/core/pool.h"
 
 #include <algorithm>
+#include <array>
 #include <stdexcept>
 #include <string>
 
@@ -168,7 +169,25 @@ void PlantPool::Reset(const PoolOutput& out) {
 }
 
 void PlantPool::Step(const std::int8_t* actions, const PoolOutput& out) {
-  workers_.Run(size(), [&](int i) { StepOne(i, actions, out); });
+  // The envs in the order of their valves (a counting sort by the 6-bit mask):
+  // envs with the same valves follow the same branches and prepared modes one
+  // after the other, which the CPU predicts and caches (random valves in index
+  // order mispredicted ~110 branches an env step). Each env's step depends on
+  // that env alone and the prepared modes are pure functions of their keys
+  // (linear_step.h), so the order changes no result.
+  const int n = size();
+  std::array<int, kValveMasks + 1> start{};
+  masks_.resize(static_cast<std::size_t>(n));
+  order_.resize(static_cast<std::size_t>(n));
+  for (int i = 0; i < n; ++i) {
+    int mask = 0;
+    for (int k = 0; k < kTanks; ++k) mask |= (actions[i * kTanks + k] != 0) << k;
+    masks_[static_cast<std::size_t>(i)] = static_cast<std::uint8_t>(mask);
+    ++start[static_cast<std::size_t>(mask) + 1];
+  }
+  for (int m = 0; m < kValveMasks; ++m) start[m + 1] += start[m];
+  for (int i = 0; i < n; ++i) order_[static_cast<std::size_t>(start[masks_[i]]++)] = i;
+  workers_.Run(n, [&](int k) { StepOne(order_[static_cast<std::size_t>(k)], actions, out); });
 }
 
 void PlantPool::StepOne(int i, const std::int8_t* actions, const PoolOutput& out) {

@@ -128,10 +128,14 @@ class PlantPool final {
   void WriteState(int i, const PoolOutput& out) const;
   void StepOne(int i, const std::int8_t* actions, const PoolOutput& out);
 
+  static constexpr int kValveMasks = 1 << kTanks;
+
   PoolOptions options_;
   std::unique_ptr<ScenarioDistribution> distribution_;
   PlantParams nominal_;
   std::vector<Env> envs_;
+  std::vector<std::uint8_t> masks_;  // Step's scratch: each env's valves as 6 bits
+  std::vector<int> order_;           // and the envs sorted by them
   Workers workers_;
 };
 

@@ -9,7 +9,10 @@
 // A receiver refuses (and counts, by cause) a message whose MAC does not
 // verify or that carries none (bad signature), whose timestamp is not above
 // the last one it accepted from that link (replay), or older than its window
-// (stale). Python's side: python/ftc/plant/signing.py (the same bytes).
+// (stale). A receiver's links start at its own start time: a message signed
+// before the receiving process started (recorded off the bus and replayed to a
+// restarted plant or node with the same key file, within the window) counts
+// as a replay too. Python's side: python/ftc/plant/signing.py (the same bytes).
 //
 // Header-only over OpenSSL's libcrypto (the policy node includes it too). The
 // MAC's context is keyed once per signer and verifier and re-initialised with
@@ -23,10 +26,15 @@
 #include <openssl/evp.h>
 #include <openssl/hmac.h>
 #include <openssl/params.h>
+#include <fcntl.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cctype>
+#include <cerrno>
+#include <chrono>
 #include <cstdint>
 #include <cstring>
 #include <fstream>
@@ -48,6 +56,15 @@ constexpr std::int64_t kDefaultWindowUs = 30'000'000;  // older than this: stale
 
 using Key = std::vector<unsigned char>;
 using Digest = std::array<unsigned char, 32>;
+
+inline std::int64_t WallMicros() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+// The wall clock when this process started (set before main runs, so before
+// any receive socket opens): the default floor of a Verifier's timestamps.
+inline const std::int64_t kProcessStartUs = WallMicros();
 
 inline Digest HmacSha256(const Key& key, const unsigned char* data, std::size_t n) {
   Digest out{};
@@ -109,17 +126,40 @@ inline std::string KeyFromHex(const std::string& text, Key* key) {
   return {};
 }
 
+// The longest key file read (a 256-bit key is 64 hex digits and a newline).
+constexpr long kMaxKeyFileBytes = 4096;
+
 // The key in `path` (hex text). Refuses a file that others can read or
-// write: "" or the reason naming the file.
+// write, and anything but a regular file of at most kMaxKeyFileBytes (a
+// directory, a FIFO that would block, a device that never ends): "" or the
+// reason naming the file. Opened without blocking and checked on the open
+// descriptor, so the file checked is the file read.
 inline std::string LoadKey(const std::string& path, Key* key) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) return path + ": cannot read the key file (" + std::strerror(errno) + ")";
   struct stat st {};
-  if (stat(path.c_str(), &st) != 0) return path + ": cannot read the key file";
-  if (st.st_mode & (S_IRWXG | S_IRWXO))
-    return path + ": the key file is readable or writable by others (chmod 600 it)";
-  std::ifstream in(path);
-  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  if (!in && !in.eof()) return path + ": cannot read the key file";
-  const std::string why = KeyFromHex(text, key);
+  std::string why;
+  if (::fstat(fd, &st) != 0)
+    why = path + ": cannot read the key file (" + std::strerror(errno) + ")";
+  else if (!S_ISREG(st.st_mode))
+    why = path + ": the key file is not a regular file";
+  else if (st.st_mode & (S_IRWXG | S_IRWXO))
+    why = path + ": the key file is readable or writable by others (chmod 600 it)";
+  else if (st.st_size > kMaxKeyFileBytes)
+    why = path + ": the key file has " + std::to_string(st.st_size) + " bytes (a key file has " +
+          "at most " + std::to_string(kMaxKeyFileBytes) + ")";
+  std::string text;
+  if (why.empty()) {
+    char buf[kMaxKeyFileBytes + 1];
+    ssize_t n = 0;
+    while ((n = ::read(fd, buf, sizeof buf)) > 0 &&
+           text.size() <= static_cast<std::size_t>(kMaxKeyFileBytes))
+      text.append(buf, static_cast<std::size_t>(n));
+    if (n < 0) why = path + ": cannot read the key file (" + std::strerror(errno) + ")";
+  }
+  ::close(fd);
+  if (!why.empty()) return why;
+  why = KeyFromHex(text, key);
   return why.empty() ? why : path + ": " + why;
 }
 
@@ -170,11 +210,16 @@ inline const char* Describe(Verdict v) {
   return "?";
 }
 
-// Checks the trailer of every message one receiver takes.
+// Checks the trailer of every message one receiver takes. Every link starts
+// as if its last timestamp were just before `not_before_us` (default: when
+// this process started), so what was signed before then is a replay.
 class Verifier final {
  public:
-  explicit Verifier(const Key& key, std::int64_t window_us = kDefaultWindowUs)
-      : hmac_(key), window_ticks_(window_us / kTickUs) {}
+  explicit Verifier(const Key& key, std::int64_t window_us = kDefaultWindowUs,
+                    std::int64_t not_before_us = kProcessStartUs)
+      : hmac_(key), window_ticks_(window_us / kTickUs) {
+    last_.fill(std::max<std::int64_t>(0, not_before_us / kTickUs - 1));
+  }
 
   // kOk with the payload's size (the bytes before the trailer) in *payload_size.
   Verdict Verify(const std::string& channel, const void* data, std::size_t size,
@@ -198,6 +243,7 @@ class Verifier final {
   Hmac hmac_;
   std::int64_t window_ticks_;
   std::array<std::int64_t, 256> last_{};  // per link id: the newest timestamp accepted
+                                          // (at first: the floor)
 };
 
 }  // namespace ftc::signing

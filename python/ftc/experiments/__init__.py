@@ -15,18 +15,35 @@ command line and the run directory).
     benchmark, benchmark_report  the benchmark suite (``benchmark`` command) and its report
 """
 
-from ftc.experiments.cli import build_parser, main
-from ftc.experiments.collect import collect
-from ftc.experiments.methods import (DEFAULT_METHODS, METHODS, PAPER_METHODS, MethodSpec,
-                                     register_method)
-from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
-from ftc.experiments.orchestrator import run_experiments
-from ftc.experiments.runs import RunSpec, is_finished, plan_runs
-from ftc.experiments.scenarios import (EXPERIMENTS, PRESETS, ExperimentConfig, Scenario,
-                                       aggregate_scenarios, experiment_scenarios)
+import importlib
+from typing import Any
 
-__all__ = ["DEFAULT_METHODS", "EXPERIMENTS", "METHODS", "PAPER_METHODS", "PRESETS",
-           "QUICK_MODEL_SEARCH", "ExperimentConfig", "MethodSpec", "ModelSearchConfig", "RunSpec",
-           "Scenario", "aggregate_scenarios", "build_parser", "collect", "experiment_scenarios",
-           "is_finished", "main", "model_search", "plan_runs", "register_method",
-           "run_experiments"]
+# The package's names, each from its module, imported on first use (PEP 562):
+# a tool that needs one submodule (replay its figures, the controller its
+# suite) does not pay for the others (matplotlib, scipy, torch). The functions
+# collect and model_search are reached through their modules of the same name.
+_NAMES = {
+    "build_parser": "cli", "main": "cli",
+    "DEFAULT_METHODS": "methods", "METHODS": "methods", "PAPER_METHODS": "methods",
+    "MethodSpec": "methods", "register_method": "methods",
+    "QUICK_MODEL_SEARCH": "model_search", "ModelSearchConfig": "model_search",
+    "run_experiments": "orchestrator",
+    "RunSpec": "runs", "is_finished": "runs", "plan_runs": "runs",
+    "EXPERIMENTS": "scenarios", "PRESETS": "scenarios", "ExperimentConfig": "scenarios",
+    "Scenario": "scenarios", "aggregate_scenarios": "scenarios",
+    "experiment_scenarios": "scenarios",
+}
+
+__all__ = sorted(_NAMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _NAMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_NAMES[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_NAMES})

@@ -196,7 +196,7 @@ def draw_figure(run_dir: Path, methods: Sequence[str], labels: dict[str, str],
     the line at 1; ``intervals``: the x axis spans them all, so an interval without
     a score is a visible gap); right, its spread over scenarios (one point per
     scenario: the mean over seeds and intervals; box: quartiles)."""
-    import matplotlib.pyplot as plt  # Agg is selected by ftc.experiments.figures
+    plt = figures.pyplot()
 
     scores = read_scores(Path(run_dir) / "results.csv")
     shown = [s for s in summarise(scores, methods, "normalized_score")

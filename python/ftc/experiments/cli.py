@@ -56,7 +56,6 @@ from ftc.experiments import benchmark, compare, report
 from ftc.experiments.collect import collect
 from ftc.experiments.method_args import method_args, tool_parser, untaken
 from ftc.experiments.methods import DEFAULT_METHODS, METHODS, resolve_methods
-from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
 from ftc.experiments.orchestrator import run_experiments
 from ftc.experiments.processes import OrchestratorLock, OutInUse, check_out_free
 from ftc.experiments.ray_executor import (RaySession, add_executor_options,
@@ -265,8 +264,7 @@ def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         with OrchestratorLock(out) as lock:
             lock.announce_takeover()
-            model_search(out, QUICK_MODEL_SEARCH if args.quick else ModelSearchConfig(),
-                         args.jobs)
+            _model_search(out, args.quick, args.jobs)
             if (out / "experiment.json").is_file():
                 report.write_report(out)
         print(f"model search table at {out / 'model_search.csv'}")
@@ -275,10 +273,17 @@ def _run(args: SimpleNamespace, ray: RaySession | None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         with OrchestratorLock(out) as lock:
             lock.announce_takeover()
-            model_search(out, ModelSearchConfig(), args.jobs or os.cpu_count() or 1)
+            _model_search(out, False, args.jobs or os.cpu_count() or 1)
     failed = run_experiments(out, args.config, args.jobs, args.resume, ray=ray,
                              fork_server=args.fork_server, overwrite=args.overwrite)
     return 1 if failed else 0
+
+
+def _model_search(out: Path, quick: bool, jobs: int) -> None:
+    """The world-model grid into ``out`` (torch is imported here, not by the CLI)."""
+    from ftc.experiments.model_search import QUICK_MODEL_SEARCH, ModelSearchConfig, model_search
+
+    model_search(out, QUICK_MODEL_SEARCH if quick else ModelSearchConfig(), jobs)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,15 +24,22 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
 
 from ftc.control import registry
-from ftc.common.atomic import atomic_write_bytes  # noqa: E402
-from ftc.experiments.methods import METHODS  # noqa: E402
+from ftc.common.atomic import atomic_write_bytes
+from ftc.experiments.methods import METHODS
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend, imported on the first figure (a
+    tool that only reads results does not pay for matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 FORMATS = ("png", "svg")
 #: Single-column paper figures: about 3.5 in wide; full width 7 in. Fonts of
@@ -56,7 +63,8 @@ def _float(v: str | None) -> float:
         return float("nan")
 
 
-def _save(fig: "plt.Figure", stem: Path, formats: Sequence[str] = FORMATS) -> list[Path]:
+def _save(fig: "matplotlib.figure.Figure", stem: Path,
+          formats: Sequence[str] = FORMATS) -> list[Path]:
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -68,7 +76,7 @@ def _save(fig: "plt.Figure", stem: Path, formats: Sequence[str] = FORMATS) -> li
             atomic_write_bytes(path, buf.getvalue())
             paths.append(path)
     finally:
-        plt.close(fig)
+        pyplot().close(fig)
     return paths
 
 
@@ -91,6 +99,7 @@ def reward_episodes(episodes: Sequence[tuple[str, str, Path]], stem: Path,
     """Figure (a). episodes: (condition label, policy 'closed'|'open', CSV with
     columns step, reward) per curve. Conditions are distinguished by line
     style, policies by colour; the legend gives each curve's mean."""
+    plt = pyplot()
     with plt.rc_context(STYLE):
         fig, ax = plt.subplots(figsize=(3.5, 2.6))
         styles = ["-", "--", ":", "-."]
@@ -145,6 +154,8 @@ def reward_per_interval(results_csv: Path, stem: Path, experiments: Sequence[str
     if not experiments:
         raise ValueError(f"{results_csv} has no rows for experiments {list(experiments)}")
     order = _method_order(rows, methods)
+    plt = pyplot()
+    import matplotlib  # loaded by pyplot()
     with plt.rc_context(STYLE):
         fig, axes = plt.subplots(1, len(experiments), figsize=(3.5 * len(experiments), 2.8),
                                  sharey=True, squeeze=False)
@@ -188,6 +199,8 @@ def aggregate(results_csv: Path, stem: Path, methods: Sequence[str] | None = Non
     data = _per_interval(rows, experiment, "reward_per_step")
     if not data:
         raise ValueError(f"{results_csv} has no rows for experiment '{experiment}'")
+    plt = pyplot()
+    import matplotlib  # loaded by pyplot()
     with plt.rc_context(STYLE):
         fig, ax = plt.subplots(figsize=(3.5, 2.8))
         for i, m in enumerate(_method_order(rows, methods)):
@@ -234,6 +247,8 @@ def tank_control(episodes: Sequence[tuple[str, Path]], stem: Path,
     """Figure (c): one column per episode (title, trajectory CSV with columns
     step, u1..u6, x1..x6), one row per tank: its level (m) against time (s),
     with the periods its valve was open shaded."""
+    plt = pyplot()
+    import matplotlib  # loaded by pyplot()
     with plt.rc_context(STYLE):
         ncol = len(episodes)
         fig, axes = plt.subplots(6, ncol, figsize=(3.5 * ncol, 6.0), sharex="col", sharey=True,

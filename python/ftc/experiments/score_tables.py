@@ -74,7 +74,7 @@ def draw_profile(run_dir: Path, rows: Sequence[Mapping], methods: Sequence[str],
                  labels: Mapping[str, str], hidden: Sequence[str]) -> Path | None:
     """figures/benchmark_profile.png: for every method but ``hidden``, the fraction
     of runs whose normalized score exceeds tau, with its 95% band."""
-    import matplotlib.pyplot as plt  # Agg is selected by ftc.experiments.figures
+    plt = figures.pyplot()
 
     shown = {m: t for m, t in method_tasks(rows, methods).items() if m not in hidden}
     if not shown:

@@ -45,7 +45,6 @@ from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.stats import trim_mean
 
 # One resampled set of tasks: per task, an array (reps, runs of that task).
 Statistic = Callable[[Sequence[np.ndarray]], np.ndarray]
@@ -134,6 +133,8 @@ def tasks_of(per_scenario: Mapping[str, Mapping[int, float] | Sequence[float]],
 
 def iqm(tasks: Sequence[np.ndarray]) -> np.ndarray:
     """Interquartile mean of every run pooled (25% trimmed from each end)."""
+    from scipy.stats import trim_mean  # scipy: on the first aggregate
+
     return np.asarray(trim_mean(np.concatenate(tasks, axis=-1), 0.25, axis=-1))
 
 

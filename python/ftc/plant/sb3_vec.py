@@ -6,6 +6,11 @@ step and its last observation is ``infos[i]["terminal_observation"]``;
 ``infos[i]["TimeLimit.truncated"]`` marks a truncation (the plant's interval
 boundary), which SB3 bootstraps from the critic. The pool runs in Gymnasium's
 SAME_STEP autoreset mode for it. Requires stable-baselines3 (requirements-extra.txt).
+
+The pool made here hands over its own arrays (``copy=False``); the adapter copies
+only what SB3 keeps past the next step: the observation (its ``_last_obs``) and
+each finished env's terminal observation. Rewards are converted to float32 (a new
+array) and ``dones`` is a new array, as SB3 stores them.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ class PoolVecEnv(VecEnv):
 
     def __init__(self, env: FuelTransferVectorEnv | None = None, **kwargs: Any) -> None:
         if env is None:
-            env = FuelTransferVectorEnv(autoreset="same_step", **kwargs)
+            env = FuelTransferVectorEnv(autoreset="same_step", **{"copy": False, **kwargs})
         elif kwargs:
             raise ValueError("PoolVecEnv: give a pool or its arguments, not both")
         if env.metadata["autoreset_mode"].value != "SameStep":
@@ -42,7 +47,7 @@ class PoolVecEnv(VecEnv):
         obs, _ = self.env.reset(seed=seeds)
         self._reset_seeds()
         self._reset_options()
-        return obs
+        return obs.copy()
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = actions
@@ -52,9 +57,9 @@ class PoolVecEnv(VecEnv):
         dones = terminated | truncated
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         for i in np.flatnonzero(dones):
-            infos[i] = {"terminal_observation": info["final_obs"][i],
+            infos[i] = {"terminal_observation": info["final_obs"][i].copy(),
                         "TimeLimit.truncated": bool(truncated[i])}
-        return obs, reward.astype(np.float32), dones, infos
+        return obs.copy(), reward.astype(np.float32), dones, infos
 
     def close(self) -> None:
         self.env.close()

@@ -5,7 +5,10 @@
     the epoch) | HMAC-SHA256(key, channel | 0x00 | payload | link id | timestamp)[:16]
 
 and a receiver refuses a bad or missing MAC ("bad signature"), a timestamp not
-above its link's last ("replay") or older than the window ("old timestamp")."""
+above its link's last ("replay") or older than the window ("old timestamp").
+A receiver's links start at its own start: what was signed before this process
+started (recorded off the bus, replayed to a restarted receiver with the same
+key within the window) is a replay too."""
 
 from __future__ import annotations
 
@@ -24,6 +27,8 @@ MIN_KEY_BYTES = 16
 WINDOW_US = 30_000_000
 # the environment variable a launched plant takes its per-run key from (hex)
 KEY_VARIABLE = "FTC_BUS_KEY"
+# when this process started (imported the module, before any link subscribed)
+STARTED_US = time.time_ns() // 1000
 
 
 def new_key() -> bytes:
@@ -31,20 +36,38 @@ def new_key() -> bytes:
     return secrets.token_bytes(32)
 
 
+MAX_KEY_FILE_BYTES = 4096  # a 256-bit key is 64 hex digits and a newline
+
+
 def load_key(path: str | os.PathLike) -> bytes:
     """The key in ``path`` (hex text); ValueError naming the file if others
-    can read or write it, or it is no key."""
+    can read or write it, it is not a regular file of at most
+    MAX_KEY_FILE_BYTES (a directory, a FIFO that would block, a device that
+    never ends), or it is no key. Opened without blocking and checked on the
+    open descriptor, so the file checked is the file read."""
     path = Path(path)
     try:
-        mode = path.stat().st_mode
-        text = path.read_text()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as e:
         raise ValueError(f"{path}: cannot read the key file ({e.strerror})") from None
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ValueError(f"{path}: the key file is readable or writable by others (chmod 600 it)")
     try:
-        key = bytes.fromhex("".join(text.split()))
-    except ValueError:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path}: the key file is not a regular file")
+        if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+            raise ValueError(f"{path}: the key file is readable or writable by others "
+                             "(chmod 600 it)")
+        if st.st_size > MAX_KEY_FILE_BYTES:
+            raise ValueError(f"{path}: the key file has {st.st_size} bytes (a key file has at "
+                             f"most {MAX_KEY_FILE_BYTES})")
+        raw = os.read(fd, MAX_KEY_FILE_BYTES + 1)
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read the key file ({e.strerror})") from None
+    finally:
+        os.close(fd)
+    try:
+        key = bytes.fromhex("".join(raw.decode("ascii").split()))
+    except ValueError:  # (UnicodeDecodeError included)
         raise ValueError(f"{path}: not hex") from None
     if len(key) < MIN_KEY_BYTES:
         raise ValueError(f"{path}: a key is at least {2 * MIN_KEY_BYTES} hex digits")
@@ -59,11 +82,15 @@ def _mac(key: bytes, channel: str, payload: bytes, link_and_time: bytes) -> byte
 class Auth:
     """Signs what one link publishes and checks what it receives."""
 
-    def __init__(self, key: bytes, window_us: int = WINDOW_US) -> None:
+    def __init__(self, key: bytes, window_us: int = WINDOW_US,
+                 not_before_us: int = STARTED_US) -> None:
+        """not_before_us: every link's floor (a timestamp at or below it is a
+        replay); default the process's start."""
         self.key, self.window_ticks = key, window_us // TICK_US
         self.link_id = secrets.randbelow(255) + 1  # the plant signs as link 0
         self._last_sent = 0
         self._last_seen: dict[int, int] = {}
+        self._floor = max(0, not_before_us // TICK_US - 1)
 
     def sign(self, channel: str, payload: bytes, now_us: int | None = None) -> bytes:
         now_us = time.time_ns() // 1000 if now_us is None else now_us
@@ -82,7 +109,7 @@ class Auth:
         if not hmac.compare_digest(_mac(self.key, channel, payload, tail), mac):
             return None, "bad signature"
         link, ts = tail[0], int.from_bytes(tail[1:], "big")
-        if ts <= self._last_seen.get(link, 0):
+        if ts <= self._last_seen.get(link, self._floor):
             return None, "replay"
         now_us = time.time_ns() // 1000 if now_us is None else now_us
         if ts < now_us // TICK_US - self.window_ticks:

@@ -105,16 +105,14 @@ def check_actions(actions: Any, num_envs: int) -> np.ndarray:
         return np.ascontiguousarray(a)  # the pool checks 0/1 itself (one pass in C++)
     if a.dtype.kind not in "biuf":
         raise ValueError(f"{where} must be bool, integer or float 0/1, got dtype {a.dtype}")
+    if a.dtype.kind == "b" or ((a == 0) | (a == 1)).all():  # NaN is neither: refused below
+        return a.astype(np.int8)
     if a.dtype.kind == "f" and np.isnan(a).any():
         env, valve = np.argwhere(np.isnan(a))[0]
         raise ValueError(f"{where}: NaN at env {env}, valve {valve}")
-    if a.dtype.kind != "b":
-        bad = (a != 0) & (a != 1)
-        if bad.any():
-            env, valve = np.argwhere(bad)[0]
-            raise ValueError(f"{where} must be 0 or 1, got {a[env, valve].item()!r} at env {env}, "
-                             f"valve {valve}")
-    return a.astype(np.int8)
+    env, valve = np.argwhere((a != 0) & (a != 1))[0]
+    raise ValueError(f"{where} must be 0 or 1, got {a[env, valve].item()!r} at env {env}, "
+                     f"valve {valve}")
 
 
 def _seeds(seed: int | Sequence[int], num_envs: int) -> list[int]:

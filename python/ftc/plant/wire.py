@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import struct
 
+from ftc.common.constants import NUM_ENGINES, NUM_TANKS
+
 # utime, session, seq, command_seq (int64), episode, step (int32), age
 # (double), operating_steps (int64): the fields before num_tanks
 _STATE_HEAD = 8 * 4 + 4 + 4 + 8 + 8
@@ -39,16 +41,24 @@ def check_state(data: bytes) -> str | None:
 
 
 def decode_state(data: bytes):
-    """(plant_state_t, None) or (None, the reason it was refused)."""
+    """(plant_state_t, None) or (None, the reason it was refused). A state
+    must also have this plant's shape (NUM_TANKS tanks, NUM_ENGINES engines):
+    a well-formed state of another shape is no state of this plant, and its
+    arrays would not fit a receiver's (a 3-tank state made ftc.replay end in
+    a traceback)."""
     from ftc.plant_state_t import plant_state_t
 
     why = check_state(data)
     if why is not None:
         return None, why
     try:
-        return plant_state_t.decode(data), None
+        msg = plant_state_t.decode(data)
     except (ValueError, struct.error) as e:  # not expected after the check
         return None, f"the decoder refused it: {e}"
+    if (msg.num_tanks, msg.num_engines) != (NUM_TANKS, NUM_ENGINES):
+        return None, (f"num_tanks {msg.num_tanks}, num_engines {msg.num_engines} "
+                      f"(this plant has {NUM_TANKS} and {NUM_ENGINES})")
+    return msg, None
 
 
 def decode_ack(data: bytes):

@@ -17,7 +17,11 @@ runner's evaluation episodes use (learning.ppo.ActorCritic.act, deterministic):
 
 N is dynamic (1 for a controller acting step by step). Only PPO runs
 (ftc.controller --method ppo or ppo-robust) have a policy network; the
-critic is left out. After the export the tool runs the ONNX model in
+critic is left out.
+
+The adaptive student's checkpoint (``python -m ftc.experiments.adaptive
+train``; docs/adaptive.md) exports as --weights only: an ``ftc-policy 2``
+file with its history window, version 1, which build/policy_node flies. After the export the tool runs the ONNX model in
 onnxruntime on fixed-seed states over the observation space and refuses to
 write a model whose valves differ from torch's; the .onnx is written
 atomically.
@@ -53,6 +57,7 @@ from ftc.common.run_lock import RunLock, refuse_existing
 from ftc.control.run import checkpoint
 from ftc.tools.run_cli import run_or_report
 from ftc.learning.buffer import NUM_VALVES, OBS_DIM
+from ftc.learning.history_policy import HistoryPolicy
 from ftc.learning.ppo import ActorCritic
 from ftc.control.run import policy_weights
 
@@ -83,6 +88,36 @@ class DeterministicPolicy(nn.Module):
 def checkpoint_path(given: Path) -> Path:
     """The checkpoint file: ``given``, or a run directory's checkpoint.pt."""
     return given / "checkpoint.pt" if given.is_dir() else given
+
+
+def load_student(path: Path) -> HistoryPolicy | None:
+    """The adaptive student of a checkpoint ``python -m ftc.experiments.adaptive
+    train`` wrote (a record whose ``policy`` holds a ``config`` and a ``state``,
+    and no run ``format``), or None when ``path`` holds anything else;
+    CheckpointError if its student does not load."""
+    if not path.is_file():
+        return None
+    try:
+        record = torch.load(path, weights_only=True)
+    except Exception:  # noqa: BLE001 - not ours to judge: load_policy says why
+        return None
+    student = record.get("policy") if isinstance(record, dict) else None
+    if not isinstance(student, dict) or "format" in record or \
+            not {"config", "state"} <= set(student):  # HistoryPolicy.record()'s
+        return None
+    try:
+        student = HistoryPolicy.from_record(record["policy"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        reason = str(e).strip().splitlines()[0][:200] if str(e).strip() else ""
+        raise CheckpointError(f"{path}: an adaptive-policy checkpoint whose student does not "
+                              f"load ({type(e).__name__}: {reason})") from None
+    if not all(torch.isfinite(p).all() for p in student.parameters()):
+        raise CheckpointError(f"{path}: the student's weights are not all finite")
+    if student.config.head != "valves":
+        raise CheckpointError(f"{path}: the student's head is {student.config.head!r} (the "
+                              f"argmax of {student.config.outputs} logits); policy_node flies "
+                              f"six valve logits only (train with --head valves)")
+    return student
 
 
 def load_policy(path: Path) -> tuple[ActorCritic, dict[str, Any]]:
@@ -256,6 +291,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if target is not None:
                     refuse_existing(target, args.overwrite)
             path = checkpoint_path(args.checkpoint)
+            student = load_student(path)
+            if student is not None:
+                if args.out is not None:
+                    raise CheckpointError(
+                        f"{path}: an adaptive-policy student (a history window of "
+                        f"{student.config.window} steps) exports as --weights only: the ONNX "
+                        "graph takes the levels alone")
+                window, widths, params = policy_weights.student_layers(student)
+                policy_weights.write_weights(args.weights, widths, params, version=1,
+                                             window=window)
+                print(f"{TOOL}: wrote {args.weights} (adaptive-policy student of {path}, "
+                      f"window {window}, widths {' '.join(map(str, widths))}, version 1)")
+                return
             policy, source = load_policy(path)
             written = []
             if args.out is not None:

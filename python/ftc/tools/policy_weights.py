@@ -4,7 +4,9 @@ policy node (the format and the message: :mod:`ftc.control.run.policy_weights`).
     python -m ftc.tools.policy_weights push policy.txt --version 2 --lcm-url ... --prefix RT_
 
 It waits for the node's answer: exit 0 when the node flies the weights, 1
-with one line naming the reason when it rejected them or did not answer.
+with one line naming the reason when it rejected them or did not answer. A
+file with a history window (``ftc-policy 2``, the adaptive student) goes out
+as a ``policy_v2_t``, one of the levels (``ftc-policy 1``) as a ``policy_t``.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from ftc.common.cli import OneLineParser, at_least, checked, positive
 from ftc.common.errors import EXIT_FAILURE, UsageError
 from ftc.plant.signing import load_key
 from ftc.control.run.policy_weights import (actions, actor_layers, checksum, format_weights,  # noqa: F401
-                                        policy_message, push, read_weights, write_weights)
+                                        policy_message, push, read_policy, read_weights,
+                                        student_layers, write_weights)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -40,10 +43,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         key = load_key(args.key_file) if args.key_file else None
-        widths, params, version = read_weights(args.weights)
+        w = read_policy(args.weights)
         outcome = push(args.lcm_url, args.prefix,
-                       policy_message(widths, params, args.version or version), args.timeout,
-                       key=key)
+                       policy_message(w.widths, w.params, args.version or w.version,
+                                      window=w.window), args.timeout, key=key)
     except (UsageError, ValueError) as e:
         parser.error(str(e))
     if not outcome.accepted:

@@ -29,7 +29,6 @@ from ftc.common.cli import OneLineParser, at_least, checked, out_dir_problem
 from ftc.common.errors import RunError
 from ftc.experiments import figures
 from ftc.learning.transitions import Transitions
-from ftc.learning.world_model import WorldModelConfig, cross_validated_r2
 from ftc.plant.log import LogError, Trajectory, control_episode, read_log, write_trajectory_csv
 
 
@@ -77,6 +76,8 @@ def fit_model_from_log(traj: Trajectory, seed: int = 0) -> dict:
     if len(set(eps)) < 3:
         raise LogError(f"only {len(xs)} transitions in {len(set(eps))} episodes in the log; "
                        "fitting needs at least 3 episodes (3-fold cross-validation)")
+    from ftc.learning.world_model import WorldModelConfig, cross_validated_r2  # torch: on use
+
     data = Transitions(np.array(xs), np.array(us), np.array(xn), np.array(eps))
     r2 = cross_validated_r2(data, WorldModelConfig(seed=seed), folds=3)
     return {"transitions": len(xs), "episodes": len(set(eps)), "r2": float(r2)}

@@ -31,7 +31,6 @@ from ftc.common.constants import NUM_TANKS, TANK_HEIGHT
 from ftc.common.errors import RunError, UsageError
 from ftc.control.run.agent import Agent, StepContext
 from ftc.control.run.config import RunConfig
-from ftc.control.agents.sb3 import SB3Agent
 from ftc.plant.link import PlantObservation
 from ftc.plant.valves import valves_problem
 
@@ -144,6 +143,8 @@ def load_agent(entry: str, cfg: PluginConfig) -> Agent:
         model = _sb3_model(Path(rest))
         policy = _checked(lambda levels: model.predict(levels, deterministic=True)[0], spec)
         if cfg.sb3_learn:
+            from ftc.control.agents.sb3 import SB3Agent  # torch: only an agent that learns
+
             return SB3Agent(name or default_name(spec), model)
         return PolicyAgent(name or default_name(spec), policy)
     if kind == "onnx":

@@ -1,6 +1,6 @@
 """The policy's weights for the embedded controller (``build/policy_node``):
-the weights file ``ftc.export --weights`` writes, and the ``policy_t`` message
-that pushes new weights to a running node.
+the weights file ``ftc.export --weights`` writes, and the ``policy_t`` /
+``policy_v2_t`` message that pushes new weights to a running node.
 
     python -m ftc.export runs/s0 --weights policy.txt
     ./build/policy_node --policy policy.txt --lcm-url 'udpm://239.255.76.67:7667?ttl=0' --prefix RT_
@@ -26,6 +26,16 @@ refuses a file or push whose checksum differs, a version not above its own,
 or widths that are not 6 -> ... -> 6, naming the reason, and keeps its policy.
 It answers every push on ``<prefix>POLICY_ACK`` (accepted, or rejected with
 the reason): :func:`push` waits for that answer.
+
+A policy with a history window (the adaptive student,
+:mod:`ftc.learning.history_policy`) is written as ``ftc-policy 2``: a
+``window W`` line after the version, widths from ``12 W`` (the last W steps,
+newest first, each the six levels and the six valves commanded before them,
+``2 x - 1``), and the checksum continued over the window (int32
+little-endian) after the params. It is pushed as a ``policy_v2_t`` (a window
+field); policies of the levels stay ``ftc-policy 1`` files and ``policy_t``
+pushes, so a node that predates the window takes them as before and refuses a
+``policy_v2_t`` as not a ``policy_t`` in its answer.
 """
 
 from __future__ import annotations
@@ -44,16 +54,29 @@ from ftc.plant.signing import Auth
 from ftc.plant.wire import decode_ack
 
 FORMAT = "ftc-policy 1"
+FORMAT_WINDOW = "ftc-policy 2"  # with a history window
 FNV_OFFSET, FNV_PRIME, MASK = 1469598103934665603, 1099511628211, (1 << 64) - 1
 
 
-def checksum(widths: Sequence[int], params: np.ndarray) -> int:
-    """FNV-1a 64 of the widths (int32 LE) then the params (float32 LE)."""
-    data = (np.asarray(widths, "<i4").tobytes() + np.asarray(params, "<f4").tobytes())
+def checksum(widths: Sequence[int], params: np.ndarray, window: int | None = None) -> int:
+    """FNV-1a 64 of the widths (int32 LE) then the params (float32 LE), then
+    the window (int32 LE) when given (``ftc-policy 2``, ``policy_v2_t``)."""
+    data = (np.asarray(widths, "<i4").tobytes() + np.asarray(params, "<f4").tobytes()
+            + (b"" if window is None else np.asarray([window], "<i4").tobytes()))
     h = FNV_OFFSET
     for byte in data:
         h = ((h ^ byte) * FNV_PRIME) & MASK
     return h
+
+
+@dataclass(frozen=True)
+class Weights:
+    """A weights file's contents: ``window`` 0 for a policy of the levels."""
+
+    widths: list[int]
+    params: np.ndarray
+    version: int
+    window: int = 0
 
 
 def actor_layers(policy) -> tuple[list[int], np.ndarray]:
@@ -67,6 +90,19 @@ def actor_layers(policy) -> tuple[list[int], np.ndarray]:
     params = np.concatenate([np.concatenate([m.weight.detach().numpy().T.ravel(),
                                              m.bias.detach().numpy()]) for m in linears])
     return widths, params.astype(np.float32)
+
+
+def student_layers(policy) -> tuple[int, list[int], np.ndarray]:
+    """(window, widths, params float32) of a
+    :class:`ftc.learning.history_policy.HistoryPolicy`: its dense layers in
+    order, each W (in x out) then b."""
+    import torch
+
+    linears = [m for m in policy.net.modules() if isinstance(m, torch.nn.Linear)]
+    widths = [linears[0].in_features, *(m.out_features for m in linears)]
+    params = np.concatenate([np.concatenate([m.weight.detach().numpy().T.ravel(),
+                                             m.bias.detach().numpy()]) for m in linears])
+    return int(policy.config.window), widths, params.astype(np.float32)
 
 
 def actions(widths: Sequence[int], params: np.ndarray, levels: np.ndarray) -> np.ndarray:
@@ -84,32 +120,49 @@ def actions(widths: Sequence[int], params: np.ndarray, levels: np.ndarray) -> np
     return (x > 0).astype(np.int8)
 
 
-def format_weights(widths: Sequence[int], params: np.ndarray, version: int = 1) -> str:
+def format_weights(widths: Sequence[int], params: np.ndarray, version: int = 1,
+                   window: int = 0) -> str:
+    """The weights file's text: ``ftc-policy 1``, or ``2`` with ``window`` >= 1."""
     params = np.asarray(params, np.float32)
     rows = [" ".join(f"{v:.9g}" for v in params[i:i + 8]) for i in range(0, len(params), 8)]
-    return "\n".join([FORMAT, f"version {int(version)}", "widths " + " ".join(map(str, widths)),
+    head = [FORMAT_WINDOW, f"version {int(version)}", f"window {int(window)}"] if window else \
+        [FORMAT, f"version {int(version)}"]
+    return "\n".join([*head, "widths " + " ".join(map(str, widths)),
                       f"params {len(params)}", *rows,
-                      f"checksum {checksum(widths, params):016x}"]) + "\n"
+                      f"checksum {checksum(widths, params, window or None):016x}"]) + "\n"
 
 
-def write_weights(path: Path, widths: Sequence[int], params: np.ndarray, version: int = 1) -> None:
-    atomic_write_text(Path(path), format_weights(widths, params, version))
+def write_weights(path: Path, widths: Sequence[int], params: np.ndarray, version: int = 1,
+                  window: int = 0) -> None:
+    atomic_write_text(Path(path), format_weights(widths, params, version, window))
 
 
 def read_weights(path: Path) -> tuple[list[int], np.ndarray, int]:
-    """(widths, params, version) of a weights file; UsageError naming the file
-    and what is wrong (the node's checks)."""
+    """(widths, params, version) of an ``ftc-policy 1`` weights file (a policy
+    of the levels); UsageError naming the file and what is wrong, a file with
+    a window included (:func:`read_policy` reads both)."""
+    weights = read_policy(path)
+    if weights.window:
+        raise UsageError(f"{path}: a policy with a history window of {weights.window} steps "
+                         f"({FORMAT_WINDOW}), not a policy of the levels")
+    return weights.widths, weights.params, weights.version
+
+
+def read_policy(path: Path) -> Weights:
+    """A weights file of either format; UsageError naming the file and what is
+    wrong (the node's checks)."""
     path = Path(path)
     try:
         lines = path.read_text().splitlines()
     except OSError as e:
         raise UsageError(f"{path}: cannot read the weights file ({e.strerror})") from None
-    if not lines or lines[0].strip() != FORMAT:
-        raise UsageError(f"{path}:1: not an {FORMAT} weights file")
+    if not lines or lines[0].strip() not in (FORMAT, FORMAT_WINDOW):
+        raise UsageError(f"{path}:1: not an {FORMAT} or {FORMAT_WINDOW} weights file")
+    windowed = lines[0].strip() == FORMAT_WINDOW
     fields, values = {}, []
     for n, line in enumerate(lines[1:], start=2):
         head, _, rest = line.partition(" ")
-        if head in ("version", "widths", "params", "checksum"):
+        if head in ("version", "widths", "params", "checksum") or (windowed and head == "window"):
             fields[head] = rest.split()
         elif line.strip() and not line.startswith("#"):
             try:
@@ -120,28 +173,42 @@ def read_weights(path: Path) -> tuple[list[int], np.ndarray, int]:
         widths = [int(w) for w in fields["widths"]]
         count, version = int(fields["params"][0]), int(fields.get("version", ["0"])[0])
         expected = int(fields["checksum"][0], 16)
+        window = int(fields["window"][0]) if windowed else None
     except (KeyError, IndexError, ValueError):
-        raise UsageError(f"{path}: a version, widths, params or checksum line is missing or "
-                         "malformed") from None
+        raise UsageError(f"{path}: a version, {'window, ' if windowed else ''}widths, params or "
+                         "checksum line is missing or malformed") from None
     params = np.asarray(values, np.float32)
     if len(params) != count:
         raise UsageError(f"{path}: params says {count} values, the file holds {len(params)} "
                          "(truncated?)")
-    if checksum(widths, params) != expected:
+    if checksum(widths, params, window) != expected:
         raise UsageError(f"{path}: checksum mismatch: the weights were changed or truncated")
-    return widths, params, version
+    if window is not None:
+        from ftc.policy_v2_t import policy_v2_t  # generated by lcm-gen at build time
+
+        if not 1 <= window <= policy_v2_t.MAX_WINDOW:
+            raise UsageError(f"{path}: a window of {window} steps (allowed: "
+                             f"1..{policy_v2_t.MAX_WINDOW})")
+    return Weights(widths, params, version, window or 0)
 
 
 def policy_message(widths: Sequence[int], params: np.ndarray, version: int,
-                   checksum_value: int | None = None):
-    """A ``policy_t`` carrying the weights (its checksum computed unless given)."""
-    from ftc.policy_t import policy_t  # generated by lcm-gen at build time
+                   checksum_value: int | None = None, window: int = 0):
+    """A ``policy_t`` carrying the weights (its checksum computed unless given),
+    or with ``window`` >= 1 a ``policy_v2_t`` carrying the window too."""
+    if window:
+        from ftc.policy_v2_t import policy_v2_t  # generated by lcm-gen at build time
 
-    msg = policy_t()
+        msg = policy_v2_t()
+        msg.window = int(window)
+    else:
+        from ftc.policy_t import policy_t  # generated by lcm-gen at build time
+
+        msg = policy_t()
     msg.utime, msg.version = int(time.time() * 1e6), int(version)
     msg.num_widths, msg.widths = len(widths), [int(w) for w in widths]
     msg.num_params, msg.params = len(params), [float(v) for v in np.asarray(params, np.float32)]
-    value = checksum(widths, params) if checksum_value is None else checksum_value
+    value = checksum(widths, params, window or None) if checksum_value is None else checksum_value
     msg.checksum = value - (1 << 64) if value >= 1 << 63 else value  # int64 on the wire
     return msg
 
@@ -157,12 +224,19 @@ class PushOutcome:
     version: int
     accepted: bool | None
     reason: str = ""
+    conflict: bool = False  # answers that contradict each other (a forger's among them)
 
     def describe(self) -> str:
+        if self.conflict:
+            return f"version {self.version}: {self.reason}"
         if self.accepted is None:
             return f"version {self.version}: no answer from a policy node ({self.reason})"
         return (f"version {self.version} " + ("accepted" if self.accepted
                                               else f"rejected: {self.reason}"))
+
+
+# after a push's first answer, how long to listen for a contradicting one
+CONFLICT_WAIT_S = 0.1
 
 
 def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
@@ -194,11 +268,24 @@ def push(lcm_url: str, prefix: str, message, timeout: float = 2.0,
         deadline = time.monotonic() + timeout
         while not answers and time.monotonic() < deadline:
             lc.handle_timeout(max(1, int(1000 * (deadline - time.monotonic()))))
+        # Without a key a neighbour that reads the push can answer it first; the
+        # node's own answer follows within milliseconds: listen a little longer
+        # for one that contradicts it.
+        if answers:
+            deadline = min(deadline, time.monotonic() + CONFLICT_WAIT_S)
+        while answers and time.monotonic() < deadline:
+            lc.handle_timeout(max(1, int(1000 * (deadline - time.monotonic()))))
     finally:
         lc.unsubscribe(sub)
     if not answers:
         return PushOutcome(message.version, None, f"nothing on {prefix}POLICY_ACK within "
                                                   f"{timeout:g} s")
+    verdicts = {(bool(a.accepted), a.reason) for a in answers}
+    if len(verdicts) > 1:
+        said = "; ".join("accepted" if ok else f"rejected: {why}" for ok, why in sorted(verdicts))
+        return PushOutcome(message.version, None,
+                           f"conflicting answers on {prefix}POLICY_ACK ({said}): foreign traffic "
+                           "on the bus (a bus key keeps it out: docs/deploy.md)", conflict=True)
     return PushOutcome(message.version, bool(answers[0].accepted), answers[0].reason)
 
 

@@ -1,0 +1,39 @@
+"""A tap on one private plant's bus (its prefix): the states it published and
+the commands answering them, as the policy node's tests read them."""
+
+from __future__ import annotations
+
+import threading
+
+import lcm
+import numpy as np
+
+from ftc.plant_state_t import plant_state_t
+from ftc.valve_command_t import valve_command_t
+
+
+class BusTap:
+    """``states``: seq -> (levels, step, episode); ``commands``: (state_seq,
+    valves) in the order they were sent. Listens on a thread until ``stop``."""
+
+    def __init__(self, url: str, prefix: str) -> None:
+        self.lc = lcm.LCM(url)
+        self.states: dict[int, tuple[np.ndarray, int, int]] = {}
+        self.commands: list[tuple[int, np.ndarray]] = []
+        self.lc.subscribe(prefix + "STATE", self._state)
+        self.lc.subscribe(prefix + "COMMAND", self._command)
+        self.stop = False
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _state(self, channel: str, data: bytes) -> None:
+        s = plant_state_t.decode(data)
+        self.states[s.seq] = (np.array(s.level), s.step, s.episode)
+
+    def _command(self, channel: str, data: bytes) -> None:
+        c = valve_command_t.decode(data)
+        self.commands.append((c.state_seq, np.array(c.valve, np.int8)))
+
+    def _spin(self) -> None:
+        while not self.stop:
+            self.lc.handle_timeout(20)

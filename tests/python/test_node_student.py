@@ -1,0 +1,204 @@
+"""The adaptive student on build/policy_node: exported with its history window
+(``ftc-policy 2``), flown on the real plant in real-time mode over LCM with
+the actions Python's student takes on the same states, step by step, across
+episode starts; pushed as a ``policy_v2_t`` (signed with a bus key too), with
+damaged pushes refused by name and policy_t pushes taken as before."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import lcm
+import numpy as np
+import pytest
+import torch
+from bus_tap import BusTap
+
+from ftc.common.build_info import plant_binary, policy_node_binary
+from ftc.common.errors import UsageError
+from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, StudentConfig
+from ftc.learning.ppo import ActorCritic
+from ftc.plant import private_lcm_url, private_prefix
+from ftc.tools import policy_weights as pw
+from ftc.tools.export import main as export_main
+
+SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) ")
+# float32 in both, but torch and Eigen sum the 144 products of a unit in other
+# orders (and other BLAS kernels per CPU): logits agree to ~1e-6 of their
+# terms, so a logit this close to 0 may open the valve on one side only
+NEAR_TIE = 1e-4
+
+
+def _student(seed: int, window: int = 12) -> HistoryPolicy:
+    """An untrained student of the trained one's architecture (window 12,
+    128 x 128 tanh), its output layer scaled up so that its logits are far from 0
+    (a fresh layer's are ~0.1) and its valves change with the history."""
+    torch.manual_seed(seed)
+    student = HistoryPolicy(StudentConfig(window=window, hidden=(128, 128)))
+    with torch.no_grad():
+        student.net[-1].weight.mul_(30.0)
+    return student.eval()
+
+
+def _export(student: HistoryPolicy, tmp_path: Path, name: str) -> Path:
+    """The student through ftc.export, as a checkpoint of the train command holds it."""
+    checkpoint, weights = tmp_path / f"{name}.pt", tmp_path / f"{name}.txt"
+    torch.save({"policy": student.record(), "config": {}}, checkpoint)
+    assert export_main([str(checkpoint), "--weights", str(weights)]) == 0
+    return weights
+
+
+def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
+    """Python's student on the states the node acted on, in order: the window
+    started where the real-time loop starts an episode (the first state, a
+    state of step 0 or of another episode) and pushed with the command sent on
+    the state before otherwise (ftc.control.run.realtime with the adaptive
+    agent). Returns its valves and logits per command; ``reverse`` feeds the
+    window oldest first (what a node with its order broken would compute)."""
+    window = HistoryWindow(1, student.config.window)
+    valves, logits, episode, last = [], [], None, None
+    for state_seq, sent in bus.commands:
+        level, step, ep = bus.states[state_seq]
+        if last is None or step == 0 or ep != episode:
+            window.start(level[None])
+        else:
+            window.push(level[None], last[None])
+        x = window.features()
+        if reverse:
+            x = x.reshape(1, student.config.window, -1)[:, ::-1].reshape(1, -1).copy()
+        with torch.no_grad():
+            out = student(torch.as_tensor(x)).numpy()[0]
+        logits.append(out)
+        valves.append((out > 0).astype(np.int8))
+        # the node's own command goes into the history (the same as Python's on
+        # every step asserted below; at a near tie it keeps the two in step)
+        episode, last = ep, sent
+    return np.array(valves), np.array(logits)
+
+
+@pytest.mark.quick
+def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path, scenarios):
+    student = _student(0)
+    weights = _export(student, tmp_path, "student")
+    assert pw.read_policy(weights).window == 12
+    url, prefix = private_lcm_url(), private_prefix()
+    bus = BusTap(url, prefix)
+    # short intervals: the run crosses several episode starts (the window refilled)
+    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+                              "--mode", "realtime", "--rate", "200", "--watchdog", "1",
+                              "--steps-per-interval", "48", "--lcm-url", url, "--prefix",
+                              prefix], stderr=subprocess.DEVNULL)
+    try:
+        node = subprocess.run([str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
+                               url, "--prefix", prefix, "--steps", "240"], capture_output=True,
+                              text=True, timeout=60)
+        time.sleep(0.1)  # the last command reaches the recorder
+    finally:
+        plant.kill()
+        plant.wait()
+        bus.stop = True
+        bus.thread.join(timeout=5)
+    summary = SUMMARY.match(node.stdout.strip())
+    assert node.returncode == 0 and summary and int(summary.group(1)) == 240, node.stderr
+    assert len(bus.commands) == 240
+    missing = [s for s, _ in bus.commands if s not in bus.states]
+    assert not missing, f"states the recorder missed: {missing[:5]}"
+    sent = np.array([v for _, v in bus.commands])
+    expected, logits = _replay(student, bus)
+    firm = ~(np.abs(logits) < NEAR_TIE).any(axis=1)
+    assert firm.sum() >= 236, f"{240 - firm.sum()} near ties"  # rare: the test stays a test
+    wrong = np.flatnonzero((sent != expected).any(axis=1) & firm)
+    assert not len(wrong), (f"the node's valves differ from Python's at commands "
+                            f"{wrong[:10].tolist()}: node {sent[wrong[0]]}, Python "
+                            f"{expected[wrong[0]]}")
+    # what makes the check mean something: episodes started within the run, the
+    # valves changed within episodes, and the window's order changes the valves
+    starts = sum(bus.states[s][1] == 0 for s, _ in bus.commands)
+    assert starts >= 3, starts
+    assert 0.05 < sent.mean() < 0.95 and (np.diff(sent, axis=0) != 0).any(axis=1).sum() >= 10
+    reversed_valves, _ = _replay(student, bus, reverse=True)
+    assert (reversed_valves != sent).any(axis=1).sum() >= 10
+
+
+def test_a_windowed_weights_file_round_trips_and_damage_is_named(tmp_path):
+    window, widths, params = pw.student_layers(_student(1, window=3))
+    assert (window, widths) == (3, [36, 128, 128, 6])
+    path = tmp_path / "s.txt"
+    pw.write_weights(path, widths, params, version=4, window=window)
+    text = path.read_text()
+    assert text.startswith("ftc-policy 2\nversion 4\nwindow 3\nwidths 36 128 128 6\n")
+    w = pw.read_policy(path)
+    assert (w.window, w.widths, w.version) == (3, widths, 4) and np.array_equal(w.params, params)
+    with pytest.raises(UsageError, match="a policy with a history window of 3 steps"):
+        pw.read_weights(path)  # the levels-only reader does not drop the window silently
+    path.write_text(text.replace("window 3", "window 4"))  # the checksum covers the window
+    with pytest.raises(UsageError, match="checksum mismatch"):
+        pw.read_policy(path)
+    path.write_text(text.replace("window 3\n", ""))
+    with pytest.raises(UsageError, match="window, widths, params or checksum line is missing"):
+        pw.read_policy(path)
+    # a policy of the levels stays an ftc-policy 1 file with the checksum it always had
+    levels = pw.actor_layers(ActorCritic())
+    pw.write_weights(path, *levels)
+    assert path.read_text().startswith("ftc-policy 1\nversion 1\nwidths 6 ")
+    assert pw.read_policy(path).window == 0 and pw.read_weights(path)[0] == levels[0]
+    assert pw.checksum(*levels) != pw.checksum(*levels, 0)
+
+
+def test_export_writes_the_students_weights_only(tmp_path, capsys):
+    checkpoint = tmp_path / "student.pt"
+    torch.save({"policy": _student(2).record(), "config": {}}, checkpoint)
+    assert export_main([str(checkpoint), "--out", str(tmp_path / "s.onnx")]) == 2
+    assert "exports as --weights only" in capsys.readouterr().err
+    assert not (tmp_path / "s.onnx").exists()
+    record = {"policy": _student(2).record(), "config": {}}
+    record["policy"]["state"]["net.0.weight"][0, 0] = float("nan")
+    torch.save(record, checkpoint)
+    assert export_main([str(checkpoint), "--weights", str(tmp_path / "s.txt")]) == 2
+    assert "not all finite" in capsys.readouterr().err
+    assert not (tmp_path / "s.txt").exists()
+
+
+def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_path, capsys):
+    from ftc.plant.signing import new_key
+
+    url, prefix = private_lcm_url(), private_prefix()
+    key = new_key()
+    key_file = tmp_path / "bus.key"
+    key_file.write_text(key.hex())
+    key_file.chmod(0o600)
+    first = _export(_student(3), tmp_path, "first")
+    window, widths, params = pw.student_layers(_student(4))
+    second = tmp_path / "second.txt"
+    pw.write_weights(second, widths, params, version=2, window=window)
+    node = subprocess.Popen([str(policy_node_binary()), "--policy", str(first), "--lcm-url", url,
+                             "--prefix", prefix, "--key-file", str(key_file)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(0.5)  # subscribed
+        # the tool as the docs run it (an answer comes in milliseconds; the
+        # timeout only bounds the wait on a loaded machine)
+        push = ["push", str(second), "--lcm-url", url, "--prefix", prefix]
+        signed = pw.main([*push, "--key-file", str(key_file), "--timeout", "10"])
+        signed_out = capsys.readouterr().out
+        unsigned = pw.main([*push, "--version", "3", "--timeout", "0.5"])
+        unsigned_err = capsys.readouterr().err
+        outcomes = [pw.push(url, prefix, msg, timeout=10, key=key) for msg in (
+            pw.policy_message(widths, params, 4, window=window, checksum_value=12345),
+            pw.policy_message(widths, params, 5, window=5),  # 144 inputs are not 5 steps
+            pw.policy_message(*pw.actor_layers(ActorCritic()), 6))]  # policy_t, as before
+    finally:
+        node.send_signal(signal.SIGINT)
+        out, err = node.communicate(timeout=10)
+    assert signed == 0 and "as version 2 on" in signed_out, err
+    assert unsigned == 1 and "no answer" in unsigned_err  # refused, its answer signed
+    assert "policy version 2 in use (window 12)" in err
+    assert [(o.version, o.accepted) for o in outcomes] == [(4, False), (5, False), (6, True)], err
+    assert outcomes[0].reason.startswith("checksum mismatch")
+    assert outcomes[1].reason == "widths must run from 60 (a window of 5 steps of levels and " \
+                                 "valves) to 6 (the valves)"
+    assert "bad signature 1" in err
