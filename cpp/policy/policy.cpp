@@ -108,12 +108,13 @@ std::unique_ptr<Policy> Policy::Make(int window, std::vector<int> widths,
     return nullptr;
   }
   const int input = InputWidth(window);
-  if (widths.size() < 2 || widths.front() != input || widths.back() != kTanks) {
+  if (widths.size() < 2 || widths.front() != input ||
+      (widths.back() != kTanks && widths.back() != kSettings)) {
     *error = "widths must run from " + std::to_string(input) +
              (window == 0 ? " (the levels)"
                           : " (a window of " + std::to_string(window) +
                                 " steps of levels and valves)") +
-             " to 6 (the valves)";
+             " to 6 (a logit per valve) or 64 (a logit per valve setting)";
     return nullptr;
   }
   for (int w : widths) {
@@ -175,8 +176,18 @@ std::array<std::int8_t, kTanks> Policy::Act(const History& history) {
 
 std::array<std::int8_t, kTanks> Policy::Decide() {
   const auto& logits = net_->chain.Forward(net_->input);
+  if (widths_.back() == kSettings) return JointValves(logits.data());  // one row: contiguous
   std::array<std::int8_t, kTanks> u{};
   for (int i = 0; i < kTanks; ++i) u[i] = logits(0, i) > 0.0f ? 1 : 0;
+  return u;
+}
+
+std::array<std::int8_t, kTanks> Policy::JointValves(const float* logits) {
+  int best = 0;
+  for (int a = 1; a < kSettings; ++a)
+    if (logits[a] > logits[best]) best = a;  // strictly: a tie keeps the first
+  std::array<std::int8_t, kTanks> u{};
+  for (int i = 0; i < kTanks; ++i) u[i] = (best >> i) & 1;
   return u;
 }
 

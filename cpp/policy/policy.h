@@ -1,6 +1,5 @@
 // The deterministic policy of the embedded controller: the exported actor
-// (its input -> dense tanh layers -> 6 logits; a valve opens where its logit
-// is positive), read from the weights file ftc.export writes or from a pushed
+// (its input -> dense tanh layers -> its head), read from the weights file ftc.export writes or from a pushed
 // policy_t / policy_v2_t, checked whole before use. Its input is either the
 // newest levels mapped to 2 x - 1 (window 0: the PPO policies) or a window of
 // the last W steps of levels and valve commands (the adaptive student,
@@ -8,6 +7,11 @@
 // and no Eigen in this header: the arithmetic (learning/tanh_mlp.h) is
 // compiled with the learning kernels' flags (-march=native), whose Eigen
 // types must not meet those of code compiled without them.
+//
+// The head is told by the last layer's width: 6 logits (the valves head:
+// valve i opens where logit i is positive) or 64 (the joint head, one logit
+// per valve setting: the setting a of the largest logit, the first on ties as
+// torch's argmax, opens valve i iff bit i of a is set).
 #pragma once
 
 #include <array>
@@ -21,6 +25,7 @@ namespace ftc::policy {
 
 constexpr int kTanks = 6;
 constexpr int kStepFeatures = 2 * kTanks;  // one step of history: levels, then valves
+constexpr int kSettings = 1 << kTanks;     // the joint head's outputs: one per valve setting
 // The longest window a policy may read (policy_v2_t::MAX_WINDOW); History keeps
 // this many steps whatever the flying policy reads, so a pushed policy with
 // another window finds the episode's history as it would have kept it.
@@ -73,8 +78,8 @@ class Policy {
  public:
   // A policy of this window, widths and params, or null with the reason in
   // *error: window must be in 0..kMaxWindow, widths must run InputWidth(window)
-  // -> ... -> 6 with every width in 1..4096, params must hold exactly their
-  // weights and biases, every value finite.
+  // -> ... -> 6 or 64 (the head) with every width in 1..4096, params must
+  // hold exactly their weights and biases, every value finite.
   static std::unique_ptr<Policy> Make(int window, std::vector<int> widths,
                                       std::vector<float> params, std::int64_t version,
                                       std::string* error);
@@ -94,6 +99,10 @@ class Policy {
   // Valve commands (0/1) for the history: its newest `window()` steps, or
   // its newest levels for window 0.
   std::array<std::int8_t, kTanks> Act(const History& history);
+
+  // The valves of the joint head's kSettings logits: the bits of the first
+  // largest one's index (valve i open iff bit i is set).
+  static std::array<std::int8_t, kTanks> JointValves(const float* logits);
 
   ~Policy();
   std::int64_t version() const { return version_; }

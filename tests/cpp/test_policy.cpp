@@ -157,11 +157,60 @@ TEST(History, ScalesAsNumPysFloat32) {
   for (int i = 6; i < 12; ++i) EXPECT_EQ(out[i], -1.0f);
 }
 
+// One dense layer from a window of 1 step (12 inputs) to the joint head's 64
+// logits: W = 0 and the biases `bias`, so the logits are the biases whatever
+// the history.
+std::unique_ptr<Policy> Joint(const std::vector<float>& bias, std::string* error) {
+  std::vector<float> p(static_cast<std::size_t>(12 * kSettings), 0.0f);
+  p.insert(p.end(), bias.begin(), bias.end());
+  return Policy::Make(1, {12, kSettings}, p, 1, error);
+}
+
+TEST(Policy, TheJointHeadOpensTheBitsOfItsLargestLogitTheFirstOnTies) {
+  std::string error;
+  History h;
+  h.Start({0.5, 0.5, 0.5, 0.5, 0.5, 0.5});
+  std::vector<float> bias(kSettings, -1.0f);
+  bias[37] = 2.0f;  // 37 = 0b100101: valves 0, 2 and 5
+  auto policy = Joint(bias, &error);
+  ASSERT_TRUE(policy) << error;
+  EXPECT_EQ(policy->Act(h), (std::array<std::int8_t, 6>{1, 0, 1, 0, 0, 1}));
+  // every setting maps to its own bits (valve i = bit i, not reversed)
+  for (int a = 0; a < kSettings; ++a) {
+    std::vector<float> one(kSettings, 0.0f);
+    one[a] = 1.0f;
+    const auto u = Policy::JointValves(one.data());
+    int back = 0;
+    for (int i = 0; i < 6; ++i) back |= u[i] << i;
+    EXPECT_EQ(back, a);
+  }
+  // a tie between 6 (0b000110) and 48 (0b110000): the first, as torch's argmax
+  bias.assign(kSettings, 0.0f);
+  bias[48] = bias[6] = 3.0f;
+  policy = Joint(bias, &error);
+  ASSERT_TRUE(policy) << error;
+  EXPECT_EQ(policy->Act(h), (std::array<std::int8_t, 6>{0, 1, 1, 0, 0, 0}));
+  bias.assign(kSettings, 0.5f);  // all equal: setting 0, every valve closed
+  EXPECT_EQ(Policy::JointValves(bias.data()), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
+  bias.back() = 0.75f;  // the last largest: all open
+  EXPECT_EQ(Policy::JointValves(bias.data()), (std::array<std::int8_t, 6>{1, 1, 1, 1, 1, 1}));
+}
+
+TEST(Policy, AnOutputWidthOtherThanSixOrSixtyFourIsRefused) {
+  std::string error;
+  for (int out : {1, 7, 32, 63, 65, 128}) {
+    std::vector<float> p(static_cast<std::size_t>(13 * out), 0.0f);
+    EXPECT_FALSE(Policy::Make(1, {12, out}, p, 1, &error)) << out;
+    EXPECT_EQ(error, "widths must run from 12 (a window of 1 steps of levels and valves) to 6 "
+                     "(a logit per valve) or 64 (a logit per valve setting)");
+  }
+}
+
 TEST(Policy, AWindowNeedsItsInputWidth) {
   std::string error;
   EXPECT_FALSE(Policy::Make(12, {6, 6}, Identity(), 1, &error));
   EXPECT_EQ(error, "widths must run from 144 (a window of 12 steps of levels and valves) to 6 "
-                   "(the valves)");
+                   "(a logit per valve) or 64 (a logit per valve setting)");
   EXPECT_FALSE(Policy::Make(kMaxWindow + 1, {6, 6}, Identity(), 1, &error));
   EXPECT_NE(error.find("a window of 257 steps (allowed: 0..256)"), std::string::npos) << error;
   EXPECT_FALSE(Policy::Make(-1, {6, 6}, Identity(), 1, &error));

@@ -153,13 +153,13 @@ def test_the_no_teacher_ablation_saves_ppos_actor_in_the_students_layout(tmp_pat
     assert not (tmp_path / "x.pt").exists()
 
 
-def test_export_refuses_a_joint_head_student_in_one_line(tmp_path, capsys):
+def test_export_writes_a_joint_head_student_for_the_node(tmp_path):
+    from ftc.tools import policy_weights as pw
     from ftc.tools.export import main as export_main
 
     checkpoint, weights = tmp_path / "student.pt", tmp_path / "s.txt"
     student = HistoryPolicy(StudentConfig(window=2, hidden=(8,), head="joint"))
     torch.save({"policy": student.record(), "config": {}}, checkpoint)
-    assert export_main([str(checkpoint), "--weights", str(weights)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "policy_node flies six valve logits only" in err[0]
-    assert not weights.exists()
+    assert export_main([str(checkpoint), "--weights", str(weights)]) == 0
+    policy = pw.read_policy(weights)  # the node tells the head by the last width
+    assert (policy.window, policy.widths) == (2, [24, 8, 64])

@@ -29,16 +29,18 @@ from ftc.tools.export import main as export_main
 SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) ")
 # float32 in both, but torch and Eigen sum the 144 products of a unit in other
 # orders (and other BLAS kernels per CPU): logits agree to ~1e-6 of their
-# terms, so a logit this close to 0 may open the valve on one side only
+# terms, so a logit this close to 0 may open the valve on one side only (the
+# valves head), or two logits this close may swap places (the joint head)
 NEAR_TIE = 1e-4
 
 
-def _student(seed: int, window: int = 12) -> HistoryPolicy:
+def _student(seed: int, window: int = 12, head: str = "valves") -> HistoryPolicy:
     """An untrained student of the trained one's architecture (window 12,
     128 x 128 tanh), its output layer scaled up so that its logits are far from 0
-    (a fresh layer's are ~0.1) and its valves change with the history."""
+    and from each other (a fresh layer's are ~0.1) and its valves change with
+    the history."""
     torch.manual_seed(seed)
-    student = HistoryPolicy(StudentConfig(window=window, hidden=(128, 128)))
+    student = HistoryPolicy(StudentConfig(window=window, hidden=(128, 128), head=head))
     with torch.no_grad():
         student.net[-1].weight.mul_(30.0)
     return student.eval()
@@ -57,10 +59,12 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
     started where the real-time loop starts an episode (the first state, a
     state of step 0 or of another episode) and pushed with the command sent on
     the state before otherwise (ftc.control.run.realtime with the adaptive
-    agent). Returns its valves and logits per command; ``reverse`` feeds the
-    window oldest first (what a node with its order broken would compute)."""
+    agent). Returns its valves per command and whether each is firm (no
+    logit within NEAR_TIE of 0, or with the joint head the top two logits
+    NEAR_TIE apart or more); ``reverse`` feeds the window oldest first (what a
+    node with its order broken would compute)."""
     window = HistoryWindow(1, student.config.window)
-    valves, logits, episode, last = [], [], None, None
+    valves, firm, episode, last = [], [], None, None
     for state_seq, sent in bus.commands:
         level, step, ep = bus.states[state_seq]
         if last is None or step == 0 or ep != episode:
@@ -72,19 +76,26 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
             x = x.reshape(1, student.config.window, -1)[:, ::-1].reshape(1, -1).copy()
         with torch.no_grad():
             out = student(torch.as_tensor(x)).numpy()[0]
-        logits.append(out)
-        valves.append((out > 0).astype(np.int8))
+        valves.append(student.act(x)[0])  # Python's rule for its head
+        if student.config.head == "joint":
+            top2 = np.sort(out)[-2:]
+            firm.append(top2[1] - top2[0] >= NEAR_TIE)
+        else:
+            firm.append(not (np.abs(out) < NEAR_TIE).any())
         # the node's own command goes into the history (the same as Python's on
         # every step asserted below; at a near tie it keeps the two in step)
         episode, last = ep, sent
-    return np.array(valves), np.array(logits)
+    return np.array(valves), np.array(firm)
 
 
 @pytest.mark.quick
-def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path, scenarios):
-    student = _student(0)
+@pytest.mark.parametrize("head", ["valves", "joint"])
+def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path, scenarios,
+                                                                       head):
+    student = _student(0, head=head)
     weights = _export(student, tmp_path, "student")
-    assert pw.read_policy(weights).window == 12
+    policy = pw.read_policy(weights)
+    assert policy.window == 12 and policy.widths[-1] == student.config.outputs
     url, prefix = private_lcm_url(), private_prefix()
     bus = BusTap(url, prefix)
     # short intervals: the run crosses several episode starts (the window refilled)
@@ -108,8 +119,7 @@ def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path,
     missing = [s for s, _ in bus.commands if s not in bus.states]
     assert not missing, f"states the recorder missed: {missing[:5]}"
     sent = np.array([v for _, v in bus.commands])
-    expected, logits = _replay(student, bus)
-    firm = ~(np.abs(logits) < NEAR_TIE).any(axis=1)
+    expected, firm = _replay(student, bus)
     assert firm.sum() >= 236, f"{240 - firm.sum()} near ties"  # rare: the test stays a test
     wrong = np.flatnonzero((sent != expected).any(axis=1) & firm)
     assert not len(wrong), (f"the node's valves differ from Python's at commands "
@@ -173,6 +183,7 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
     key_file.chmod(0o600)
     first = _export(_student(3), tmp_path, "first")
     window, widths, params = pw.student_layers(_student(4))
+    joint = pw.student_layers(_student(5, head="joint"))
     second = tmp_path / "second.txt"
     pw.write_weights(second, widths, params, version=2, window=window)
     node = subprocess.Popen([str(policy_node_binary()), "--policy", str(first), "--lcm-url", url,
@@ -190,15 +201,21 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
         outcomes = [pw.push(url, prefix, msg, timeout=10, key=key) for msg in (
             pw.policy_message(widths, params, 4, window=window, checksum_value=12345),
             pw.policy_message(widths, params, 5, window=5),  # 144 inputs are not 5 steps
-            pw.policy_message(*pw.actor_layers(ActorCritic()), 6))]  # policy_t, as before
+            pw.policy_message(*pw.actor_layers(ActorCritic()), 6),  # policy_t, as before
+            pw.policy_message(joint[1], joint[2], 7, window=joint[0]),  # the joint head
+            pw.policy_message([144, 65], np.zeros(145 * 65, np.float32), 8, window=12))]
     finally:
         node.send_signal(signal.SIGINT)
         out, err = node.communicate(timeout=10)
     assert signed == 0 and "as version 2 on" in signed_out, err
     assert unsigned == 1 and "no answer" in unsigned_err  # refused, its answer signed
     assert "policy version 2 in use (window 12)" in err
-    assert [(o.version, o.accepted) for o in outcomes] == [(4, False), (5, False), (6, True)], err
+    assert [(o.version, o.accepted) for o in outcomes] == [(4, False), (5, False), (6, True),
+                                                           (7, True), (8, False)], err
     assert outcomes[0].reason.startswith("checksum mismatch")
     assert outcomes[1].reason == "widths must run from 60 (a window of 5 steps of levels and " \
-                                 "valves) to 6 (the valves)"
+                                 "valves) to 6 (a logit per valve) or 64 (a logit per " \
+                                 "valve setting)"
+    assert outcomes[4].reason.endswith("to 6 (a logit per valve) or 64 (a logit per valve "
+                                       "setting)")
     assert "bad signature 1" in err
