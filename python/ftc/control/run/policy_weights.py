@@ -23,7 +23,8 @@ deterministic action. ``params`` holds, layer by layer, W (inputs x outputs,
 row-major) then b. ``checksum``: FNV-1a 64 of the widths (int32
 little-endian) then the params (float32 little-endian), in hex; the node
 refuses a file or push whose checksum differs, a version not above its own,
-or widths that are not 6 -> ... -> 6, naming the reason, and keeps its policy.
+or widths that are not 6 -> ... -> 6 (12 W -> ... -> 6 or 64 with a window,
+below), naming the reason, and keeps its policy.
 It answers every push on ``<prefix>POLICY_ACK`` (accepted, or rejected with
 the reason): :func:`push` waits for that answer.
 
@@ -32,7 +33,9 @@ A policy with a history window (the adaptive student,
 ``window W`` line after the version, widths from ``12 W`` (the last W steps,
 newest first, each the six levels and the six valves commanded before them,
 ``2 x - 1``), and the checksum continued over the window (int32
-little-endian) after the params. It is pushed as a ``policy_v2_t`` (a window
+little-endian) after the params. Its last layer is 6 logits (a valve opens
+where its logit is positive) or 64, one per valve setting: the node applies
+the setting of the largest (the first on ties), valve i open where bit i is set. It is pushed as a ``policy_v2_t`` (a window
 field); policies of the levels stay ``ftc-policy 1`` files and ``policy_t``
 pushes, so a node that predates the window takes them as before and refuses a
 ``policy_v2_t`` as not a ``policy_t`` in its answer.
