@@ -68,30 +68,14 @@ def parse_config(text: str, epochs: int) -> TrainingConfig:
 def write_rows(path: str, a: argparse.Namespace, n_train: int, n_val: int,
                rows: list[dict]) -> None:
     """The comparison as a result file (docs/results/): provenance, then the CSV."""
-    import csv
-    import io
-    import os
-    import platform
+    from ftc.experiments.adaptive.cli import write_result
 
-    from ftc.common.atomic import atomic_write_text
-    from ftc.common.build_info import git_revision
-
-    buf = io.StringIO()
-    for key, value in (
-            ("what", f"student configurations fitted {a.epochs} epochs on {n_train} teacher "
-                     f"labels of 24 plants drawn from the training distribution, scored on "
-                     f"{n_val} labels of 12 other plants: share of states with the teacher's "
-                     f"six valves, and mean regret (summed reward over the teacher's horizon "
-                     f"lost against its best plan)"),
-            ("command", "python scripts/adaptive_proxy.py " + " ".join(sys.argv[1:])),
-            ("commit", git_revision()), ("date", time.strftime("%Y-%m-%d")),
-            ("machine", f"{platform.machine()}, {os.cpu_count()} cores, load average "
-                        f"{os.getloadavg()[0]:.1f}")):
-        buf.write(f"# {key}: {value}\n")
-    writer = csv.DictWriter(buf, list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_text(path, buf.getvalue())
+    write_result(path, f"student configurations fitted {a.epochs} epochs on {n_train} teacher "
+                       f"labels of 24 plants drawn from the training distribution, scored on "
+                       f"{n_val} labels of 12 other plants: share of states with the teacher's "
+                       f"six valves, and mean regret (summed reward over the teacher's horizon "
+                       f"lost against its best plan)", rows,
+                 command="python scripts/adaptive_proxy.py")
 
 
 def fit(a: argparse.Namespace) -> None:

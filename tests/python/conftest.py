@@ -93,3 +93,14 @@ def _write_state_log(path: Path, steps: int, drop_per_step: float = 0.01) -> Non
 def write_state_log():
     """The function that writes a small plant-state log (see _write_state_log)."""
     return _write_state_log
+
+
+@pytest.fixture()
+def one_torch_thread():
+    """Torch on one thread, as training runs it (many crawl on a loaded machine)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

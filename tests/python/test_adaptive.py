@@ -101,15 +101,6 @@ def test_the_teacher_is_oracle_mpc_and_moves_fuel_to_the_light_wing():
     assert teacher.labels == 2
 
 
-@pytest.fixture()
-def one_torch_thread():
-    """Torch on one thread, as training runs it (many crawl on a loaded machine)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_the_student_learns_a_rule_of_its_window_from_labels(one_torch_thread):
     # a known answer: valve i opens iff tank i's newest level is below 0.5
     rng = np.random.default_rng(0)

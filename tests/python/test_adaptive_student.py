@@ -18,14 +18,6 @@ from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, StudentCo
                                          TrainingConfig, rates_map)
 
 
-@pytest.fixture()
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_the_joint_head_opens_the_bits_of_its_largest_logit():
     policy = HistoryPolicy(StudentConfig(window=1, hidden=(4,), head="joint"))
     with torch.no_grad():

@@ -146,15 +146,16 @@ def balance_rule(levels: np.ndarray) -> np.ndarray:
     return np.stack([balance_valves(x) for x in levels])
 
 
-def write_result(path: str, what: str, rows: list[dict[str, Any]]) -> None:
-    """A result file (docs/results/): '#' provenance lines, then the CSV."""
+def write_result(path: str, what: str, rows: list[dict[str, Any]],
+                 command: str = "python -m ftc.experiments.adaptive") -> None:
+    """A result file (docs/results/): '#' provenance lines (``command`` followed by
+    this process's arguments), then the CSV."""
     import csv
     import io
     import platform
 
     buf = io.StringIO()
-    for key, value in (("what", what), ("command", "python -m ftc.experiments.adaptive " +
-                                        " ".join(sys.argv[1:])),
+    for key, value in (("what", what), ("command", command + " " + " ".join(sys.argv[1:])),
                        ("commit", git_revision()), ("date", time.strftime("%Y-%m-%d")),
                        ("machine", f"{platform.processor() or platform.machine()}, "
                                    f"{os.cpu_count()} cores, load average "
