@@ -201,6 +201,33 @@ def test_lcm_echo_survives_a_negative_valve_count():
     assert "num_valves is -1" in err
 
 
+def test_lcm_echo_moves_its_counters_as_the_plant_does():
+    """The lockstep benchmark's floor (scripts/bench.py) runs a lockstep link
+    against lcm_echo. The link stops at any answer that does not follow from
+    its own request (ftc.plant.foreign), so the echo's episode, step, operating
+    step and valves must move as the plant's do, or the benchmark stops with
+    'foreign traffic' on its first reset."""
+    from ftc.common.build_info import echo_binary
+    from ftc.plant import LcmPlant
+
+    url, prefix = private_lcm_url(), private_prefix()
+    proc = subprocess.Popen([str(echo_binary()), "--lcm-url", url, "--prefix", prefix])
+    rng = np.random.default_rng(0)
+    with LcmPlant(url, prefix, process=proc) as echo:
+        o = echo.reset()
+        first = o.episode
+        for k in range(1, 41):
+            valves = rng.integers(0, 2, 6)
+            o = echo.step(valves)
+            assert (o.step, list(o.valves)) == (k, list(valves))
+        assert o.operating_steps == 40
+        o = echo.evaluate()
+        o = echo.step(np.ones(6, dtype=np.int8))
+        assert (o.episode, o.step, o.operating_steps) == (first + 1, 1, 40)  # evaluation: no age
+        o = echo.reset()
+        assert (o.episode, o.step) == (first + 2, 0)
+
+
 def test_lcm_echo_with_a_key_answers_only_signed_messages_and_signs_its_answers(tmp_path):
     from ftc.common.build_info import echo_binary
     from ftc.plant.signing import Auth, new_key

@@ -1,7 +1,12 @@
 // LCM echo responder: answers every valve command and control message with a
 // plant_state_t carrying its seq, exactly as the plant does, but with no
 // physics. The lockstep benchmark measures the plant against this floor.
-// It follows no session (it answers each message in the message's own) but
+// Its counters move as the plant's do (a command steps the episode and the
+// operating age and its valves are applied; RESET, EVALUATE and START begin an
+// episode; HELLO, OPEN and CLOSE change nothing; a repeated seq is answered
+// again without a step), so a lockstep link's foreign-traffic checks hold.
+// Its episodes never end. It follows no session (it answers each message in
+// the message's own) but
 // decodes as the plant does: a malformed buffer is counted, never fatal. With
 // --key-file it checks and signs as the plant does (plant/lcm/signing.h): a
 // message without a valid MAC and a rising timestamp is refused and counted,
@@ -9,6 +14,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <iostream>
@@ -40,13 +46,42 @@ class Echo final {
  private:
   void OnCommand(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     ftc::valve_command_t cmd{};
-    if (Decoded(rbuf, channel, &cmd)) Answer(cmd.session, cmd.seq);
+    if (!Decoded(rbuf, channel, &cmd)) return;
+    Follow(cmd.session);
+    if (cmd.seq > answered_seq_) {
+      for (int i = 0; i < outcome_.valves.size() && i < cmd.num_valves; ++i)
+        outcome_.valves[i] = cmd.valve[i] != 0;
+      ++outcome_.step;
+      if (!outcome_.evaluation) ++operating_steps_;
+      answered_seq_ = cmd.seq;
+    }
+    Answer(cmd.session, cmd.seq);
   }
   void OnControl(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     ftc::plant_control_t msg{};
     if (!Decoded(rbuf, channel, &msg)) return;
     if (msg.command == ftc::plant_control_t::SHUTDOWN) shutdown_ = true;
+    Follow(msg.session);
+    const bool starts = msg.command == ftc::plant_control_t::RESET ||
+                        msg.command == ftc::plant_control_t::EVALUATE ||
+                        msg.command == ftc::plant_control_t::START;
+    if (starts && msg.seq > answered_seq_) {
+      if (msg.command == ftc::plant_control_t::START &&
+          msg.operating_step >= 0 && msg.operating_step <= ftc::plant_control_t::MAX_OPERATING_STEP)
+        operating_steps_ = msg.operating_step;
+      ++outcome_.episode;
+      outcome_.step = 0;
+      outcome_.evaluation = msg.command == ftc::plant_control_t::EVALUATE;
+    }
+    if (msg.command != ftc::plant_control_t::HELLO)
+      answered_seq_ = std::max(answered_seq_, msg.seq);
     Answer(msg.session, msg.seq);
+  }
+  // Sequence numbers count within a session: a new one starts them again.
+  void Follow(std::int64_t session) {
+    if (session == session_) return;
+    session_ = session;
+    answered_seq_ = 0;
   }
   static std::int64_t NowMicros() {
     return std::chrono::duration_cast<std::chrono::microseconds>(
@@ -76,7 +111,7 @@ class Echo final {
     return false;
   }
   void Answer(std::int64_t session, std::int64_t seq) {
-    auto msg = ftc::ToStateMessage(outcome_, ++state_seq_, seq, 0, counters_);
+    auto msg = ftc::ToStateMessage(outcome_, ++state_seq_, seq, operating_steps_, counters_);
     msg.session = session;
     if (!signer_) {
       lcm_->publish(channels_.state, &msg);
@@ -94,6 +129,9 @@ class Echo final {
   ftc::LinkCounters counters_;
   ftc::wire::RateLimitedLog refusals_{"lcm_echo"};
   std::int64_t state_seq_ = 0;
+  std::int64_t session_ = 0;          // session of the last message answered
+  std::int64_t answered_seq_ = 0;     // newest command or control seq answered
+  std::int64_t operating_steps_ = 0;  // as the plant's: steps outside evaluation
   bool shutdown_ = false;
   std::optional<ftc::signing::Verifier> verifier_;
   std::optional<ftc::signing::Signer> signer_;
