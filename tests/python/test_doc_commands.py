@@ -71,7 +71,9 @@ def test_the_speed_scripts_take_the_documented_options():
     """docs/benchmarks.md's commands measure for minutes: their options exist."""
     for script, options in (("bench.py", ("--rounds", "--only", "--json", "--long")),
                             ("profile_run.py", ("controller_args",)),
-                            ("bench_vector.py", ("--rounds", "--results", "--figure"))):
+                            ("bench_vector.py", ("--rounds", "--results", "--figure")),
+                            ("bench_revisions.py", ("--before", "--after", "--only", "--rounds",
+                                                    "--results"))):
         done = subprocess.run([str(REPO / ".venv" / "bin" / "python"),
                                str(REPO / "scripts" / script), "--help"],
                               capture_output=True, text=True, timeout=120)
