@@ -7,18 +7,22 @@ evaluator state by state, and the method with the option runs on the real plant.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 import torch
 
+from ftc.control.agents.learned.adaptive_policy import AdaptiveConfig, AdaptivePolicyAgent
 from ftc.control.agents.learned.learned_mpc import LearnedEvaluator
 from ftc.control.agents.learned.online_tune import (corrected_labels, fine_tune,
                                                      rate_settings, setting_codes)
 from ftc.control.planning.planners import hold_candidates
+from ftc.control.run.agent import StepContext, Transition
 from ftc.learning.feature_model import FeatureModel
 from ftc.learning.history_policy import HistoryPolicy, StudentConfig
+from ftc.plant.link import PlantObservation
 from ftc.tools import controller
 
 TARGET = 37  # valves 0, 2 and 5 open
@@ -119,3 +123,53 @@ def test_a_fine_tune_option_without_the_fine_tune_is_refused(capsys):
         controller.parse_args(["--method", "adaptive-policy", "--fine-tune-margin", "1", "--out", "x"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--fine-tune-margin has no effect" in err[0]
+
+
+def _step(level: np.ndarray, valves: np.ndarray, nxt: np.ndarray, step: int) -> Transition:
+    now, then = _obs(level, step, valves), _obs(nxt, step + 1, valves)
+    return Transition(obs=now, valves=valves, reward=0.0, next_obs=then, following=then)
+
+
+def _obs(level: np.ndarray, step: int, valves: np.ndarray | None = None) -> PlantObservation:
+    fields = {f.name: 0 for f in dataclasses.fields(PlantObservation)}
+    fields.update(level=np.asarray(level, np.float64), terminal=False, truncated=False,
+                  operating_steps=step, valves=np.zeros(6, np.int8) if valves is None else valves,
+                  deficit=np.zeros(2))
+    return PlantObservation(**fields)
+
+
+def test_on_a_real_time_plant_the_fine_tune_runs_off_the_loop_and_is_swapped_in(
+        tmp_path, one_torch_thread):
+    """background_learning (a real-time plant): end_interval returns at once,
+    the checkpoint's student acts while the job runs, and the tuned one acts
+    after it is taken between two steps; its metrics arrive late, the runner
+    told through on_learned."""
+    torch.manual_seed(3)
+    policy = HistoryPolicy(StudentConfig(window=2, hidden=(16,), head="joint"))
+    path = tmp_path / "student.pt"
+    torch.save({"policy": policy.record()}, path)
+    agent = AdaptivePolicyAgent(AdaptiveConfig(
+        checkpoint=str(path), fine_tune=True, fine_tune_margin=0.0, fine_tune_lr=0.01,
+        fine_tune_epochs=20, fine_tune_memory=64))
+    agent.background_learning = True
+    learned = []
+    agent.on_learned = learned.append
+    agent.prepare()
+    rng = np.random.default_rng(0)
+    level = np.full(6, 0.9)
+    agent.start_episode(_obs(level, 0))
+    for t in range(48):
+        u = agent.act(_obs(level, t), StepContext(0, t, 48 - t))
+        nxt = np.clip(level - rng.uniform(0.0, 0.01, 6), 0, 1)
+        agent.observe(_step(level, u, nxt, t))
+        level = nxt
+    acting = agent.policy
+    assert agent.end_interval(0, None) == {} and agent.learning
+    assert agent.policy is acting  # the checkpoint's student acts until the job is taken
+    agent.finish()  # waits for the job, swaps the student in
+    assert not agent.learning and learned == [0] and agent.policy is not acting
+    ((interval, metrics),) = agent.late_metrics()
+    assert interval == 0 and metrics["fine_tune_states"] == 48
+    assert metrics["fine_tune_corrected"] > 0
+    assert set(agent.state_dict()) == {"student", "fine_tune"}
+    agent.close()
