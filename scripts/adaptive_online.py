@@ -35,12 +35,38 @@ SUITE = ["single", "multiple", "random-05", "random-10", "random-17"]
 CHECK = ["abrupt", "deadpump", "unseen-continuous", "unseen-noise"]
 
 
-def rewards_of(metrics: Path) -> np.ndarray:
-    """Reward per step of each interval, from a run's metrics.csv."""
+def rewards_of(metrics: Path) -> tuple[np.ndarray, float | None]:
+    """(reward per step of each interval, the share of the states the fine-tune
+    rated that it corrected, None without it), from a run's metrics.csv."""
     with open(metrics, newline="") as f:
-        rows = [r for r in csv.DictReader(f)]
-    return np.array([float(r["reward_per_step"]) for r in sorted(rows, key=lambda r: int(
-        r["interval"]))])
+        rows = sorted(csv.DictReader(f), key=lambda r: int(r["interval"]))
+    rated = sum(int(r["fine_tune_states"] or 0) for r in rows)
+    corrected = sum(int(r["fine_tune_corrected"] or 0) for r in rows)
+    return (np.array([float(r["reward_per_step"]) for r in rows]),
+            corrected / rated if rated else None)
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """Per (variant, set): runs, mean score, worst scenario (its mean over seeds),
+    scenarios below 0.60, the share of rated states corrected."""
+    out = []
+    for variant in dict.fromkeys(r["fine_tune"] for r in rows):
+        for which in dict.fromkeys(r["set"] for r in rows):
+            cells = [r for r in rows if r["fine_tune"] == variant and r["set"] == which]
+            if not cells:
+                continue
+            per: dict[str, list[float]] = {}
+            for r in cells:
+                per.setdefault(r["scenario"], []).append(r["score"])
+            means = {k: float(np.mean(v)) for k, v in per.items()}
+            worst = min(means, key=means.get)
+            shares = [r["corrected"] for r in cells if r["corrected"] != ""]
+            out.append({"fine_tune": variant, "set": which, "runs": len(cells),
+                        "mean score": round(float(np.mean([r["score"] for r in cells])), 3),
+                        "worst scenario": f"{worst} ({means[worst]:.3f})",
+                        "scenarios below 0.60": sum(v < 0.6 for v in means.values()),
+                        "states corrected": f"{np.mean(shares):.3f}" if shares else ""})
+    return out
 
 
 def run(cell: Path, scenario: Path, seed: int, checkpoint: str, extra: list[str]) -> Path:
@@ -71,7 +97,8 @@ def main() -> int:
     p.add_argument("--fine-tune-args", default="", help="options of the 'on' variant beside "
                    "--fine-tune (one string)")
     p.add_argument("--work", default="runs/adaptive-online")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="per-run scores (CSV)")
+    p.add_argument("--summary", default="", help="per variant and set (CSV)")
     a = p.parse_args()
     for given in (a.checkpoint, a.heldout_results):
         if given and not Path(given).is_file():
@@ -90,27 +117,35 @@ def main() -> int:
                 ref = evaluate.reference_rewards(which, names, seed, Path(a.heldout_results)
                                                  if which == "heldout" else None)
                 for variant, extra in variants.items():
-                    r = []
+                    r, shares = [], []
                     for name in names:
                         cell = Path(a.work) / variant / which / name / f"s{seed}"
-                        r.append(rewards_of(run(cell, files[name], seed, a.checkpoint, extra)))
+                        got = rewards_of(run(cell, files[name], seed, a.checkpoint, extra))
+                        r.append(got[0])
+                        shares.append(got[1])
                         print(f"adaptive_online: {variant} {which} {name} s{seed}: "
                               f"{(cell / 'done').read_text().strip()} s", flush=True)
                     sc = evaluate.scores(np.array(r), ref["reference"], ref["closed"])
                     for i, name in enumerate(names):
                         rows.append({"fine_tune": variant, "set": which, "scenario": name,
                                      "seed": seed, "score": round(float(sc[i]), 4),
-                                     "reward_per_step": round(float(r[i][1:].mean()), 4)})
+                                     "reward_per_step": round(float(r[i][1:].mean()), 4),
+                                     "corrected": "" if shares[i] is None else
+                                     round(shares[i], 4)})
     write_result(a.out, "adaptive-policy without (off) and with (on) its online fine-tune, flown "
                  f"by the real runner (--link core, 10 x 512 steps) with {a.checkpoint}; per-"
                  "scenario normalized score (intervals 1-9 against the reference and closed)",
                  rows, command="python scripts/adaptive_online.py")
-    for variant in variants:
-        for which in a.sets:
-            s = [r["score"] for r in rows if r["fine_tune"] == variant and r["set"] == which]
-            if s:
-                print(f"adaptive_online: {variant}: {which}: mean {np.mean(s):.3f} over "
-                      f"{len(s)} runs, worst {min(s):.3f}")
+    summed = summary(rows)
+    if a.summary:
+        write_result(a.summary, "adaptive-policy without (off) and with (on) its online "
+                     f"fine-tune, per set, from {a.out}: runs, mean and worst per-scenario "
+                     "score, scenarios below 0.60, share of the states rated after each "
+                     "interval that the learned model corrected", summed,
+                     command="python scripts/adaptive_online.py")
+    for s in summed:
+        print(f"adaptive_online: {s['fine_tune']}: {s['set']}: mean {s['mean score']:.3f} over "
+              f"{s['runs']} runs, worst {s['worst scenario']}, corrected {s['states corrected']}")
     return 0
 
 

@@ -17,7 +17,8 @@ import torch
 from ftc.control.agents.learned.adaptive_policy import AdaptiveConfig, AdaptivePolicyAgent
 from ftc.control.agents.learned.learned_mpc import LearnedEvaluator
 from ftc.control.agents.learned.online_tune import (corrected_labels, fine_tune,
-                                                     rate_settings, setting_codes)
+                                                     likeliest_only, rate_settings,
+                                                     setting_codes, setting_log_probs)
 from ftc.control.planning.planners import hold_candidates
 from ftc.control.run.agent import StepContext, Transition
 from ftc.learning.feature_model import FeatureModel
@@ -113,8 +114,13 @@ def test_the_method_with_the_fine_tune_runs_on_the_real_plant(tmp_path, one_torc
     assert int(rows[0]["fine_tune_states"]) == 64 and int(rows[0]["fine_tune_corrected"]) > 0
     state = torch.load(out / "checkpoint.pt", weights_only=True)["agent"]
     tuned = HistoryPolicy.from_record(state["student"])
-    x = np.random.default_rng(0).uniform(-1, 1, (256, 48)).astype(np.float32)
-    assert not np.array_equal(_codes(tuned, x), _codes(policy, x))
+    memory = {k: state["fine_tune"][f"memory_{k}"].numpy()[:64] for k in "xyc"}
+    x, labels = memory["x"][memory["c"]], memory["y"][memory["c"]]
+    # interval 0's states (the oldest 64 of the memory), on which the checkpoint's student
+    # acted: the corrected labels differ from its choices by construction; the student
+    # tuned on them (and on interval 1's) picks most of them
+    assert len(x) and np.mean(_codes(policy, x) == labels) == 0
+    assert np.mean(_codes(tuned, x) == labels) > 0.5
     assert json.loads((out / "config.json").read_text())["controller"]["fine_tune"] is True
 
 
@@ -171,5 +177,39 @@ def test_on_a_real_time_plant_the_fine_tune_runs_off_the_loop_and_is_swapped_in(
     ((interval, metrics),) = agent.late_metrics()
     assert interval == 0 and metrics["fine_tune_states"] == 48
     assert metrics["fine_tune_corrected"] > 0
+    corrected = agent.teacher.memory_c
+    x, labels = agent.teacher.memory_x[corrected], agent.teacher.memory_y[corrected]
+    assert np.mean(_codes(acting, x) == labels) == 0
+    assert np.mean(_codes(agent.policy, x) == labels) > 0.5
     assert set(agent.state_dict()) == {"student", "fine_tune"}
     agent.close()
+
+
+def test_the_model_arbitrates_only_between_the_students_likeliest_settings():
+    totals = np.zeros((2, 64))
+    totals[:, 63] = 10.0  # the model's favourite, which the student finds unlikely
+    totals[:, 6] = 1.0
+    log_probs = np.full((2, 64), -20.0)
+    log_probs[:, 6], log_probs[:, 9] = -0.5, -1.0  # the student: 6, then 9
+    chosen = np.array([20, 6])  # state 0 acted on a setting it finds unlikely: still kept
+    kept = likeliest_only(totals, log_probs, chosen, k=2)
+    assert np.isfinite(kept).sum(axis=1).tolist() == [2, 2]
+    assert kept[0, 20] == 0 and kept[0, 6] == 1.0 and kept[1, 9] == 0 and kept[1, 6] == 1.0
+    labels, corrected = corrected_labels(kept, chosen, margin=0.5)
+    assert labels.tolist() == [6, 6] and corrected.tolist() == [True, False]
+
+
+def test_the_students_setting_probabilities_are_its_heads():
+    torch.manual_seed(0)
+    x = np.random.default_rng(0).uniform(-1, 1, (5, 12)).astype(np.float32)
+    joint = HistoryPolicy(StudentConfig(window=1, hidden=(8,), head="joint"))
+    np.testing.assert_allclose(setting_log_probs(joint, x), torch.log_softmax(
+        joint(torch.as_tensor(x)), 1).detach().numpy(), atol=1e-6)
+    valves = HistoryPolicy(StudentConfig(window=1, hidden=(8,), head="valves"))
+    p_open = torch.sigmoid(valves(torch.as_tensor(x))).detach().numpy().astype(np.float64)
+    code = 37  # valves 0, 2, 5 open, the others closed
+    bits = (code >> np.arange(6)) & 1
+    expected = np.log(np.where(bits, p_open, 1 - p_open)).sum(axis=1)
+    np.testing.assert_allclose(setting_log_probs(valves, x)[:, code], expected, atol=1e-5)
+    # each row a distribution over the 64 settings
+    np.testing.assert_allclose(np.exp(setting_log_probs(valves, x)).sum(1), 1.0, atol=1e-5)

@@ -45,7 +45,8 @@ class AdaptiveConfig(RunConfig):
     keeps adapting on the plant (the fine-tune's options act only with it)."""
 
     NEEDS: ClassVar[dict[str, Any]] = {name: ("fine_tune", True) for name in (
-        "fine_tune_margin", "fine_tune_lr", "fine_tune_epochs", "fine_tune_memory")}
+        "fine_tune_margin", "fine_tune_candidates", "fine_tune_lr", "fine_tune_epochs",
+        "fine_tune_memory")}
 
     method: str = field(default="adaptive-policy", metadata={"help": "the method"})
     checkpoint: str = field(default="", metadata={"help": (
@@ -60,6 +61,9 @@ class AdaptiveConfig(RunConfig):
     fine_tune_margin: float = field(default=0.5, metadata={"check": between(0.0, 100.0), "help": (
         "fine-tune: summed reward over the 10-step horizon by which the learned model's "
         "best setting must beat the student's choice to become its label")})
+    fine_tune_candidates: int = field(default=2, metadata={"check": at_least(1, 64), "help": (
+        "fine-tune: how many settings may become labels, the student's most probable ones "
+        "(its choice and the next; 64: every setting)")})
     fine_tune_lr: float = field(default=1e-4, metadata={"check": positive(1.0), "help": (
         "fine-tune: Adam's learning rate")})
     fine_tune_epochs: int = field(default=4, metadata={"check": at_least(1, 1000), "help": (
@@ -98,8 +102,9 @@ class AdaptivePolicyAgent(Agent):
         self.window: HistoryWindow | None = None
         self._last: np.ndarray | None = None
         self.teacher = OnlineTeacher(FineTuneSettings(
-            margin=cfg.fine_tune_margin, lr=cfg.fine_tune_lr, epochs=cfg.fine_tune_epochs,
-            memory=cfg.fine_tune_memory, seed=cfg.seed)) if cfg.fine_tune else None
+            margin=cfg.fine_tune_margin, candidates=cfg.fine_tune_candidates,
+            lr=cfg.fine_tune_lr, epochs=cfg.fine_tune_epochs, memory=cfg.fine_tune_memory,
+            seed=cfg.seed)) if cfg.fine_tune else None
         self._worker: concurrent.futures.ThreadPoolExecutor | None = None
         self._job: tuple[concurrent.futures.Future, int] | None = None
         self._late: list[tuple[int, dict[str, Any]]] = []

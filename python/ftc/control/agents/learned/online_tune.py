@@ -11,10 +11,12 @@ the import contract "learned-no-equations" (pyproject.toml), as the agent is.
   acted on in it: the 64 settings, each as "hold ``hold`` steps then all
   closed" over ``horizon`` steps (the plans of the student's own teacher),
   rolled out on the learned model (:class:`LearnedEvaluator`).
-* **The labels**: where the model rates its best setting above the student's
-  own choice by more than ``margin`` (summed reward over the horizon), that
-  setting; elsewhere the student's own choice (a replay of its decisions, so
-  it does not forget what it is not corrected on).
+* **The labels**: among the student's ``candidates`` most probable settings
+  (its choice and the next, by default: the model only arbitrates between
+  settings the student already weighs), where the model rates the best above
+  the student's own choice by more than ``margin`` (summed reward over the
+  horizon), that setting; elsewhere the student's own choice (a replay of its
+  decisions, so it does not forget what it is not corrected on).
 * **The fine-tune**: the labelled windows of the last ``memory`` states (the
   interval's and earlier ones), ``epochs`` passes of Adam at ``lr`` on the
   cross entropy of the labels (:func:`fine_tune`), on a copy of the student
@@ -54,11 +56,14 @@ RATED_PER_BATCH = 64  # states rolled out on the model in one batch (64 x 64 pla
 @dataclass(frozen=True)
 class FineTuneSettings:
     """margin: summed reward over the horizon by which the model's best setting
-    must beat the student's choice to become its label; lr, epochs, batch:
+    must beat the student's choice to become its label; candidates: how many
+    settings may be labels, the student's most probable ones (64: all);
+    lr, epochs, batch:
     Adam's fit on the labels; memory: labelled states kept (the newest);
     hold, horizon: the rated plans; seed: the minibatch order."""
 
     margin: float = 0.5
+    candidates: int = 2
     lr: float = 1e-4
     epochs: int = 4
     batch: int = 128
@@ -96,6 +101,30 @@ def corrected_labels(totals: np.ndarray, chosen: np.ndarray, margin: float
     gain = totals[np.arange(len(totals)), best] - totals[np.arange(len(totals)), chosen]
     corrected = gain > margin
     return np.where(corrected, best, chosen), corrected
+
+
+@torch.no_grad()
+def setting_log_probs(policy: HistoryPolicy, features: np.ndarray) -> np.ndarray:
+    """log-probability (S, 64) the student gives each setting on windows (S, F):
+    the joint head's softmax, or the product of the valves head's six sigmoids."""
+    logits = policy(torch.as_tensor(np.asarray(features, np.float32)))
+    if policy.config.head == "joint":
+        return torch.log_softmax(logits, dim=1).numpy()
+    bits = torch.as_tensor(((np.arange(2 ** NUM_TANKS)[:, None] >> np.arange(NUM_TANKS)) & 1)
+                           * 2.0 - 1.0, dtype=logits.dtype)  # (64, 6): +1 open, -1 closed
+    return torch.nn.functional.logsigmoid(logits[:, None, :] * bits).sum(-1).numpy()
+
+
+def likeliest_only(totals: np.ndarray, log_probs: np.ndarray, chosen: np.ndarray, k: int
+                   ) -> np.ndarray:
+    """``totals`` (S, 64) with every setting but the student's ``k`` most probable
+    (by ``log_probs``, its choice ``chosen`` always among them) rated -inf: the
+    learned model only arbitrates between settings the student already weighs."""
+    rank = np.array(log_probs, np.float64, copy=True)
+    rank[np.arange(len(chosen)), chosen] = np.inf
+    out = np.array(totals, np.float64, copy=True)
+    np.put_along_axis(out, np.argsort(-rank, axis=1, kind="stable")[:, k:], -np.inf, axis=1)
+    return out
 
 
 def fine_tune(policy: HistoryPolicy, features: np.ndarray, labels: np.ndarray, *, lr: float,
@@ -183,6 +212,9 @@ class OnlineTeacher:
             t0 = time.perf_counter()
             evaluate = LearnedEvaluator(model, demand, MODEL.learn_terminal_band, stuck)
             totals = rate_settings(evaluate, levels, s.hold, s.horizon)
+            if s.candidates < totals.shape[1] and len(levels):
+                totals = likeliest_only(totals, setting_log_probs(student, windows), chosen,
+                                        s.candidates)
             labels, corrected = corrected_labels(totals, chosen, s.margin)
             self._remember(windows, labels, corrected)
             loss = float("nan")  # nothing corrected in the memory: the student is kept
