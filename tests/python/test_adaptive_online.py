@@ -181,7 +181,12 @@ def test_on_a_real_time_plant_the_fine_tune_runs_off_the_loop_and_is_swapped_in(
     x, labels = agent.teacher.memory_x[corrected], agent.teacher.memory_y[corrected]
     assert np.mean(_codes(acting, x) == labels) == 0
     assert np.mean(_codes(agent.policy, x) == labels) > 0.5
-    assert set(agent.state_dict()) == {"student", "fine_tune"}
+    # a resumed run continues with the tuned student, the learned model and the memory
+    again = AdaptivePolicyAgent(agent.cfg)
+    again.load_state_dict(agent.state_dict())
+    assert np.array_equal(_codes(again.policy, x), _codes(agent.policy, x))
+    assert np.array_equal(again.teacher.memory_y, agent.teacher.memory_y)
+    assert np.array_equal(again.teacher.model.weights, agent.teacher.model.weights)
     agent.close()
 
 
