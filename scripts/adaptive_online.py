@@ -91,6 +91,8 @@ def main() -> int:
     p.add_argument("--heldout-results", default="", help="benchmark results.csv with reference "
                    "and closed on scenarios/heldout/ (without it the held-out set is skipped)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--suite-seeds", type=int, nargs="+", default=None,
+                   help="the suite's seeds (default: --seeds)")
     p.add_argument("--heldout-seeds", type=int, nargs="+", default=[0])
     p.add_argument("--sets", nargs="+", default=["heldout", "check", "suite"],
                    choices=["heldout", "check", "suite"])
@@ -112,7 +114,8 @@ def main() -> int:
                 continue
             files = evaluate.scenario_files(which, Path(tmp))
             names = {"suite": SUITE, "check": CHECK}.get(which, list(files))
-            seeds = a.heldout_seeds if which == "heldout" else a.seeds
+            seeds = {"heldout": a.heldout_seeds, "suite": a.suite_seeds or a.seeds}.get(
+                which, a.seeds)
             for seed in seeds:
                 ref = evaluate.reference_rewards(which, names, seed, Path(a.heldout_results)
                                                  if which == "heldout" else None)
