@@ -40,8 +40,8 @@ def rewards_of(metrics: Path) -> tuple[np.ndarray, float | None]:
     rated that it corrected, None without it), from a run's metrics.csv."""
     with open(metrics, newline="") as f:
         rows = sorted(csv.DictReader(f), key=lambda r: int(r["interval"]))
-    rated = sum(int(r["fine_tune_states"] or 0) for r in rows)
-    corrected = sum(int(r["fine_tune_corrected"] or 0) for r in rows)
+    rated = sum(int(r.get("fine_tune_states") or 0) for r in rows)
+    corrected = sum(int(r.get("fine_tune_corrected") or 0) for r in rows)
     return (np.array([float(r["reward_per_step"]) for r in rows]),
             corrected / rated if rated else None)
 
