@@ -80,7 +80,9 @@ def run(cell: Path, scenario: Path, seed: int, checkpoint: str, extra: list[str]
     t0 = time.monotonic()
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)}: exit {done.returncode}: {done.stderr.strip()}")
+        last = (done.stderr.strip().splitlines() or [""])[-1]  # the run's one-line error
+        raise RuntimeError(f"{scenario.stem} seed {seed}: exit {done.returncode}: {last} "
+                           f"(the run: {cell})")
     (cell / "done").write_text(f"{time.monotonic() - t0:.1f}\n")
     return metrics
 
