@@ -32,6 +32,7 @@ ACCEPTED = {
     ("--identify-every", "0"), ("--identify-trigger", "0"), ("--teacher-stop-loss", "0"),
     ("--band", "0"),  # balance: act on any imbalance
     ("--learn-terminal-band", "0"),  # learned-mpc: end episodes at the estimated demand
+    ("--fine-tune-margin", "0"),  # adaptive-policy: every setting rated better is a label
     ("--teacher-memory", "0"), ("--teacher-check-every", "0"), ("--teacher-check-regret", "0"),
     # 0: that part switched off
     ("--scenario", ""),                       # the nominal plant

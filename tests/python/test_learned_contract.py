@@ -122,6 +122,9 @@ def test_only_the_plant_link_imports_the_native_core():
     ("from ftc.control.planning.physics.teacher import PoolTeacher",
      "control/agents/learned/adaptive_policy.py"),
     ("from ftc.experiments.adaptive.dagger import train", "learning/history_policy.py"),
+    # nor its online fine-tune rate settings on the true physics
+    ("from ftc.control.planning.physics.evaluators import OracleEvaluator",
+     "control/agents/learned/online_tune.py"),
 ])
 def test_the_contract_fails_on_an_import_of_plant_equations(package_copy, line, where):
     kept = _lint(package_copy, package_copy / "python")

@@ -1,7 +1,10 @@
 """adaptive-policy: the student trained in simulation over many degradations
 (docs/adaptive.md), flown as it is: one forward pass per step on the recent
 history of levels and valves, no plant equations and no fault detection at
-run time, nothing learned on the plant.
+run time; by default nothing learned on the plant. With ``--fine-tune`` it
+keeps adapting between intervals (or on a worker thread, on a real-time
+plant): expert iteration on a model learned from the plant's own steps
+(:mod:`ftc.control.agents.learned.online_tune`); the acting is unchanged.
 
 The checkpoint is built once by ``python -m ftc.experiments.adaptive train``
 and cached under a key of its training config, the training distribution's
@@ -14,26 +17,36 @@ contract "learned-no-equations" in pyproject.toml).
 
 from __future__ import annotations
 
+import concurrent.futures
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
-from ftc.common.errors import UsageError
+from ftc.common.cli import at_least, between, positive
+from ftc.common.errors import CheckpointError, UsageError
 from ftc.common.paths import SCENARIO_DIR
-from ftc.control.run.agent import Agent, StepContext
+from ftc.control.agents.learned.online_tune import FineTuneSettings, OnlineTeacher
+from ftc.control.run.agent import Agent, StepContext, Transition
 from ftc.control.run.config import RunConfig
 from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, TrainingConfig, \
     checkpoint_file
 from ftc.plant.link import PlantObservation
 
 TRAIN_COMMAND = ".venv/bin/python -m ftc.experiments.adaptive train"
+FINE_TUNE_COLUMNS = ("fine_tune_states", "fine_tune_corrected", "fine_tune_loss",
+                     "fine_tune_seconds", "model_one_step_rmse", "stuck_valves", "stuck_detected")
 
 
 @dataclass
 class AdaptiveConfig(RunConfig):
-    """A run of the adaptive student: which checkpoint it flies."""
+    """A run of the adaptive student: which checkpoint it flies, and whether it
+    keeps adapting on the plant (the fine-tune's options act only with it)."""
+
+    NEEDS: ClassVar[dict[str, Any]] = {name: ("fine_tune", True) for name in (
+        "fine_tune_margin", "fine_tune_candidates", "fine_tune_lr", "fine_tune_epochs",
+        "fine_tune_memory")}
 
     method: str = field(default="adaptive-policy", metadata={"help": "the method"})
     checkpoint: str = field(default="", metadata={"help": (
@@ -41,6 +54,23 @@ class AdaptiveConfig(RunConfig):
         "train` cached for its default training options)")})
     adaptive_cache: str = field(default="~/.cache/ftc/adaptive", metadata={
         "run_local": True, "help": "directory of the cached checkpoints"})
+    fine_tune: bool = field(default=False, metadata={"help": (
+        "after each interval, fine-tune the student toward the settings a model learned "
+        "from the plant's steps (learned-mpc's) rates better than its own choice by "
+        "--fine-tune-margin; off the control loop (docs/adaptive.md)")})
+    fine_tune_margin: float = field(default=0.5, metadata={"check": between(0.0, 100.0), "help": (
+        "fine-tune: summed reward over the 10-step horizon by which the learned model's "
+        "best setting must beat the student's choice to become its label")})
+    fine_tune_candidates: int = field(default=2, metadata={"check": at_least(1, 64), "help": (
+        "fine-tune: how many settings may become labels, the student's most probable ones "
+        "(its choice and the next; 64: every setting)")})
+    fine_tune_lr: float = field(default=1e-4, metadata={"check": positive(1.0), "help": (
+        "fine-tune: Adam's learning rate")})
+    fine_tune_epochs: int = field(default=4, metadata={"check": at_least(1, 1000), "help": (
+        "fine-tune: passes over the labelled memory after each interval")})
+    fine_tune_memory: int = field(default=2048, metadata={"check": at_least(1, 1_000_000), "help": (
+        "fine-tune: labelled states kept (the newest; those not corrected keep the "
+        "student's own choice, so it does not forget them)")})
 
     def validate(self) -> None:
         super().validate()
@@ -62,6 +92,7 @@ class AdaptivePolicyAgent(Agent):
 
     name = "adaptive-policy"
     Config = AdaptiveConfig
+    extra_columns = FINE_TUNE_COLUMNS  # empty without --fine-tune
 
     def __init__(self, cfg: AdaptiveConfig) -> None:
         self.cfg = cfg
@@ -70,6 +101,14 @@ class AdaptivePolicyAgent(Agent):
         self.policy: HistoryPolicy | None = None
         self.window: HistoryWindow | None = None
         self._last: np.ndarray | None = None
+        self.teacher = OnlineTeacher(FineTuneSettings(
+            margin=cfg.fine_tune_margin, candidates=cfg.fine_tune_candidates,
+            lr=cfg.fine_tune_lr, epochs=cfg.fine_tune_epochs, memory=cfg.fine_tune_memory,
+            seed=cfg.seed)) if cfg.fine_tune else None
+        self._worker: concurrent.futures.ThreadPoolExecutor | None = None
+        self._job: tuple[concurrent.futures.Future, int] | None = None
+        self._late: list[tuple[int, dict[str, Any]]] = []
+        self.on_learned: Callable[[int], None] | None = None
 
     @classmethod
     def from_configs(cls, configs: dict[str, Any]) -> "AdaptivePolicyAgent":
@@ -94,7 +133,7 @@ class AdaptivePolicyAgent(Agent):
 
     def prepare(self) -> dict[str, Any]:
         self._load()
-        return {}
+        return self.teacher.prepare() if self.teacher is not None else {}
 
     def start_episode(self, obs: PlantObservation) -> None:
         self._load()
@@ -102,12 +141,77 @@ class AdaptivePolicyAgent(Agent):
         self._last = None
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
-        policy = self._load()
+        self._load()
         if self._last is not None:  # the levels this step's command acts on
             self.window.push(obs.level[None, :], self._last[None, :])
-        u = policy.act(self.window.features())[0]
+        self._poll()
+        features = self.window.features()
+        u = self.policy.act(features)[0]
         self._last = u
+        if self.teacher is not None and not ctx.evaluation:
+            self.teacher.record(features[0], obs.level, u)
         return u
 
+    # -- the fine-tune (--fine-tune) ---------------------------------------------------
+    def observe(self, t: Transition) -> None:
+        if self.teacher is not None:
+            self.teacher.observe(t)
+
+    def end_interval(self, interval: int, data: Any) -> dict[str, Any]:
+        if self.teacher is None:
+            return {}
+        self._poll(wait=True)  # one job at a time
+        job = self.teacher.job(self._load())
+        if not self.background_learning:  # between intervals
+            self.policy, metrics = job()
+            return metrics
+        if self._worker is None:
+            self._worker = concurrent.futures.ThreadPoolExecutor(1, "adaptive-fine-tune")
+        self._job = (self._worker.submit(job), interval)
+        return {}
+
+    @property
+    def learning(self) -> bool:  # type: ignore[override]
+        return self._job is not None
+
+    def _poll(self, wait: bool = False) -> None:
+        """Swap in the student a finished job tuned (between two steps)."""
+        if self._job is None or not (wait or self._job[0].done()):
+            return
+        (future, interval), self._job = self._job, None
+        self.policy, metrics = future.result()  # a job's error is raised here, in the loop
+        self._late.append((interval, metrics))
+        if self.on_learned is not None:
+            self.on_learned(interval)
+
+    def late_metrics(self) -> list[tuple[int, dict[str, Any]]]:
+        self._poll()
+        late, self._late = self._late, []
+        return late
+
+    def finish(self) -> None:
+        self._poll(wait=True)
+
+    def close(self) -> None:
+        if self._worker is not None:
+            self._worker.shutdown(wait=True, cancel_futures=True)
+            self._worker = None
+
+    def state_dict(self) -> dict[str, Any]:
+        if self.teacher is None:
+            return {}
+        if self._job is not None:  # the runner saves from on_learned instead
+            raise RuntimeError("the agent's state is changing: a fine-tune is running")
+        return {"student": self._load().record(), "fine_tune": self.teacher.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if self.teacher is None:
+            return
+        if not {"student", "fine_tune"} <= set(state):
+            raise CheckpointError("checkpoint lacks the fine-tuned student")
+        self._load()
+        self.policy = HistoryPolicy.from_record(state["student"])
+        self.teacher.load_state_dict(state["fine_tune"])
+
     def config_doc(self) -> dict[str, Any]:
-        return {"adaptive_checkpoint": str(self.path)}
+        return {"adaptive_checkpoint": str(self.path), "adaptive_fine_tune": self.cfg.fine_tune}
