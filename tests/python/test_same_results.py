@@ -67,7 +67,10 @@ PPO_TORCH = [*TORCH, "--ppo-engine", "torch"]
 COMMANDS = {
     "closed": ["ftc.controller", "--method", "closed"],
     "random": ["ftc.controller", "--method", "random"],
-    "ppo-offline": ["ftc.controller", "--method", "ppo", *PPO_TORCH],
+    # no pretraining cache anywhere: ~/.cache/ftc/pretrain is keyed by the code, not by
+    # the CPU's kernels, so an entry written under other kernels (or the portable mode)
+    # would stand in for this run's own fit
+    "ppo-offline": ["ftc.controller", "--method", "ppo", "--pretrain-cache", "", *PPO_TORCH],
     "ppo-offline-pretrain": ["ftc.controller", "--method", "ppo", "--pretrain",
                              "--pretrain-cache", "", *PPO_TORCH],
     "oracle-mpc": ["ftc.mpc", "--method", "oracle-mpc"],
