@@ -177,3 +177,13 @@ def test_the_teacher_comparison_refuses_bad_input_and_writes_nothing(tmp_path, c
                           "--out", str(out)]) == 2
     assert "--sets heldout needs --heldout-results" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_refused_plan_gets_the_worst_finite_regret_not_infinity():
+    from ftc.control.planning.physics.teacher import regrets_of
+
+    # plans 1 and 3 were refused by the integrator (-inf, guarded_rollout): an infinite
+    # regret would make the student's expected-regret loss inf and its weights NaN
+    totals = np.array([2.0, -np.inf, 3.5, -np.inf, 1.0])
+    np.testing.assert_array_equal(regrets_of(totals), [1.5, 2.5, 0.0, 2.5, 2.5])
+    np.testing.assert_array_equal(regrets_of(np.full(3, -np.inf)), [0.0, 0.0, 0.0])
