@@ -155,3 +155,35 @@ def test_export_writes_a_joint_head_student_for_the_node(tmp_path):
     assert export_main([str(checkpoint), "--weights", str(weights)]) == 0
     policy = pw.read_policy(weights)  # the node tells the head by the last width
     assert (policy.window, policy.widths) == (2, [24, 8, 64])
+
+
+def test_the_teacher_comparison_refuses_bad_input_and_writes_nothing(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "adaptive_teachers.py"
+    spec = importlib.util.spec_from_file_location("adaptive_teachers", script)
+    teachers = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(teachers)
+    out = tmp_path / "teachers.csv"
+    assert teachers.plan_shape("2x6") == (2, 6) and teachers.plan_shape("3X10") == (3, 10)
+    for bad in ("2y6", "6x2", "0x4"):  # not HOLDxHORIZON; hold > horizon; hold 0
+        with pytest.raises(SystemExit) as e:
+            teachers.main([bad, "--sets", "check", "--out", str(out)])
+        assert e.value.code == 2
+        assert repr(bad) in capsys.readouterr().err
+    # the held-out set needs its reference and closed rewards; refused before any run
+    assert teachers.main(["2x6", "--heldout-results", str(tmp_path / "none.csv"),
+                          "--out", str(out)]) == 2
+    assert "--sets heldout needs --heldout-results" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_refused_plan_gets_the_worst_finite_regret_not_infinity():
+    from ftc.control.planning.physics.teacher import regrets_of
+
+    # plans 1 and 3 were refused by the integrator (-inf, guarded_rollout): an infinite
+    # regret would make the student's expected-regret loss inf and its weights NaN
+    totals = np.array([2.0, -np.inf, 3.5, -np.inf, 1.0])
+    np.testing.assert_array_equal(regrets_of(totals), [1.5, 2.5, 0.0, 2.5, 2.5])
+    np.testing.assert_array_equal(regrets_of(np.full(3, -np.inf)), [0.0, 0.0, 0.0])

@@ -58,7 +58,8 @@ class PoolTeacher:
         """(valves (len(envs), 6) int8, regrets (len(envs), 64) float32): the
         decision of :meth:`label` and, for each of the 64 settings a (valve i
         open iff bit i of a), the summed reward its plan loses against the
-        best plan over the horizon (0 for the decision and its exact ties)."""
+        best plan over the horizon (0 for the decision and its exact ties;
+        a refused plan's: :func:`regrets_of`)."""
         out = np.zeros((len(envs), NUM_TANKS), np.int8)
         regrets = np.zeros((len(envs), 2 ** NUM_TANKS), np.float32)
         for k, env in enumerate(envs):
@@ -72,6 +73,18 @@ class PoolTeacher:
                                           self.planner.candidates(horizon)), np.float64)
             best = int(np.argmax(totals))  # the planner's rule: first maximum
             out[k] = self.planner.candidates(horizon)[best, 0]
-            regrets[k] = totals[best] - totals
+            regrets[k] = regrets_of(totals)
         self.labels += len(envs)
         return out, regrets
+
+
+def regrets_of(totals: np.ndarray) -> np.ndarray:
+    """Regret (K,) of each plan of summed rewards ``totals`` (K,): the best total
+    minus its own. A plan whose rollout the integrator refused scores -inf
+    (``guarded_rollout``); its regret is the largest finite one of the state
+    (as bad as the worst plan that ran), so that a student's loss on it stays
+    finite."""
+    regrets = np.max(totals) - np.asarray(totals, np.float64)
+    finite = np.isfinite(regrets)
+    regrets[~finite] = regrets[finite].max() if finite.any() else 0.0
+    return regrets
