@@ -201,6 +201,14 @@ def student_weights(student: Path | None, out: Path) -> str:
     return str(path)
 
 
+def student_shape(weights: Path) -> str:
+    """'a window of W steps, A-B-...' from an exported student's header lines."""
+    head = dict(line.split(" ", 1) for line in weights.read_text().splitlines()[1:5]
+                if " " in line)
+    return (f"a window of {head.get('window', '?')} steps, "
+            f"{'-'.join(head.get('widths', '?').split())}")
+
+
 def student_name(student: Path | None) -> str:
     """How the result file names the student flown: the given file, or the cache's."""
     # (not the cache's file name: its hex key reads as a commit hash in the docs)
@@ -314,11 +322,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.results:
         from suite_results import write_result_file
 
+        shape = ""
+        if "node-student" in args.controllers:
+            with tempfile.TemporaryDirectory() as tmp:  # the flown student's shape
+                student_weights(args.student, Path(tmp) / "student.txt")
+                shape = student_shape(Path(tmp) / "student.txt")
         write_result_file(args.results, (
             f"# what: controllers on the plant in real-time mode, single fault: node = "
             f"build/policy_node, {args.steps} steps per rate, a fresh 6-64-64-16-16-6 policy; "
-            + (f"node-student = build/policy_node flying the adaptive student (a window of 12 "
-               f"steps, 144-128-128-6) of {student_name(args.student)}; "
+            + (f"node-student = build/policy_node flying the adaptive student "
+               f"({shape}) of {student_name(args.student)}; "
                if "node-student" in args.controllers else "") +
             f"ppo = ftc.controller ppo-offline learning on, mpc = ftc.mpc oracle-mpc, robust = "
             f"ftc.controller ppo-robust (guided fits), 2 x 256 steps and the evaluations; "
