@@ -202,11 +202,9 @@ def student_weights(student: Path | None, out: Path) -> str:
 
 
 def student_shape(weights: Path) -> str:
-    """'a window of W steps, A-B-...' from an exported student's header lines."""
-    head = dict(line.split(" ", 1) for line in weights.read_text().splitlines()[1:5]
-                if " " in line)
-    return (f"a window of {head.get('window', '?')} steps, "
-            f"{'-'.join(head.get('widths', '?').split())}")
+    """'a window of W steps, A-B-...' of an exported student."""
+    policy = policy_weights.read_policy(weights)
+    return f"a window of {policy.window} steps, {'-'.join(map(str, policy.widths))}"
 
 
 def student_name(student: Path | None) -> str:
