@@ -34,6 +34,19 @@ def test_private_urls_use_this_kernels_range():
     assert all(20000 <= p < low for p in ports) and len(ports) > 250
 
 
+
+def test_an_orchestrator_never_gives_two_recent_runs_one_url(monkeypatch):
+    # 24 parallel runs once drew the same port twice (2% for independent draws);
+    # with only ten ports to draw from, ten runs in a row still get ten.
+    from ftc.experiments import runs
+    from ftc.plant import lcm_link
+
+    monkeypatch.setattr(lcm_link, "private_port_range", lambda: range(20000, 20010))
+    monkeypatch.setattr(runs, "_recent_urls", runs.deque(maxlen=9))
+    urls = [runs.run_url() for _ in range(30)]
+    for i in range(len(urls) - 9):
+        assert len(set(urls[i:i + 10])) == 10, urls[i:i + 10]
+
 @pytest.mark.parametrize("binary,args", [(recorder_binary, ["out.lcmlog"]), (plant_binary, []),
                                          (echo_binary, [])], ids=["recorder", "plant", "echo"])
 def test_a_taken_port_is_a_clear_error(tmp_path, binary, args):

@@ -20,7 +20,9 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, TextIO
@@ -158,6 +160,23 @@ def _storage_problem(run_dir: Path, returncode: int | None) -> str | None:
             "(storage)")
 
 
+_recent_urls: deque[str] = deque(maxlen=1024)
+_recent_lock = threading.Lock()
+
+
+def run_url() -> str:
+    """A private LCM URL that none of this orchestrator's last 1,024 runs or
+    plants had. Independent draws of 24 runs from the 12,768 private ports
+    collide with probability 2% (a CI run hit it); the prefix and the control
+    session still kept such runs apart, but each run's URL is now its own."""
+    with _recent_lock:
+        url = private_lcm_url()
+        while url in _recent_urls:
+            url = private_lcm_url()
+        _recent_urls.append(url)
+        return url
+
+
 def _execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: RunHandle) -> dict:
     run_dir = handle.directory
     if run_dir.exists():
@@ -166,7 +185,7 @@ def _execute_run(spec: RunSpec, config: ExperimentConfig, out: Path, handle: Run
     if config.tensorboard is not None:  # a redone run starts its curves again
         shutil.rmtree(tensorboard_dir(spec, config), ignore_errors=True)
     run_dir.mkdir(parents=True)
-    url, prefix = private_lcm_url(), private_prefix()
+    url, prefix = run_url(), private_prefix()
     scenario_path = (out / "scenarios" / f"{spec.scenario}.toml").resolve()
     cmd = controller_command(spec, config, scenario_path, run_dir / "controller", url, prefix)
     record = {"run": spec.key, **dataclasses.asdict(spec), "lcm_url": url, "prefix": prefix,
@@ -301,7 +320,7 @@ def _launch_plant(scenario: str | None, extra: list[str]) -> LcmPlant:
     """ftc.plant.launch for the orchestrator's own plants: the same command on a
     private URL and prefix, started with a parent-death signal so that it dies
     with the orchestrator (launch() has no hook for one)."""
-    url, prefix = private_lcm_url(), private_prefix()
+    url, prefix = run_url(), private_prefix()
     cmd = [str(plant_binary()), "--lcm-url", url, "--prefix", prefix, "--seed", "0",
            *(["--scenario", scenario] if scenario else []), *extra]
     fd, stderr_path = tempfile.mkstemp(prefix="ftc-plant-", suffix=".log")

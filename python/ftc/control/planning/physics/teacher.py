@@ -84,7 +84,8 @@ def regrets_of(totals: np.ndarray) -> np.ndarray:
     (``guarded_rollout``); its regret is the largest finite one of the state
     (as bad as the worst plan that ran), so that a student's loss on it stays
     finite."""
-    regrets = np.max(totals) - np.asarray(totals, np.float64)
+    with np.errstate(invalid="ignore"):  # every plan refused: -inf - -inf, handled below
+        regrets = np.max(totals) - np.asarray(totals, np.float64)
     finite = np.isfinite(regrets)
     regrets[~finite] = regrets[finite].max() if finite.any() else 0.0
     return regrets
