@@ -97,6 +97,9 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
     if out.returncode or not m:
         raise SystemExit(f"bench_realtime: the node failed at {rate} Hz: {out.stderr.strip()}")
     n, misses, p50, p99, worst = map(int, m.groups()[:5])
+    for line in out.stderr.splitlines():  # the node logs its first misses: which steps
+        if "deadline miss" in line:
+            print(f"bench_realtime: {name} at {rate:g} Hz: {line}", file=sys.stderr)
     row = _row(name, rate, n, misses, p50, p99, worst,
                scheduler=f"fifo {fifo}" if fifo else "other")
     row["auth_us_per_step"] = m.group(6)

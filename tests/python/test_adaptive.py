@@ -74,6 +74,25 @@ def test_the_distribution_is_wider_than_the_suite_and_has_every_kind_of_fault():
     assert any(s.noise_std > 0 for s in drawn)
 
 
+def test_a_second_stuck_valve_sticks_another_valve_after_the_first_interval():
+    import dataclasses
+
+    dist = distribution.load()
+    always = dataclasses.replace(dist, extra={**dist.extra, "second_stuck_probability": 1.0})
+    drawn = distribution.draw(always, 200, 11)
+    for s in drawn:
+        stuck = [e for e in s.events if "stuck_valve" in e]
+        assert 1 <= len(stuck) <= 2
+        assert len({e["stuck_valve"] for e in stuck}) == len(stuck)  # never one valve twice
+        assert all(1 <= e["stuck_valve"] <= 6 and e["state"] in ("open", "closed") for e in stuck)
+        assert [e["at_step"] for e in s.events] == sorted(e["at_step"] for e in s.events)
+    assert sum(len([e for e in s.events if "stuck_valve" in e]) == 2 for s in drawn) > 0
+    late = [e["at_step"] for s in drawn for e in s.events if "stuck_valve" in e]
+    assert max(late) < 10 * 512
+    states = {e["state"] for s in drawn for e in s.events if "stuck_valve" in e}
+    assert states == {"open", "closed"}
+
+
 def test_a_bad_distribution_file_is_one_clear_error(tmp_path):
     bad = tmp_path / "d.toml"
     bad.write_text("[draw]\ntank_probability = 2.0\n")
@@ -223,6 +242,23 @@ def test_bad_input_to_the_commands_is_one_line_and_exit_2(tmp_path, capsys):
     assert len(err) == 3 and all(line.startswith("adaptive: error: ") for line in err)
     assert "--iterations must be >= 1" in err[0] and "train`" in err[1] and "none.toml" in err[2]
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_held_out_scenarios_of_ones_own_need_files_and_their_rewards(tmp_path, capsys):
+    from ftc.experiments.adaptive import evaluate
+    from ftc.experiments.adaptive.cli import main
+
+    assert main(["evaluate", "--sets", "heldout", "--heldout-scenarios",
+                 str(tmp_path / "none.toml")]) == 2
+    assert "--heldout-scenarios" in capsys.readouterr().err
+    own = tmp_path / "own.toml"
+    own.write_text((distribution.SCENARIO_DIR / "heldout" / "compound.toml").read_text())
+    assert list(evaluate.scenario_files("heldout", tmp_path, [own])) == ["own"]
+    results = tmp_path / "results.csv"  # a benchmark's rows of another scenario only
+    results.write_text("scenario,method,seed,interval,reward_per_step\n"
+                       "compound,reference,0,0,2.6\ncompound,closed,0,0,2.6\n")
+    with pytest.raises(ValueError, match=r"no rewards of own \(reference, seed 0\)"):
+        evaluate.reference_rewards("heldout", ["own"], 0, results)
 
 
 @pytest.mark.slow

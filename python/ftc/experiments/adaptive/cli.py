@@ -38,6 +38,28 @@ from ftc.learning.history_policy import HistoryPolicy, TrainingConfig, checkpoin
 DEFAULT_CACHE = "~/.cache/ftc/adaptive"
 
 
+OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
+    "iterations": "DAgger iterations",
+    "envs": "plants drawn and run for their life per iteration",
+    "life_intervals": "intervals of 512 steps each plant runs (<= the distribution's life)",
+    "label_fraction": "share of the student-driven states the teacher labels",
+    "dagger": "false: behaviour cloning (the teacher drives and labels every plant)",
+    "epochs": "passes over the data set after each iteration",
+    "batch": "minibatch size",
+    "lr": "Adam's learning rate",
+    "max_samples": "labelled windows kept (the newest)",
+    "window": "steps of levels and valves the student reads",
+    "hidden": "the student's hidden layer widths",
+    "head": "joint: 64 logits, one per valve setting; valves: six, one per valve",
+    "inputs": "window: the first layer reads the scaled window; rates: the newest levels and "
+              "their changes, standardized while training (folded into the weights after)",
+    "regret": "weight of the expected regret under the student's softmax (joint head)",
+    "hold": "the teacher's plans hold a setting this many steps, then all closed",
+    "horizon": "the teacher's planning horizon, steps",
+    "seed": "draws, pool plants, initial weights and minibatches",
+}
+
+
 def _config_options(p: argparse.ArgumentParser) -> None:
     d = TrainingConfig()
     for f in dataclasses.fields(TrainingConfig):
@@ -45,11 +67,13 @@ def _config_options(p: argparse.ArgumentParser) -> None:
         flag = "--" + f.name.replace("_", "-")
         if isinstance(value, bool):
             p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value,
-                           metavar="BOOL", help=f"(default {value})")
+                           metavar="BOOL", help=f"{OPTION_HELP[f.name]} (default {value})")
         elif isinstance(value, tuple):
-            p.add_argument(flag, type=int, nargs="+", default=list(value), help=f"(default {value})")
+            p.add_argument(flag, type=int, nargs="+", default=list(value),
+                          help=f"{OPTION_HELP[f.name]} (default {' '.join(map(str, value))})")
         else:
-            p.add_argument(flag, type=type(value), default=value, help=f"(default {value})")
+            p.add_argument(flag, type=type(value), default=value,
+                           help=f"{OPTION_HELP[f.name]} (default {value})")
 
 
 def config_of(a: argparse.Namespace) -> TrainingConfig:
@@ -72,7 +96,7 @@ def cmd_train(a: argparse.Namespace) -> int:
         print(f"adaptive: cached {path}")
         return 0
     start = time.monotonic()
-    record = dagger.train(dist, config)
+    record = dagger.train(dist, config, log=lambda line: print(line, flush=True))
     record["train_seconds"] = time.monotonic() - start
     record["load_average"] = os.getloadavg()
     try:
@@ -103,6 +127,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     if "heldout" in a.sets and a.heldout_results and not Path(a.heldout_results).is_file():
         raise ValueError(f"--heldout-results {a.heldout_results}: no such file")
+    for f in a.heldout_scenarios:
+        if not Path(f).is_file():
+            raise ValueError(f"--heldout-scenarios {f}: no such file")
     record, path = load_record(a)
     policy = HistoryPolicy.from_record(record["policy"])
     if a.policy == "teacher":
@@ -115,7 +142,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             raise ValueError("--sets heldout needs --heldout-results (a benchmark's results.csv "
                              "with reference and closed on scenarios/heldout/)")
         rows += evaluate.evaluate(policy, which, seeds=a.seeds,
-                                  heldout=Path(a.heldout_results) if a.heldout_results else None)
+                                  heldout=Path(a.heldout_results) if a.heldout_results else None,
+                                  heldout_files=[Path(f) for f in a.heldout_scenarios] or None)
     for which in a.sets:
         s = np.array([r["score"] for r in rows if r["set"] == which])
         worst = min((r for r in rows if r["set"] == which), key=lambda r: r["score"])
@@ -267,7 +295,12 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--sets", nargs="+", default=["suite", "check"],
                            choices=["suite", "check", "heldout"])
             s.add_argument("--heldout-results", default="", help=(
-                "results.csv of a benchmark of reference and closed on scenarios/heldout/"))
+                "results.csv of a benchmark of reference and closed on the held-out "
+                "scenarios (`python -m ftc.experiments benchmark --methods closed --scenarios "
+                "...`: the reference runs beside it)"))
+            s.add_argument("--heldout-scenarios", nargs="+", default=[], metavar="TOML",
+                           help="the held-out set's scenario files (default: scenarios/heldout/"
+                                "*.toml); faults of your own, never trained on")
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
                            help="what to score: the checkpoint's student, its teacher "

@@ -6,7 +6,7 @@ A draw is the C++ ``ScenarioDistribution``'s (the file's ``[draw]`` table:
 worn tanks and engines, a dying pump, an abrupt event, a stuck valve, sensor
 noise), then the file's ``[extra]`` table applied to each scenario from the
 same seed: continuous wear instead of stepwise, a second abrupt event, a
-random start. :func:`draw` refuses (ValueError) any scenario whose faults
+random start, a second stuck valve. :func:`draw` refuses (ValueError) any scenario whose faults
 are those of a benchmark scenario (:func:`benchmark_signatures`: the default
 suite, ``scenarios/abrupt.toml`` and ``scenarios/check/*.toml``), so the student
 and its teacher never meet one.
@@ -28,7 +28,8 @@ from ftc.experiments.suite import default_suite
 from ftc.plant.vector import scenario_distribution
 
 DISTRIBUTION_FILE = SCENARIO_DIR / "training" / "adaptive.toml"
-EXTRA_FIELDS = ("continuous_probability", "second_event_probability", "random_start_probability")
+EXTRA_FIELDS = ("continuous_probability", "second_event_probability", "random_start_probability",
+                "second_stuck_probability")
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,7 @@ def draw(dist: TrainingDistribution, count: int, seed: int,
     rng = np.random.default_rng([seed, 38])
     life_steps = dist.life_intervals * dist.steps_per_interval
     for s in scenarios:
-        u = rng.random(3)
+        u = rng.random(4)
         if u[0] < dist.extra["continuous_probability"]:
             s.mode = "continuous"
         if u[1] < dist.extra["second_event_probability"]:
@@ -104,9 +105,24 @@ def draw(dist: TrainingDistribution, count: int, seed: int,
             s.events = sorted([*s.events, event], key=lambda e: e["at_step"])
         if u[2] < dist.extra["random_start_probability"]:
             s.random_start = True
+        if u[3] < dist.extra["second_stuck_probability"]:
+            s.events = sorted([*s.events, _another_stuck_valve(s.events, rng, dist)],
+                              key=lambda e: e["at_step"])
         s.name = "training"
     refuse_benchmark(scenarios, benchmark_signatures() if forbidden is None else forbidden)
     return scenarios
+
+
+def _another_stuck_valve(events: list[dict], rng: np.random.Generator,
+                         dist: TrainingDistribution) -> dict:
+    """A stuck-valve event on a valve no earlier event sticks, open or closed
+    (even odds), after the first interval: with the draw's own stuck valve,
+    two valves stuck in one run, as compound faults have."""
+    stuck = {e["stuck_valve"] for e in events if "stuck_valve" in e}
+    free = [v for v in range(1, NUM_TANKS + 1) if v not in stuck]
+    at = int(rng.integers(dist.steps_per_interval, dist.life_intervals * dist.steps_per_interval))
+    return {"at_step": at, "stuck_valve": int(rng.choice(free)),
+            "state": "open" if rng.random() < 0.5 else "closed"}
 
 
 def signature(s: Any) -> tuple:

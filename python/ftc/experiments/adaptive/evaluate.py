@@ -35,13 +35,15 @@ FIRST_SCORED = 1  # interval 0 (a healthy plant) is not scored
 HELDOUT_DIR = SCENARIO_DIR / "heldout"  # faults made to check it, in no training or suite
 
 
-def scenario_files(which: str, directory: Path) -> dict[str, Path]:
+def scenario_files(which: str, directory: Path,
+                   heldout_files: Sequence[Path] | None = None) -> dict[str, Path]:
     """name -> scenario file of the suite (written into ``directory``), the check
-    set or the held-out set."""
+    set or the held-out set (``heldout_files``, default ``scenarios/heldout/``)."""
     if which == "suite":
         return {p.stem: p for p in write_suite(directory)}
     if which == "heldout":
-        return {p.stem: p for p in sorted(HELDOUT_DIR.glob("*.toml"))}
+        files = heldout_files or sorted(HELDOUT_DIR.glob("*.toml"))
+        return {Path(p).stem: Path(p) for p in files}
     names = json.loads(REFERENCE_FILES["check"].read_text())["scenarios"]
     return {n: (SCENARIO_DIR / f"{n}.toml" if (SCENARIO_DIR / f"{n}.toml").is_file()
                 else SCENARIO_DIR / "check" / f"{n}.toml") for n in names}
@@ -105,6 +107,12 @@ def reference_rewards(which: str, names: Sequence[str], seed: int,
     shipped ones, or for the held-out set a benchmark's results.csv."""
     data = (benchmark_rewards(heldout) if which == "heldout" else
             json.loads(REFERENCE_FILES[which].read_text())["scenarios"])
+    missing = [f"{n} ({m}, seed {seed})" for n in names for m in ("reference", "closed")
+               if str(seed) not in data.get(n, {}).get("rewards", {}).get(m, {})]
+    if missing:
+        raise ValueError(f"{heldout if which == 'heldout' else REFERENCE_FILES[which]}: "
+                         f"no rewards of {', '.join(missing[:3])}"
+                         f"{f' and {len(missing) - 3} more' if len(missing) > 3 else ''}")
     return {m: np.array([data[n]["rewards"][m][str(seed)] for n in names])
             for m in ("reference", "closed")}
 
@@ -116,14 +124,16 @@ def scores(r: np.ndarray, reference: np.ndarray, closed: np.ndarray) -> np.ndarr
 
 
 def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
-             heldout: Path | None = None) -> list[dict[str, Any]]:
+             heldout: Path | None = None,
+             heldout_files: Sequence[Path] | None = None) -> list[dict[str, Any]]:
     """Rows (set, scenario, seed, score, reward per step of intervals 1-9) of
-    ``policy`` on the suite, the check set or the held-out set (its reference
-    and closed rewards from the benchmark results.csv ``heldout``), each seed."""
+    ``policy`` on the suite, the check set or the held-out set (``heldout_files``,
+    default ``scenarios/heldout/``; its reference and closed rewards from the
+    benchmark results.csv ``heldout``), each seed."""
     from ftc import _core  # the plant's scenario parser
 
     with tempfile.TemporaryDirectory() as tmp:
-        files = scenario_files(which, Path(tmp))
+        files = scenario_files(which, Path(tmp), heldout_files)
         names = list(files)
         loaded = [_core.load_scenario(str(files[n])) for n in names]
     rows = []
