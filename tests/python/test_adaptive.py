@@ -139,6 +139,51 @@ def test_the_student_learns_a_rule_of_its_window_from_labels(one_torch_thread):
     assert (policy.act(x[margin]) == y[margin]).all(1).mean() > 0.97
 
 
+def test_an_ensemble_is_one_mlp_whose_logits_are_the_members_mean():
+    from ftc.learning.history_policy import HistoryPolicy, StudentConfig, ensemble
+
+    torch.manual_seed(3)
+    members = [HistoryPolicy(StudentConfig(window=4, hidden=(16, 8), head="joint")),
+               HistoryPolicy(StudentConfig(window=4, hidden=(16, 8), head="joint")),
+               HistoryPolicy(StudentConfig(window=4, hidden=(8, 4), head="joint"))]
+    members[1].set_input_map(np.eye(48) * 2.0, np.full(48, 0.5))  # folded in, as a record does
+    merged = ensemble(members)
+    assert merged.config.hidden == (40, 20) and merged.config.inputs == 48
+    x = torch.rand(200, 48) * 2 - 1
+    with torch.no_grad():
+        mean = torch.stack([m(x) for m in members]).mean(0)
+        # float32 sums of the same products in another order: 1e-5 of logits of order 1
+        assert torch.allclose(merged(x), mean, atol=1e-5)
+    assert np.array_equal(merged.act(x.numpy()),
+                          ((mean.argmax(1).numpy()[:, None] >> np.arange(6)) & 1))
+    with pytest.raises(ValueError, match="differ in window"):
+        ensemble([members[0], HistoryPolicy(StudentConfig(window=3, hidden=(16, 8), head="joint"))])
+
+
+def test_members_train_one_after_another_and_fly_as_their_ensemble(one_torch_thread):
+    from ftc.experiments.adaptive import dagger
+    from ftc.learning.history_policy import HistoryPolicy, ensemble
+
+    tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
+                          hidden=(8,), head="joint", hold=2, horizon=3)
+    dist = distribution.load()
+    record = dagger.train(dist, dataclasses.replace(tiny, members=2), log=lambda _: None)
+    second = dagger.train(dist, dataclasses.replace(tiny, seed=1), log=lambda _: None)
+    assert record["policy"]["config"]["hidden"] == [16]
+    # member 1 is the student of seed 1, trained alone: the ensemble holds it exactly
+    assert torch.equal(record["policy"]["state"]["net.0.weight"][8:],
+                       second["policy"]["state"]["net.0.weight"])
+    curve = record["curve"]
+    assert [(r["member"], r["iteration"]) for r in curve] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert curve[2]["env_steps"] == curve[1]["env_steps"] + second["curve"][0]["env_steps"]
+    assert len(record["snapshots"]) == 4 and record["snapshots"][1]["config"]["hidden"] == [8]
+    assert record["snapshots"][3]["config"]["hidden"] == [16]
+    x = np.random.default_rng(0).uniform(-1, 1, (50, 24)).astype(np.float32)
+    assert np.array_equal(HistoryPolicy.from_record(record["policy"]).act(x),
+                          ensemble([HistoryPolicy.from_record(record["snapshots"][1]),
+                                    HistoryPolicy.from_record(second["policy"])]).act(x))
+
+
 def test_the_pool_evaluation_reproduces_the_shipped_rewards_and_scores():
     names = ["single", "random-03"]
     scenarios = [_core.Scenario() for _ in names]

@@ -102,7 +102,9 @@ class TrainingConfig:
     student's choice, per unit of the data's mean regret) added to the cross
     entropy (the valves head has none); hold, horizon: the teacher's planner
     (oracle-mpc's H and L); seed: draws, pool plants, initial weights and
-    minibatches."""
+    minibatches; members: students trained one after another with seeds seed,
+    seed + 1, ... (each its own plants, labels and weights) and flown as one
+    network whose logits are their mean (:func:`ensemble`)."""
 
     iterations: int = 8
     envs: int = 24
@@ -121,6 +123,7 @@ class TrainingConfig:
     hold: int = 3
     horizon: int = 10
     seed: int = 0
+    members: int = 1
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
@@ -128,6 +131,8 @@ class TrainingConfig:
                              f"got {self.inputs!r}")
         if not self.regret >= 0:
             raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
+        if self.members < 1:
+            raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
 
     def student(self) -> StudentConfig:
         return StudentConfig(window=self.window, hidden=tuple(self.hidden), head=self.head)
@@ -231,6 +236,43 @@ class HistoryPolicy(nn.Module):
         policy.load_state_dict(record["state"])
         policy.eval()
         return policy
+
+
+def ensemble(policies: list[HistoryPolicy]) -> HistoryPolicy:
+    """One plain MLP whose logits are the mean of ``policies``' logits (same
+    window, head and depth): the members side by side in each hidden layer
+    (the first layer's rows stacked, the deeper layers block-diagonal) and the
+    last layer's weights each divided by their count. It acts as the members'
+    vote would, in one forward pass, so the node flies it as any student."""
+    first = policies[0].config
+    if any(p.config.window != first.window or p.config.head != first.head or
+           len(p.config.hidden) != len(first.hidden) for p in policies):
+        raise ValueError("ensemble: the members differ in window, head or depth: "
+                         f"{[p.config for p in policies]}")
+    widths = tuple(sum(p.config.hidden[j] for p in policies) for j in range(len(first.hidden)))
+    merged = HistoryPolicy(StudentConfig(window=first.window, hidden=widths, head=first.head))
+    records = [p.record()["state"] for p in policies]  # input maps folded in
+    layers = len(first.hidden) + 1
+    with torch.no_grad():
+        for j in range(layers):
+            weight = merged.net[2 * j].weight
+            bias = merged.net[2 * j].bias
+            weight.zero_()
+            bias.zero_()
+            row = col = 0
+            for state in records:
+                w, b = state[f"net.{2 * j}.weight"], state[f"net.{2 * j}.bias"]
+                if j == layers - 1:  # the head: the mean of the members' logits
+                    weight[:, col:col + w.shape[1]] = w / len(records)
+                    bias += b / len(records)
+                else:
+                    cols = slice(0, w.shape[1]) if j == 0 else slice(col, col + w.shape[1])
+                    weight[row:row + w.shape[0], cols] = w
+                    bias[row:row + w.shape[0]] = b
+                row += w.shape[0]
+                col += w.shape[1] if j > 0 else 0
+    merged.eval()
+    return merged
 
 
 def rates_map(window: int, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

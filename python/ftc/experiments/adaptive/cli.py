@@ -57,6 +57,8 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "hold": "the teacher's plans hold a setting this many steps, then all closed",
     "horizon": "the teacher's planning horizon, steps",
     "seed": "draws, pool plants, initial weights and minibatches",
+    "members": "students trained with seeds seed, seed+1, ... and flown as one network "
+               "whose logits are their mean",
 }
 
 
@@ -238,7 +240,8 @@ def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
     for row, snap in zip(record["curve"], record["snapshots"]):
         policy = HistoryPolicy.from_record(snap)
         s = np.array([r["score"] for r in evaluate.evaluate(policy, "suite")])
-        out.append({"iteration": row["iteration"], "env_steps": row["env_steps"],
+        out.append({"member": row.get("member", 0), "iteration": row["iteration"],
+                    "env_steps": row["env_steps"],
                     "teacher_labels": row["teacher_labels"], "seconds": row["seconds"],
                     "loss": round(row["loss"], 5),
                     "action_agreement": round(row["action_agreement"], 4),

@@ -22,6 +22,7 @@ last one is the checkpoint. Torch runs on one thread.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -31,7 +32,8 @@ import torch
 
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive.distribution import TrainingDistribution, draw
-from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, TrainingConfig, rates_map
+from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, TrainingConfig, ensemble,
+                                         rates_map)
 from ftc.plant.vector import FuelTransferVectorEnv
 
 
@@ -165,6 +167,8 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
     if config.life_intervals > dist.life_intervals:
         raise ValueError(f"life_intervals {config.life_intervals} exceeds the distribution's "
                          f"{dist.life_intervals} (its events are drawn within it)")
+    if config.members > 1:
+        return _train_members(dist, config, log)
     torch.set_num_threads(1)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng([config.seed, 2])
@@ -196,3 +200,29 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
     return {"policy": policy.record(), "snapshots": snapshots, "curve": curve,
             "config": config.to_json(), "distribution": dist.text}
 
+
+def _train_members(dist: TrainingDistribution, config: TrainingConfig,
+                   log: Callable[[str], None]) -> dict[str, Any]:
+    """``config.members`` students, one after another (seeds seed, seed + 1, ...),
+    flown as their :func:`ensemble`. The curve runs through the members'
+    iterations in order, steps, labels and seconds adding up; its snapshot at
+    a member's iteration k is the ensemble of the members before it and that
+    member's student after iteration k."""
+    done: list[HistoryPolicy] = []
+    curve, snapshots = [], []
+    steps = labels = 0
+    seconds = 0.0
+    for m in range(config.members):
+        log(f"adaptive: member {m + 1} of {config.members} (seed {config.seed + m})")
+        part = train(dist, dataclasses.replace(config, members=1, seed=config.seed + m), log)
+        for row, snap in zip(part["curve"], part["snapshots"]):
+            curve.append({**row, "member": m, "env_steps": steps + row["env_steps"],
+                          "teacher_labels": labels + row["teacher_labels"],
+                          "seconds": round(seconds + row["seconds"], 1)})
+            snapshots.append(ensemble([*done, HistoryPolicy.from_record(snap)]).record())
+        last = part["curve"][-1]
+        steps, labels = steps + last["env_steps"], labels + last["teacher_labels"]
+        seconds += last["seconds"]
+        done.append(HistoryPolicy.from_record(part["policy"]))
+    return {"policy": ensemble(done).record(), "snapshots": snapshots, "curve": curve,
+            "config": config.to_json(), "distribution": dist.text}
