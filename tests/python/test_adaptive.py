@@ -51,10 +51,12 @@ def test_the_training_distribution_never_draws_a_benchmark_scenario():
     # every suite scenario, abrupt.toml and scenarios/check/ are in the forbidden set
     assert len(forbidden) >= len(default_suite()) + 1 + 9
     config = TrainingConfig()
-    # the draws of every default training iteration (dagger.collect's seeds) pass the guard
-    for k in range(config.iterations):
-        drawn = distribution.draw(dist, config.envs, config.seed * 1000 + k, forbidden)
-        assert not {distribution.signature(s) for s in drawn} & forbidden
+    # the draws of every default training iteration of every member (dagger.collect's
+    # seeds) pass the guard
+    for seed in range(config.seed, config.seed + config.members):
+        for k in range(config.iterations):
+            drawn = distribution.draw(dist, config.envs, seed * 1000 + k, forbidden)
+            assert not {distribution.signature(s) for s in drawn} & forbidden
     # and a draw that were a benchmark scenario is refused: the guard works
     single = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
     with pytest.raises(ValueError, match="faults of a benchmark scenario"):
@@ -165,7 +167,7 @@ def test_members_train_one_after_another_and_fly_as_their_ensemble(one_torch_thr
     from ftc.learning.history_policy import HistoryPolicy, ensemble
 
     tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
-                          hidden=(8,), head="joint", hold=2, horizon=3)
+                          hidden=(8,), head="joint", hold=2, horizon=3, members=1)
     dist = distribution.load()
     record = dagger.train(dist, dataclasses.replace(tiny, members=2), log=lambda _: None)
     second = dagger.train(dist, dataclasses.replace(tiny, seed=1), log=lambda _: None)

@@ -107,7 +107,7 @@ class TrainingConfig:
     network whose logits are their mean (:func:`ensemble`)."""
 
     iterations: int = 8
-    envs: int = 24
+    envs: int = 48
     life_intervals: int = 10
     label_fraction: float = 0.2
     dagger: bool = True
@@ -120,10 +120,10 @@ class TrainingConfig:
     head: str = "joint"
     inputs: str = "window"
     regret: float = 5.0
-    hold: int = 3
-    horizon: int = 10
+    hold: int = 2
+    horizon: int = 6
     seed: int = 0
-    members: int = 1
+    members: int = 3
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:

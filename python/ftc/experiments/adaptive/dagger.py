@@ -12,12 +12,16 @@ Iteration k (of ``iterations``):
    else by the student; the teacher labels every state it drives and a
    fraction ``label_fraction`` of the student's (DAgger: the states the
    student itself reaches, its mistakes included);
-3. the labelled (history window, teacher valves) pairs join the data set
-   (the newest ``max_samples`` kept), and the student is trained on it by
-   binary cross-entropy on each valve for ``epochs`` epochs.
+3. the labelled (history window, teacher valves, regret of every setting)
+   samples join the data set (the newest ``max_samples`` kept), and the
+   student is trained on it for ``epochs`` epochs: with the joint head, cross
+   entropy of the teacher's setting plus ``regret`` times the student's
+   expected regret; with the valves head, binary cross-entropy on each valve.
 
 Every iteration's student is kept (the learning curve evaluates them); the
-last one is the checkpoint. Torch runs on one thread.
+last one is the checkpoint. With ``members`` > 1 the students of seeds seed,
+seed + 1, ... are trained one after another and the checkpoint is their
+ensemble. Torch runs on one thread.
 """
 
 from __future__ import annotations
