@@ -3,7 +3,7 @@ student (a window of levels and valves, tanh MLP, six valve logits) trained
 by RL alone, Stable-Baselines3 PPO on the reward, on the same plants DAgger
 meets (the training distribution's draws, seed ``seed * 1000 + k`` for the
 k-th batch of ``--envs`` plants, each run for its whole life) and the same
-budget of environment steps (DAgger's default: 8 x 24 plants x 10 x 512).
+budget of environment steps as one DAgger student (the default: 8 x 48 plants x 10 x 512).
 
     OMP_NUM_THREADS=1 python scripts/adaptive_rl.py --out /tmp/rl.pt
     python -m ftc.experiments.adaptive evaluate --checkpoint /tmp/rl.pt --sets suite check

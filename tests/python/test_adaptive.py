@@ -52,11 +52,15 @@ def test_the_training_distribution_never_draws_a_benchmark_scenario():
     assert len(forbidden) >= len(default_suite()) + 1 + 9
     config = TrainingConfig()
     # the draws of every default training iteration of every member (dagger.collect's
-    # seeds) pass the guard
+    # seeds)
+    # pass the guard, and none has the faults of a held-out scenario either
+    heldout = {distribution.signature(_core.load_scenario(str(p)))
+               for p in (distribution.SCENARIO_DIR / "heldout").rglob("*.toml")}
+    assert len(heldout) >= 15
     for seed in range(config.seed, config.seed + config.members):
         for k in range(config.iterations):
             drawn = distribution.draw(dist, config.envs, seed * 1000 + k, forbidden)
-            assert not {distribution.signature(s) for s in drawn} & forbidden
+            assert not {distribution.signature(s) for s in drawn} & (forbidden | heldout)
     # and a draw that were a benchmark scenario is refused: the guard works
     single = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
     with pytest.raises(ValueError, match="faults of a benchmark scenario"):
