@@ -110,15 +110,37 @@ class Node {
 
   // Waits up to timeout_ms for messages, takes every queued one, then acts on
   // the newest state if there is a new one. Returns false on an LCM error.
+  //
+  // With a warm-up lead (--warm-ms), the wait ends that long before the next
+  // state is due (the last state's arrival plus the states' mean period), and
+  // the policy runs once on the history it holds, its result dropped: the
+  // weights are back in the cache when the state comes. Between two states
+  // at 100 Hz other processes evict them, and a cold forward pass of the
+  // three-member student (0.9 MB of weights) took 35 us at p50 and 90 us at
+  // p99 against 11 and 17 us warm (this machine, C++).
   bool Spin(int timeout_ms) {
     const auto now = Clock::now();
     if (!open_ || now - heard_ > kSessionLost) Open(now);
-    if (lcm_->handleTimeout(timeout_ms) < 0) return false;
+    int wait = timeout_ms;
+    if (warm_lead_.count() > 0 && period_.count() > 0 && !warmed_) {
+      const auto warm_at = received_ + period_ - warm_lead_;
+      // LCM waits whole milliseconds: under one to go, warm now rather than spin
+      const auto until = std::chrono::duration_cast<std::chrono::milliseconds>(warm_at - now);
+      if (until.count() < 1)
+        Warm();
+      else
+        wait = std::min<int>(wait, static_cast<int>(until.count()));
+    }
+    const int handled = lcm_->handleTimeout(wait);
+    if (handled < 0) return false;
     while (lcm_->handleTimeout(0) > 0) {
     }
     if (pending_) Act();
     return true;
   }
+
+  void set_warm_lead(std::chrono::microseconds lead) { warm_lead_ = lead; }
+  std::int64_t warmups() const { return warmups_; }
 
   std::int64_t steps() const { return steps_; }
   std::int64_t misses() const { return misses_; }
@@ -229,6 +251,11 @@ class Node {
       return;
     }
     heard_ = Clock::now();
+    if (acted_ && received_.time_since_epoch().count() != 0) {  // the states' mean period
+      const auto gap = std::chrono::duration_cast<std::chrono::microseconds>(arrived - received_);
+      if (gap < std::chrono::seconds(1))
+        period_ = period_.count() == 0 ? gap : (period_ * 7 + gap) / 8;
+    }
     if (last_sent_seq_ && s->command_seq < *last_sent_seq_) {
       if (++misses_ <= kLoggedMisses)
         std::cerr << "policy_node: deadline miss: the plant took step " << s->step
@@ -348,7 +375,16 @@ class Node {
         std::chrono::duration<double, std::micro>(Clock::now() - received_).count());
     last_sent_seq_ = cmd.seq;
     pending_.reset();
+    warmed_ = false;
     ++steps_;
+  }
+
+  // The policy once on the history it holds, the valves dropped (see Spin).
+  void Warm() {
+    const auto u = policy_->Act(history_);
+    warm_sink_ += u[0];
+    warmed_ = true;
+    ++warmups_;
   }
 
   lcm::LCM* lcm_;
@@ -375,6 +411,10 @@ class Node {
   ftc::wire::RateLimitedLog log_{"policy_node"};
   std::vector<double> latencies_us_;
   Clock::duration auth_time_{};
+  std::chrono::microseconds warm_lead_{0}, period_{0};
+  bool warmed_ = true;  // none before the first state is acted on
+  std::int64_t warmups_ = 0;
+  volatile int warm_sink_ = 0;  // the warm-up's result, kept so it is computed
 };
 
 double Percentile(std::vector<double> v, double q) {
@@ -404,6 +444,12 @@ int main(int argc, char** argv) {
                  "sign and check every message with the key in this file (hex, mode 600)");
   app.add_option("--steps", max_steps, "stop after acting on this many states (0: until a signal)")
       ->check(CLI::NonNegativeNumber);
+  double warm_ms = 1.0;
+  app.add_option("--warm-ms", warm_ms,
+                 "run the policy once this long before the next state is due (the states' mean "
+                 "period after the last), so its weights are in the cache when it comes; 0: never")
+      ->check(CLI::Range(0.0, 1000.0))
+      ->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -437,6 +483,7 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
   Node node(&lcm, prefix, std::move(policy), key);
+  node.set_warm_lead(std::chrono::microseconds(static_cast<std::int64_t>(warm_ms * 1000.0)));
   while (!g_stop && (max_steps == 0 || node.steps() < max_steps)) {
     if (!node.Spin(100) && !g_stop) {
       std::cerr << "policy_node: LCM failed while waiting for the plant\n";
@@ -461,6 +508,8 @@ int main(int argc, char** argv) {
               node.auth_us_per_step());
   if (node.refused_total())
     std::cerr << "policy_node: refused messages: " << node.refused() << "\n";
+  if (node.warmups())
+    std::cerr << "policy_node: " << node.warmups() << " warm-ups before states\n";
   if (node.watchdog_states())
     std::cerr << "policy_node: " << node.watchdog_states()
               << " states with the plant's watchdog tripped\n";

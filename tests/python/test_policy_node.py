@@ -88,6 +88,17 @@ def test_the_node_refuses_a_bad_weights_file_with_one_line(tmp_path):
     assert out.stderr.count("\n") == 1 and "checksum mismatch" in out.stderr
 
 
+@pytest.mark.parametrize("value", ["-1", "1001", "soon"])
+def test_the_node_refuses_a_bad_warm_up_lead(tmp_path, value):
+    widths, params = _policy(1)
+    path = tmp_path / "p.txt"
+    path.write_text(pw.format_weights(widths, params))
+    out = subprocess.run([str(policy_node_binary()), "--policy", str(path), "--lcm-url",
+                          private_lcm_url(), "--warm-ms", value],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2 and "--warm-ms" in out.stderr, out.stderr
+
+
 @pytest.mark.subprocess
 def test_the_node_flies_the_policy_and_takes_a_push_at_a_step_boundary(tmp_path, scenarios):
     url, prefix = private_lcm_url(), private_prefix()

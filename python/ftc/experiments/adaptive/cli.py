@@ -143,10 +143,11 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         if which == "heldout" and not a.heldout_results:
             raise ValueError("--sets heldout needs --heldout-results (a benchmark's results.csv "
                              "with reference and closed on scenarios/heldout/)")
-        rows += evaluate.evaluate(policy, which, seeds=a.seeds,
-                                  heldout=Path(a.heldout_results) if a.heldout_results else None,
-                                  heldout_files=[Path(f) for f in a.heldout_scenarios] or None)
-    for which in a.sets:
+        scored = evaluate.evaluate(policy, which, seeds=a.seeds,
+                                   heldout=Path(a.heldout_results) if a.heldout_results else None,
+                                   heldout_files=[Path(f) for f in a.heldout_scenarios] or None)
+        rows += [{**r, "set": a.heldout_name} if which == "heldout" else r for r in scored]
+    for which in (a.heldout_name if w == "heldout" else w for w in a.sets):
         s = np.array([r["score"] for r in rows if r["set"] == which])
         worst = min((r for r in rows if r["set"] == which), key=lambda r: r["score"])
         print(f"adaptive: {a.policy}: {which}: mean score {s.mean():.3f} over {len(s)} runs, worst "
@@ -247,7 +248,8 @@ def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
                     "action_agreement": round(row["action_agreement"], 4),
                     "suite_mean_score": round(float(s.mean()), 4),
                     "suite_worst_score": round(float(s.min()), 4)})
-        print(f"adaptive: curve: iteration {row['iteration']}  {row['env_steps']} steps  "
+        print(f"adaptive: curve: member {row.get('member', 0)} iteration {row['iteration']}  "
+              f"{row['env_steps']} steps  "
               f"{row['seconds']:.0f} s  suite mean {s.mean():.3f}  worst {s.min():.3f}")
     return out
 
@@ -269,7 +271,11 @@ def draw_curve(curve: list[dict[str, Any]], path: Path, record: dict[str, Any]) 
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("normalized score (suite, per scenario)")
     axes[0].legend(loc="lower right")
-    fig.suptitle("adaptive-policy: DAgger from oracle-mpc over the training distribution")
+    c = record["config"]
+    members = int(c.get("members", 1))
+    fig.suptitle(f"adaptive-policy: DAgger from the planner holding {c['hold']} steps over "
+                 f"{c['horizon']}" + (f", {members} members one after another" if members > 1
+                                      else ""))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
@@ -304,6 +310,8 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--heldout-scenarios", nargs="+", default=[], metavar="TOML",
                            help="the held-out set's scenario files (default: scenarios/heldout/"
                                 "*.toml); faults of your own, never trained on")
+            s.add_argument("--heldout-name", default="heldout",
+                           help="the held-out set's name in the output (e.g. drawn)")
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
                            help="what to score: the checkpoint's student, its teacher "
