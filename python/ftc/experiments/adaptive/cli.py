@@ -72,7 +72,7 @@ def _config_options(p: argparse.ArgumentParser) -> None:
                            metavar="BOOL", help=f"{OPTION_HELP[f.name]} (default {value})")
         elif isinstance(value, tuple):
             p.add_argument(flag, type=int, nargs="+", default=list(value),
-                          help=f"{OPTION_HELP[f.name]} (default {' '.join(map(str, value))})")
+                           help=f"{OPTION_HELP[f.name]} (default {' '.join(map(str, value))})")
         else:
             p.add_argument(flag, type=type(value), default=value,
                            help=f"{OPTION_HELP[f.name]} (default {value})")
@@ -132,6 +132,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     for f in a.heldout_scenarios:
         if not Path(f).is_file():
             raise ValueError(f"--heldout-scenarios {f}: no such file")
+    if a.heldout_name in ("suite", "check") or not a.heldout_name:
+        raise ValueError(f"--heldout-name {a.heldout_name!r}: another set's name, or empty")
     record, path = load_record(a)
     policy = HistoryPolicy.from_record(record["policy"])
     if a.policy == "teacher":
