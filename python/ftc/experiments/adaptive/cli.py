@@ -316,8 +316,9 @@ def parser() -> argparse.ArgumentParser:
                            help="the held-out set's name in the output (e.g. drawn)")
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
-                           help="what to score: the checkpoint's student, its teacher "
-                                "(oracle-mpc's decision on the true physics) or the balance rule")
+                           help="what to score: the checkpoint's student, its teacher (the "
+                                "planner on the true physics, with the checkpoint's --hold and "
+                                "--horizon; 3 and 10 are oracle-mpc's) or the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")

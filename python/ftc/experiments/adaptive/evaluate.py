@@ -54,7 +54,7 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
             steps_per_interval: int = 512) -> np.ndarray:
     """Reward per step (len(scenarios), intervals) of ``policy`` on plant i with
     scenario i seeded seeds[i], from full tanks: the student, the teacher
-    (oracle-mpc's decision on each plant's true physics), a function of the
+    (the planner on each plant's true physics), a function of the
     levels (N, 6) -> valves (N, 6), or None (all valves closed)."""
     n = len(scenarios)
     env = FuelTransferVectorEnv(n, list(scenarios), plant_seed=list(seeds),
