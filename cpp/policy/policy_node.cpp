@@ -131,8 +131,7 @@ class Node {
       else
         wait = std::min<int>(wait, static_cast<int>(until.count()));
     }
-    const int handled = lcm_->handleTimeout(wait);
-    if (handled < 0) return false;
+    if (lcm_->handleTimeout(wait) < 0) return false;
     while (lcm_->handleTimeout(0) > 0) {
     }
     if (pending_) Act();
@@ -251,7 +250,7 @@ class Node {
       return;
     }
     heard_ = Clock::now();
-    if (acted_ && received_.time_since_epoch().count() != 0) {  // the states' mean period
+    if (acted_) {  // the states' mean period (received_: the previous state's arrival)
       const auto gap = std::chrono::duration_cast<std::chrono::microseconds>(arrived - received_);
       if (gap < std::chrono::seconds(1))
         period_ = period_.count() == 0 ? gap : (period_ * 7 + gap) / 8;
