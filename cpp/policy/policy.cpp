@@ -8,6 +8,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <numeric>
 #include <sstream>
 
 namespace ftc::policy {
@@ -139,12 +140,83 @@ std::unique_ptr<Policy> Policy::Make(int window, std::vector<int> widths,
       new Policy(window, std::move(widths), std::move(params), version));
 }
 
+// The layers as they are flown: each layer's weights split into the blocks of
+// its block-diagonal structure, packed. A dense layer is one block. The
+// members of an ensemble (python/ftc/learning/history_policy.py: ensemble)
+// are such blocks in every layer between the first and the last: flown dense,
+// two thirds of a three-member student's middle layer would be zeros read
+// from memory and multiplied (0.9 MB of weights against 0.5 MB packed), and a
+// forward pass after other processes evicted the cache is bound by those reads.
+// Skipping exact zeros changes no product; the order of the sums within a
+// block is Eigen's, as for the dense layer.
 struct Policy::Net {
-  Net(const std::vector<int>& widths, std::vector<float>* params)
-      : grads(params->size()), chain(widths, /*tanh_last=*/false, params->data(), grads.data()),
-        input(1, widths.front()) {}
-  std::vector<float> grads;  // the chain's gradient buffer: unused when acting
-  learn::TanhChain chain;
+  struct Layer {
+    int in = 0, out = 0, blocks = 1;
+    std::vector<learn::MatrixRM> w;  // blocks x (in / blocks, out / blocks)
+    Eigen::RowVectorXf b;
+    Eigen::RowVectorXf z;  // the layer's output
+  };
+
+  Net(const std::vector<int>& widths, const std::vector<float>& params)
+      : input(1, widths.front()) {
+    std::size_t offset = 0;
+    for (std::size_t l = 0; l + 1 < widths.size(); ++l) {
+      Layer layer;
+      layer.in = widths[l];
+      layer.out = widths[l + 1];
+      const float* w = params.data() + offset;  // (in, out) row-major, then b
+      layer.blocks = DiagonalBlocks(w, layer.in, layer.out);
+      const int bi = layer.in / layer.blocks, bo = layer.out / layer.blocks;
+      for (int k = 0; k < layer.blocks; ++k) {
+        learn::MatrixRM block(bi, bo);
+        for (int r = 0; r < bi; ++r)
+          for (int c = 0; c < bo; ++c)
+            block(r, c) = w[static_cast<std::size_t>(k * bi + r) * layer.out + k * bo + c];
+        layer.w.push_back(std::move(block));
+      }
+      offset += static_cast<std::size_t>(layer.in) * layer.out;
+      layer.b = Eigen::Map<const Eigen::RowVectorXf>(params.data() + offset, layer.out);
+      offset += layer.out;
+      layer.z.resize(layer.out);
+      layers.push_back(std::move(layer));
+    }
+  }
+
+  // The most blocks K (dividing both widths) such that every weight outside
+  // the K diagonal blocks of the (in, out) matrix is exactly zero; 1 if none.
+  static int DiagonalBlocks(const float* w, int in, int out) {
+    for (int k = std::gcd(in, out); k > 1; --k) {
+      if (in % k != 0 || out % k != 0) continue;
+      const int bi = in / k, bo = out / k;
+      bool diagonal = true;
+      for (int r = 0; r < in && diagonal; ++r)
+        for (int c = 0; c < out; ++c)
+          if (r / bi != c / bo && w[static_cast<std::size_t>(r) * out + c] != 0.0f) {
+            diagonal = false;
+            break;
+          }
+      if (diagonal) return k;
+    }
+    return 1;
+  }
+
+  // The logits of `input`: tanh after every layer but the last.
+  const Eigen::RowVectorXf& Forward() {
+    const float* x = input.data();
+    for (std::size_t l = 0; l < layers.size(); ++l) {
+      Layer& layer = layers[l];
+      const int bi = layer.in / layer.blocks, bo = layer.out / layer.blocks;
+      for (int k = 0; k < layer.blocks; ++k)
+        layer.z.segment(k * bo, bo).noalias() =
+            Eigen::Map<const Eigen::RowVectorXf>(x + k * bi, bi) * layer.w[k];
+      layer.z += layer.b;
+      if (l + 1 < layers.size()) layer.z = layer.z.array().tanh().matrix();
+      x = layer.z.data();
+    }
+    return layers.back().z;
+  }
+
+  std::vector<Layer> layers;
   learn::MatrixRM input;
 };
 
@@ -154,9 +226,15 @@ Policy::Policy(int window, std::vector<int> widths, std::vector<float> params,
       widths_(std::move(widths)),
       params_(std::move(params)),
       version_(version),
-      net_(std::make_unique<Net>(widths_, &params_)) {}
+      net_(std::make_unique<Net>(widths_, params_)) {}
 
 Policy::~Policy() = default;
+
+std::vector<int> Policy::blocks() const {
+  std::vector<int> k;
+  for (const auto& layer : net_->layers) k.push_back(layer.blocks);
+  return k;
+}
 
 std::array<std::int8_t, kTanks> Policy::Act(const std::array<double, kTanks>& level) {
   if (window_ != 0) {  // the first step of an episode
@@ -175,10 +253,10 @@ std::array<std::int8_t, kTanks> Policy::Act(const History& history) {
 }
 
 std::array<std::int8_t, kTanks> Policy::Decide() {
-  const auto& logits = net_->chain.Forward(net_->input);
-  if (widths_.back() == kSettings) return JointValves(logits.data());  // one row: contiguous
+  const auto& logits = net_->Forward();
+  if (widths_.back() == kSettings) return JointValves(logits.data());
   std::array<std::int8_t, kTanks> u{};
-  for (int i = 0; i < kTanks; ++i) u[i] = logits(0, i) > 0.0f ? 1 : 0;
+  for (int i = 0; i < kTanks; ++i) u[i] = logits[i] > 0.0f ? 1 : 0;
   return u;
 }
 

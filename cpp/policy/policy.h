@@ -108,6 +108,11 @@ class Policy {
   std::int64_t version() const { return version_; }
   int window() const { return window_; }
   const std::vector<int>& widths() const { return widths_; }
+  // Per layer, the diagonal blocks it is flown as (1: dense; K: an ensemble
+  // of K members' layer, the zeros between them skipped).
+  std::vector<int> blocks() const;
+  // The weights as loaded: each layer's W (in, out) row-major, then its b.
+  const std::vector<float>& params() const { return params_; }
 
  private:
   Policy(int window, std::vector<int> widths, std::vector<float> params, std::int64_t version);

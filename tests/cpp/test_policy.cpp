@@ -3,10 +3,12 @@
 // checks that refuse bad ones.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <limits>
+#include <random>
 #include <sstream>
 
 #include "policy/policy.h"
@@ -242,6 +244,76 @@ TEST(Policy, ReadsAWindowedWeightsFile) {
   EXPECT_NE(error.find("checksum mismatch"), std::string::npos) << error;
   EXPECT_FALSE(Policy::FromFile(Write("w0.txt", text(Checksum(widths, p, 2), "")), &error));
   EXPECT_NE(error.find("no window line"), std::string::npos) << error;
+}
+
+// A 6-12-12-6 policy whose middle layer is block-diagonal with `blocks` blocks
+// (the shape of an ensemble of that many members), its other weights dense;
+// every weight is drawn from [-1, 1] by a fixed generator. `leak` puts one
+// nonzero weight outside the blocks.
+std::vector<float> BlockWeights(int blocks, bool leak) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> p;
+  for (int i = 0; i < 7 * 12; ++i) p.push_back(u(rng));  // W1 (6 x 12), b1
+  const int b = 12 / blocks;
+  for (int r = 0; r < 12; ++r)
+    for (int c = 0; c < 12; ++c) p.push_back(r / b == c / b ? u(rng) : 0.0f);  // W2
+  for (int c = 0; c < 12; ++c) p.push_back(u(rng));  // b2
+  if (leak) p[7 * 12 + 0 * 12 + 11] = 0.25f;  // W2 row 0, column 11: off every block
+  for (int i = 0; i < 13 * 6; ++i) p.push_back(u(rng));  // W3 (12 x 6), b3
+  return p;
+}
+
+// The logits of the 6-12-12-6 chain in double precision, dense.
+std::array<double, 6> DenseLogits(const std::vector<float>& p, const std::array<double, 6>& level) {
+  std::vector<double> x(level.begin(), level.end());
+  for (double& v : x) v = 2.0 * static_cast<double>(static_cast<float>(v)) - 1.0;
+  const int widths[] = {6, 12, 12, 6};
+  std::size_t at = 0;
+  for (int l = 0; l < 3; ++l) {
+    const int in = widths[l], out = widths[l + 1];
+    std::vector<double> z(static_cast<std::size_t>(out));
+    for (int c = 0; c < out; ++c) {
+      double sum = p[at + static_cast<std::size_t>(in * out + c)];
+      for (int r = 0; r < in; ++r) sum += x[r] * p[at + static_cast<std::size_t>(r * out + c)];
+      z[c] = l < 2 ? std::tanh(sum) : sum;
+    }
+    at += static_cast<std::size_t>((in + 1) * out);
+    x = z;
+  }
+  std::array<double, 6> logits{};
+  std::copy(x.begin(), x.end(), logits.begin());
+  return logits;
+}
+
+TEST(Policy, ABlockDiagonalLayerIsFlownAsItsBlocksWithTheDenseLayersActions) {
+  for (const int blocks : {2, 3, 6}) {
+    for (const bool leak : {false, true}) {
+      const auto p = BlockWeights(blocks, leak);
+      std::string error;
+      auto policy = Policy::Make({6, 12, 12, 6}, p, 1, &error);
+      ASSERT_TRUE(policy) << error;
+      // the most blocks the zeros allow; one weight off the blocks makes it dense
+      EXPECT_EQ(policy->blocks(), (std::vector<int>{1, leak ? 1 : blocks, 1})) << blocks;
+      std::mt19937 rng(blocks);
+      std::uniform_real_distribution<double> u(0.0, 1.0);
+      int compared = 0;
+      for (int trial = 0; trial < 500; ++trial) {
+        std::array<double, 6> level{};
+        for (double& v : level) v = u(rng);
+        const auto logits = DenseLogits(p, level);
+        const auto act = policy->Act(level);
+        for (int i = 0; i < 6; ++i) {
+          // float32 against double: the logits (of order 1) agree to ~1e-6;
+          // a sign is compared only where it is farther than 1e-4 from zero
+          if (std::abs(logits[i]) < 1e-4) continue;
+          EXPECT_EQ(act[i], logits[i] > 0 ? 1 : 0) << blocks << " " << trial << " " << i;
+          ++compared;
+        }
+      }
+      EXPECT_GT(compared, 2900);
+    }
+  }
 }
 
 TEST(PushWire, APolicyV2IsCheckedBeforeDecodingAndToldFromAPolicyT) {
