@@ -88,6 +88,17 @@ std::int64_t RandomSession() {
   return id;
 }
 
+// "widths 144-384-384-64, window 12, diagonal blocks 1 3 1": what a policy is,
+// and the blocks each layer is flown as (Policy::blocks).
+std::string Shape(const ftc::policy::Policy& policy) {
+  std::string text = "widths ";
+  for (std::size_t i = 0; i < policy.widths().size(); ++i)
+    text += (i ? "-" : "") + std::to_string(policy.widths()[i]);
+  text += ", window " + std::to_string(policy.window()) + ", diagonal blocks";
+  for (int k : policy.blocks()) text += " " + std::to_string(k);
+  return text;
+}
+
 class Node {
  public:
   Node(lcm::LCM* lcm, const std::string& prefix, std::unique_ptr<ftc::policy::Policy> policy,
@@ -331,9 +342,8 @@ class Node {
       return;
     }
     policy_ = std::move(next);  // between two states: the next one is acted on by it
-    std::cerr << "policy_node: policy version " << policy_->version() << " in use"
-              << (policy_->window() ? " (window " + std::to_string(policy_->window()) + ")" : "")
-              << "\n";
+    std::cerr << "policy_node: policy version " << policy_->version() << " in use ("
+              << Shape(*policy_) << ")\n";
     Ack(m.version, m.utime, "");
   }
 
@@ -479,6 +489,7 @@ int main(int argc, char** argv) {
     std::cerr << "policy_node: cannot open LCM at " << url << "\n";
     return 1;
   }
+  std::cerr << "policy_node: flying " << policy_path << " (" << Shape(*policy) << ")\n";
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
   Node node(&lcm, prefix, std::move(policy), key);

@@ -20,7 +20,7 @@ from bus_tap import BusTap
 
 from ftc.common.build_info import plant_binary, policy_node_binary
 from ftc.common.errors import UsageError
-from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, StudentConfig
+from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, StudentConfig, ensemble
 from ftc.learning.ppo import ActorCritic
 from ftc.plant import private_lcm_url, private_prefix
 from ftc.tools import policy_weights as pw
@@ -89,10 +89,13 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
 
 
 @pytest.mark.quick
-@pytest.mark.parametrize("head", ["valves", "joint"])
+@pytest.mark.parametrize("head,members", [("valves", 1), ("joint", 1), ("joint", 3)])
 def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path, scenarios,
-                                                                       head):
-    student = _student(0, head=head)
+                                                                       head, members):
+    # three members: the default's shape, whose middle layer the node flies as
+    # three packed blocks (the zeros between them skipped)
+    student = (_student(0, head=head) if members == 1
+               else ensemble([_student(seed, head=head) for seed in range(members)]).eval())
     weights = _export(student, tmp_path, "student")
     policy = pw.read_policy(weights)
     assert policy.window == 12 and policy.widths[-1] == student.config.outputs
@@ -119,6 +122,7 @@ def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path,
         bus.thread.join(timeout=5)
     summary = SUMMARY.match(node.stdout.strip())
     assert node.returncode == 0 and summary and int(summary.group(1)) == 240, node.stderr
+    assert f"diagonal blocks 1 {members} 1)" in node.stderr, node.stderr
     assert len(bus.commands) == 240
     # the node ran the student once before most states came (--warm-ms, default 1 ms
     # ahead of the 5 ms period; a state that comes early on a loaded machine skips
@@ -218,7 +222,7 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
         out, err = node.communicate(timeout=10)
     assert signed == 0 and "as version 2 on" in signed_out, err
     assert unsigned == 1 and "no answer" in unsigned_err  # refused, its answer signed
-    assert "policy version 2 in use (window 12)" in err
+    assert "policy version 2 in use (widths 144-128-128-6, window 12, " in err
     assert [(o.version, o.accepted) for o in outcomes] == [(4, False), (5, False), (6, True),
                                                            (7, True), (8, False)], err
     assert outcomes[0].reason.startswith("checksum mismatch")
