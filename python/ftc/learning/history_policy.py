@@ -104,7 +104,10 @@ class TrainingConfig:
     (oracle-mpc's H and L); seed: draws, pool plants, initial weights and
     minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
-    network whose logits are their mean (:func:`ensemble`)."""
+    network whose logits are their mean (:func:`ensemble`); privileged: weight
+    of the privileged head's loss (a second head on the last hidden layer that
+    learns which valves are stuck, in training only: see
+    ftc.experiments.adaptive.dagger), 0 for none."""
 
     iterations: int = 8
     envs: int = 48
@@ -124,6 +127,7 @@ class TrainingConfig:
     horizon: int = 6
     seed: int = 0
     members: int = 3
+    privileged: float = 0.0
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
@@ -131,6 +135,8 @@ class TrainingConfig:
                              f"got {self.inputs!r}")
         if not self.regret >= 0:
             raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
+        if not self.privileged >= 0:
+            raise ValueError(f"TrainingConfig: privileged must be >= 0, got {self.privileged}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
 
@@ -205,10 +211,14 @@ class HistoryPolicy(nn.Module):
         self.input_map = torch.as_tensor(np.asarray(matrix, np.float32))
         self.input_shift = torch.as_tensor(np.asarray(shift, np.float32))
 
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
+    def trunk(self, features: torch.Tensor) -> torch.Tensor:
+        """The last hidden layer's activations (what the output layer reads)."""
         if self.input_map is not None:
             features = features @ self.input_map.T - self.input_shift
-        return self.net(features)
+        return self.net[:-1](features)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net[-1](self.trunk(features))
 
     @torch.no_grad()
     def act(self, features: np.ndarray) -> np.ndarray:

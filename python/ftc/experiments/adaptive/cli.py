@@ -59,6 +59,9 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
+    "privileged": "weight of the privileged head's loss: a second head, in training only, "
+                  "learns from the student's last hidden layer which valves are stuck "
+                  "(0: none)",
 }
 
 

@@ -17,6 +17,14 @@ Iteration k (of ``iterations``):
    student is trained on it for ``epochs`` epochs: with the joint head, cross
    entropy of the teacher's setting plus ``regret`` times the student's
    expected regret; with the valves head, binary cross-entropy on each valve.
+   With ``privileged`` > 0, a second head on the student's last hidden layer
+   learns what the teacher knows and the student is not told, which valves
+   are stuck closed and which stuck open at that step (:func:`stuck_valves`),
+   its binary cross-entropy weighted by ``privileged`` and added: the hidden
+   layer must then carry the evidence of a stuck valve in the window (Rapid
+   Motor Adaptation's student regresses the true parameters' latent the same
+   way). The head is used in training only; the checkpoint's network is the
+   policy alone.
 
 Every iteration's student is kept (the learning curve evaluates them); the
 last one is the checkpoint. With ``members`` > 1 the students of seeds seed,
@@ -34,6 +42,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from ftc.common.constants import NUM_TANKS
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive.distribution import TrainingDistribution, draw
 from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, TrainingConfig, ensemble,
@@ -41,29 +50,53 @@ from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, TrainingC
 from ftc.plant.vector import FuelTransferVectorEnv
 
 
+STUCK_TARGETS = 2 * NUM_TANKS  # per valve: stuck closed, then per valve: stuck open
+
+
+def stuck_valves(events: list[dict], operating_step: int) -> np.ndarray:
+    """The privileged head's targets for a plant at ``operating_step`` of its
+    life: (12,) float32, entry v - 1 set when valve v is stuck closed, entry
+    6 + v - 1 when it is stuck open (its stuck-valve event at that step or
+    before; a later event on the same valve overrides an earlier one)."""
+    state: dict[int, str] = {}
+    for e in sorted(events, key=lambda e: e["at_step"]):
+        if "stuck_valve" in e and e["at_step"] <= operating_step:
+            state[int(e["stuck_valve"])] = e["state"]
+    out = np.zeros(STUCK_TARGETS, np.float32)
+    for valve, how in state.items():
+        out[valve - 1 + (NUM_TANKS if how == "open" else 0)] = 1.0
+    return out
+
+
 @dataclass
 class Dataset:
     """Labelled samples, the newest ``capacity`` kept: features (M, F) float32,
-    valves (M, 6) int8 and the teacher's regrets (M, 64) float32 (empty (M, 0)
-    when they are not kept)."""
+    valves (M, 6) int8, the teacher's regrets (M, 64) float32 (empty (M, 0)
+    when they are not kept) and the privileged head's targets (M, 12) float32
+    (:func:`stuck_valves`; empty (M, 0) when they are not kept)."""
 
     capacity: int
     features: list[np.ndarray] = field(default_factory=list)
     valves: list[np.ndarray] = field(default_factory=list)
     regrets: list[np.ndarray] = field(default_factory=list)
+    stuck: list[np.ndarray] = field(default_factory=list)
 
-    def add(self, x: np.ndarray, y: np.ndarray, regrets: np.ndarray | None = None) -> None:
+    def add(self, x: np.ndarray, y: np.ndarray, regrets: np.ndarray | None = None,
+            stuck: np.ndarray | None = None) -> None:
         self.features.append(x)
         self.valves.append(y)
         self.regrets.append(np.zeros((len(x), 0), np.float32) if regrets is None else regrets)
+        self.stuck.append(np.zeros((len(x), 0), np.float32) if stuck is None else stuck)
         while sum(len(a) for a in self.features) - len(self.features[0]) >= self.capacity:
             self.features.pop(0)
             self.valves.pop(0)
             self.regrets.pop(0)
+            self.stuck.pop(0)
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        x, y, g = (np.concatenate(a) for a in (self.features, self.valves, self.regrets))
-        return x[-self.capacity:], y[-self.capacity:], g[-self.capacity:]
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        x, y, g, z = (np.concatenate(a) for a in (self.features, self.valves, self.regrets,
+                                                   self.stuck))
+        return x[-self.capacity:], y[-self.capacity:], g[-self.capacity:], z[-self.capacity:]
 
 
 def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribution,
@@ -79,8 +112,9 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
     window = HistoryWindow(config.envs, config.window)
     window.start(obs)
     driven = np.arange(config.envs) < round(beta * config.envs)  # by the teacher
-    xs, ys, gs, reward, student_reward = [], [], [], 0.0, []
+    xs, ys, gs, zs, reward, student_reward = [], [], [], [], 0.0, []
     keep_regrets = config.head == "joint"
+    events = [s.events for s in scenarios]  # a property that copies: read once
     steps = config.life_intervals * dist.steps_per_interval
     for _ in range(steps):
         features = window.features()
@@ -94,6 +128,8 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
             ys.append(labels)
             if keep_regrets:
                 gs.append(regrets)
+            if config.privileged > 0:
+                zs.append(np.stack([stuck_valves(events[i], op) for i, op in zip(envs, ops)]))
             u[driven] = labels[driven[envs]]
         obs, r, terminated, truncated, _ = env.step(u)
         reward += float(r.mean())
@@ -102,7 +138,8 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
         window.push(obs, u, terminated | truncated)
     env.close()
     return {"x": np.concatenate(xs), "y": np.concatenate(ys),
-            "regrets": np.concatenate(gs) if keep_regrets else None, "steps": steps * config.envs,
+            "regrets": np.concatenate(gs) if keep_regrets else None,
+            "stuck": np.concatenate(zs) if zs else None, "steps": steps * config.envs,
             "reward_per_step": reward / steps,
             "student_reward_per_step": float(np.mean(student_reward)) if student_reward else None}
 
@@ -113,52 +150,71 @@ def settings_of(valves: np.ndarray) -> np.ndarray:
 
 
 def loss_of(policy: HistoryPolicy, x: torch.Tensor, y: torch.Tensor, a: torch.Tensor,
-            g: torch.Tensor, config: TrainingConfig, regret_scale: float) -> torch.Tensor:
+            g: torch.Tensor, config: TrainingConfig, regret_scale: float,
+            head: torch.nn.Module | None = None, z: torch.Tensor | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The student's loss on a minibatch: BCE per valve (valves head), or the
     cross entropy of the teacher's setting plus ``config.regret`` times the
-    expected regret per unit of ``regret_scale`` (joint head)."""
-    logits = policy(x)
+    expected regret per unit of ``regret_scale`` (joint head); with the
+    privileged ``head`` and its targets ``z``, plus ``config.privileged``
+    times that head's BCE. Returns the loss and the privileged BCE (or None)."""
+    hidden = policy.trunk(x)
+    logits = policy.net[-1](hidden)
     if config.head == "valves":
-        return torch.nn.functional.binary_cross_entropy_with_logits(logits, y)
-    loss = torch.nn.functional.cross_entropy(logits, a)
-    if config.regret > 0:
-        p = torch.softmax(logits, dim=1)
-        loss = loss + config.regret * (p * g).sum(dim=1).mean() / regret_scale
-    return loss
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, y)
+    else:
+        loss = torch.nn.functional.cross_entropy(logits, a)
+        if config.regret > 0:
+            p = torch.softmax(logits, dim=1)
+            loss = loss + config.regret * (p * g).sum(dim=1).mean() / regret_scale
+    if head is None or z is None:
+        return loss, None
+    stuck = torch.nn.functional.binary_cross_entropy_with_logits(head(hidden), z)
+    return loss + config.privileged * stuck, stuck
 
 
 def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, y: np.ndarray,
-        config: TrainingConfig, rng: np.random.Generator, regrets: np.ndarray | None = None
+        config: TrainingConfig, rng: np.random.Generator, regrets: np.ndarray | None = None,
+        head: torch.nn.Module | None = None, stuck: np.ndarray | None = None
         ) -> dict[str, float]:
-    """``epochs`` epochs of minibatches on (x, y, regrets (M, 64) or None)
-    (:func:`loss_of`); the last epoch's loss, the fraction of samples where the
-    student's valves are the teacher's (all six), and its mean regret where the
-    regrets are given."""
+    """``epochs`` epochs of minibatches on (x, y, regrets (M, 64) or None), with
+    the privileged ``head`` on its targets ``stuck`` (M, 12) if given
+    (:func:`loss_of`; ``optimizer`` must hold the head's parameters too); the
+    last epoch's loss, the fraction of samples where the student's valves are
+    the teacher's (all six), its mean regret where the regrets are given, and
+    the privileged head's last-epoch BCE where it is trained."""
     if regrets is None:
         regrets = np.zeros((len(x), 0), np.float32)
     xt, yt = torch.as_tensor(x), torch.as_tensor(y, dtype=torch.float32)
     at = torch.as_tensor(settings_of(y))
     gt = torch.as_tensor(regrets)
+    zt = torch.as_tensor(stuck) if head is not None and stuck is not None else None
     scale = float(regrets.mean()) if regrets.size and regrets.mean() > 0 else 1.0
     policy.train()
     losses: list[float] = []
+    stuck_losses: list[float] = []
     for _ in range(config.epochs):
-        losses = []
+        losses, stuck_losses = [], []
         order = torch.as_tensor(rng.permutation(len(x)))
         for start in range(0, len(x), config.batch):
             idx = order[start:start + config.batch]
-            loss = loss_of(policy, xt[idx], yt[idx], at[idx], gt[idx] if regrets.size else gt,
-                           config, scale)
+            loss, stuck_loss = loss_of(policy, xt[idx], yt[idx], at[idx],
+                                       gt[idx] if regrets.size else gt, config, scale, head,
+                                       zt[idx] if zt is not None else None)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
             losses.append(loss.item())
+            if stuck_loss is not None:
+                stuck_losses.append(stuck_loss.item())
     policy.eval()
     u = policy.act(x)
     out = {"loss": float(np.mean(losses)),
            "action_agreement": float((u == y).all(axis=1).mean())}
     if regrets.size:
         out["mean_regret"] = float(regrets[np.arange(len(x)), settings_of(u)].mean())
+    if stuck_losses:
+        out["stuck_bce"] = float(np.mean(stuck_losses))
     return out
 
 
@@ -178,7 +234,11 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
     rng = np.random.default_rng([config.seed, 2])
     policy = HistoryPolicy(config.student())
     policy.eval()
-    optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
+    # the privileged head (training only: not in the checkpoint), drawn after the policy
+    head = (torch.nn.Linear(config.hidden[-1], STUCK_TARGETS) if config.privileged > 0
+            else None)
+    params = [*policy.parameters(), *(head.parameters() if head is not None else ())]
+    optimizer = torch.optim.Adam(params, lr=config.lr)
     teacher = PoolTeacher(config.hold, config.horizon)
     data = Dataset(config.max_samples)
     start, steps = time.monotonic(), 0
@@ -187,11 +247,11 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
         beta = 1.0 if not config.dagger else 0.5 ** k
         rollouts = collect(policy, teacher, dist, config, k, beta)
         steps += rollouts["steps"]
-        data.add(rollouts["x"], rollouts["y"], rollouts["regrets"])
-        x, y, g = data.arrays()
+        data.add(rollouts["x"], rollouts["y"], rollouts["regrets"], rollouts["stuck"])
+        x, y, g, z = data.arrays()
         if config.inputs == "rates" and policy.input_map is None:
             policy.set_input_map(*rates_map(config.window, x))  # fixed from iteration 0's data
-        stats = fit(policy, optimizer, x, y, config, rng, g)
+        stats = fit(policy, optimizer, x, y, config, rng, g, head, z)
         row = {"iteration": k, "beta": beta, "env_steps": steps, "teacher_labels": teacher.labels,
                "samples": len(x), "seconds": round(time.monotonic() - start, 1),
                "reward_per_step": rollouts["reward_per_step"],
@@ -200,7 +260,8 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
         snapshots.append(policy.record())
         log(f"adaptive: iteration {k}  beta {beta:.3f}  steps {steps}  labels {teacher.labels}  "
             f"{row['seconds']:.0f} s  loss {stats['loss']:.4f}  agreement "
-            f"{stats['action_agreement']:.3f}  reward/step {rollouts['reward_per_step']:.3f}")
+            f"{stats['action_agreement']:.3f}  reward/step {rollouts['reward_per_step']:.3f}"
+            + (f"  stuck BCE {stats['stuck_bce']:.4f}" if "stuck_bce" in stats else ""))
     return {"policy": policy.record(), "snapshots": snapshots, "curve": curve,
             "config": config.to_json(), "distribution": dist.text}
 
