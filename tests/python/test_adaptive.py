@@ -339,15 +339,33 @@ def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path):
     scores = tmp_path / "s.csv"
     scores.write_text("# what: a known case\nset,scenario,seed,score,reward_per_step\n"
                       "suite,a,0,1.0,2.5\nsuite,a,1,0.8,2.5\nsuite,b,0,0.5,2.4\n"
-                      "check,c,0,0.7,2.3\n")
+                      "check,c,0,0.7,2.3\ncheck,d,0,,2.6\n")  # d: undefined
     out = tmp_path / "summary.csv"
     assert main(["summarize", f"mine={scores}", "--out", str(out)]) == 0
     rows = [ln.split(",") for ln in out.read_text().splitlines() if not ln.startswith("#")]
     assert rows[0] == ["policy", "set", "runs", "mean score", "worst scenario",
-                       "scenarios below 0.60"]
+                       "scenarios below 0.60", "undefined runs"]
     # suite: runs 1.0, 0.8, 0.5 -> mean 0.767; scenario means a 0.9, b 0.5 (below 0.60)
-    assert rows[1] == ["mine", "suite", "3", "0.767", "b (0.500)", "1"]
-    assert rows[2] == ["mine", "check", "1", "0.7", "c (0.700)", "0"]
+    assert rows[1] == ["mine", "suite", "3", "0.767", "b (0.500)", "1", "0"]
+    # check: d's undefined score is counted apart, not as a run
+    assert rows[2] == ["mine", "check", "1", "0.7", "c (0.700)", "0", "1"]
+    # by scenario: a column per label, empty where undefined
+    other = tmp_path / "o.csv"
+    other.write_text("set,scenario,seed,score,reward_per_step,reference_gain_per_step\n"
+                     "check,c,0,0.2,2.3,0.5\ncheck,d,0,,2.6,0.0\n")
+    assert main(["summarize", f"mine={scores}", f"other={other}", "--by-scenario", "--out",
+                 str(out)]) == 0
+    rows = [ln.split(",") for ln in out.read_text().splitlines() if not ln.startswith("#")]
+    assert rows[0] == ["set", "scenario", "reference gain per step", "mine", "other"]
+    assert rows[3:] == [["check", "c", "0.5", "0.7", "0.2"], ["check", "d", "0.0", "", ""]]
+
+
+def test_a_score_is_undefined_where_the_reference_earns_what_closed_earns():
+    closed = np.array([[2.0, 2.0, 2.0], [2.0, 2.0, 2.0]])
+    reference = np.array([[2.0, 2.5, 2.5], [2.0, 2.0, 2.0]])  # the second: no gain
+    r = np.array([[9.0, 2.25, 2.25], [9.0, 2.1, 1.9]])  # interval 0 is not scored
+    s = evaluate.scores(r, reference, closed)
+    assert s[0] == pytest.approx(0.5) and np.isnan(s[1])
 
 
 def test_the_privileged_targets_are_the_valves_stuck_at_that_step():

@@ -153,17 +153,26 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                                    heldout_files=[Path(f) for f in a.heldout_scenarios] or None)
         rows += [{**r, "set": a.heldout_name} if which == "heldout" else r for r in scored]
     for which in (a.heldout_name if w == "heldout" else w for w in a.sets):
-        s = np.array([r["score"] for r in rows if r["set"] == which])
-        worst = min((r for r in rows if r["set"] == which), key=lambda r: r["score"])
-        print(f"adaptive: {a.policy}: {which}: mean score {s.mean():.3f} over {len(s)} runs, worst "
-              f"{worst['score']:.3f} ({worst['scenario']}, seed {worst['seed']})")
+        defined = [r for r in rows if r["set"] == which and np.isfinite(r["score"])]
+        undefined = sum(r["set"] == which for r in rows) - len(defined)
+        note = (f"; {undefined} undefined (the reference earns what closed earns)"
+                if undefined else "")
+        if not defined:
+            print(f"adaptive: {a.policy}: {which}: no defined score{note}")
+            continue
+        worst = min(defined, key=lambda r: r["score"])
+        print(f"adaptive: {a.policy}: {which}: mean score "
+              f"{np.mean([r['score'] for r in defined]):.3f} over {len(defined)} runs, worst "
+              f"{worst['score']:.3f} ({worst['scenario']}, seed {worst['seed']}){note}")
     try:
         if a.out:
             write_result(a.out, f"{a.policy} ({path.name}), per-scenario normalized score "
                          "(intervals 1-9 against the shipped reference and closed rewards) "
                          "in the batched pool, 10 x 512 steps",
-                         [{**r, "score": round(r["score"], 4),
-                           "reward_per_step": round(r["reward_per_step"], 4)} for r in rows])
+                         [{**r, "score": round(r["score"], 4) if np.isfinite(r["score"]) else "",
+                           "reward_per_step": round(r["reward_per_step"], 4),
+                           "reference_gain_per_step": round(r["reference_gain_per_step"], 4)}
+                          for r in rows])
         if a.curve:
             curve = learning_curve(record)
             write_result(a.curve, "adaptive-policy's learning curve: each DAgger iteration's "
@@ -203,20 +212,68 @@ def write_result(path: str, what: str, rows: list[dict[str, Any]],
     atomic_write_text(path, buf.getvalue())
 
 
-def cmd_summarize(a: argparse.Namespace) -> int:
-    """One row per (result file, set): runs, mean and worst score, scenarios below 0.60."""
+def _scored(path: str) -> list[dict[str, str]]:
+    """The rows of one of evaluate's result files."""
     import csv
 
+    try:
+        lines = [ln for ln in Path(path).read_text().splitlines() if not ln.startswith("#")]
+    except OSError as e:
+        raise ValueError(f"{path}: {e}") from None
+    return list(csv.DictReader(lines))
+
+
+def _by_scenario(results: list[str]) -> list[dict[str, Any]]:
+    """A row per (set, scenario): the reference's gain over closed per step
+    (intervals 1-9) and each label's mean score there (empty: undefined)."""
+    table: dict[tuple[str, str], dict[str, Any]] = {}
+    labels: list[str] = []
+    for given in results:
+        label, _, path = given.rpartition("=")
+        label = label or Path(path).stem
+        labels.append(label)
+        per: dict[tuple[str, str], list[float]] = {}
+        for r in _scored(path):
+            key = (r["set"], r["scenario"])
+            row = table.setdefault(key, {"set": key[0], "scenario": key[1],
+                                         "reference gain per step": ""})
+            if r.get("reference_gain_per_step"):
+                row["reference gain per step"] = r["reference_gain_per_step"]
+            if r["score"] not in ("", "nan"):
+                per.setdefault(key, []).append(float(r["score"]))
+        for key in table:
+            if key in per:
+                table[key][label] = round(float(np.mean(per[key])), 3)
+    return [{**{k: row[k] for k in ("set", "scenario", "reference gain per step")},
+             **{label: row.get(label, "") for label in dict.fromkeys(labels)}}
+            for row in table.values()]
+
+
+def cmd_summarize(a: argparse.Namespace) -> int:
+    """One row per (result file, set): runs, mean and worst score, scenarios
+    below 0.60, undefined runs; or with --by-scenario one per (set, scenario)."""
+    if a.by_scenario:
+        rows = _by_scenario(a.results)
+        try:
+            write_result(a.out, "per-scenario normalized scores (intervals 1-9, against the "
+                         "reference and closed; empty: undefined) and the reference's gain "
+                         "over closed per step, from " +
+                         ", ".join(g.rpartition("=")[2] for g in a.results), rows)
+        except OSError as e:
+            print(f"adaptive: error: cannot write {a.out}: {e}", file=sys.stderr)
+            return EXIT_STORAGE
+        print(f"adaptive: {len(rows)} scenarios written to {a.out}")
+        return 0
     rows = []
     for given in a.results:
         label, _, path = given.rpartition("=")
-        try:
-            lines = [ln for ln in Path(path).read_text().splitlines() if not ln.startswith("#")]
-        except OSError as e:
-            raise ValueError(f"{path}: {e}") from None
-        scored = list(csv.DictReader(lines))
+        scored = _scored(path)
         for which in dict.fromkeys(r["set"] for r in scored):
-            cells = [r for r in scored if r["set"] == which]
+            # an empty score is undefined (the reference earns what closed earns): not a run
+            cells = [r for r in scored if r["set"] == which and r["score"] not in ("", "nan")]
+            undefined = sum(r["set"] == which for r in scored) - len(cells)
+            if not cells:
+                raise ValueError(f"{path}: no defined score in set {which}")
             per_scenario: dict[str, list[float]] = {}
             for r in cells:
                 per_scenario.setdefault(r["scenario"], []).append(float(r["score"]))
@@ -225,7 +282,8 @@ def cmd_summarize(a: argparse.Namespace) -> int:
             rows.append({"policy": label or Path(path).stem, "set": which, "runs": len(cells),
                          "mean score": round(float(np.mean([float(r["score"]) for r in cells])), 3),
                          "worst scenario": f"{worst} ({means[worst]:.3f})",
-                         "scenarios below 0.60": sum(v < 0.6 for v in means.values())})
+                         "scenarios below 0.60": sum(v < 0.6 for v in means.values()),
+                         "undefined runs": undefined})
     try:
         write_result(a.out, "per-scenario normalized scores summarized per set (intervals 1-9, "
                      "against the reference and closed), from " +
@@ -235,7 +293,8 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         return EXIT_STORAGE
     for r in rows:
         print(f"adaptive: {r['policy']}: {r['set']}: mean {r['mean score']:.3f}, worst "
-              f"{r['worst scenario']}, {r['scenarios below 0.60']} below 0.60")
+              f"{r['worst scenario']}, {r['scenarios below 0.60']} below 0.60"
+              + (f", {r['undefined runs']} runs undefined" if r["undefined runs"] else ""))
     return 0
 
 
@@ -294,6 +353,10 @@ def parser() -> argparse.ArgumentParser:
     summ = sub.add_parser("summarize", help="summarize evaluate's result files per set")
     summ.add_argument("results", nargs="+", help="[LABEL=]FILE: evaluate's --out files")
     summ.add_argument("--out", required=True, help="the summary (CSV)")
+    summ.add_argument("--by-scenario", action="store_true",
+                      help="a row per set and scenario instead: each policy's mean score "
+                           "there (a column per label) and the reference's gain over closed "
+                           "per step, which tells the scenarios where the score is ill-posed")
     for name, help_ in (("train", "build the checkpoint (a cached one is kept)"),
                         ("evaluate", "score a checkpoint per scenario; the learning curve")):
         s = sub.add_parser(name, help=help_)

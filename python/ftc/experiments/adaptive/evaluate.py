@@ -118,15 +118,20 @@ def reference_rewards(which: str, names: Sequence[str], seed: int,
 
 
 def scores(r: np.ndarray, reference: np.ndarray, closed: np.ndarray) -> np.ndarray:
-    """Per-scenario normalized score of rewards (S, intervals)."""
+    """Per-scenario normalized score of rewards (S, intervals); NaN (undefined)
+    where the reference earns exactly what closed earns over the scored
+    intervals, as the benchmark's normalized_score leaves such a cell empty."""
     s = slice(FIRST_SCORED, None)
-    return (r[:, s] - closed[:, s]).sum(1) / (reference[:, s] - closed[:, s]).sum(1)
+    gain = (reference[:, s] - closed[:, s]).sum(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(gain != 0, (r[:, s] - closed[:, s]).sum(1) / gain, np.nan)
 
 
 def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
              heldout: Path | None = None,
              heldout_files: Sequence[Path] | None = None) -> list[dict[str, Any]]:
-    """Rows (set, scenario, seed, score, reward per step of intervals 1-9) of
+    """Rows (set, scenario, seed, score (NaN where undefined), reward per step
+    of intervals 1-9, and the reference's over closed's per step there) of
     ``policy`` on the suite, the check set or the held-out set (``heldout_files``,
     default ``scenarios/heldout/``; its reference and closed rewards from the
     benchmark results.csv ``heldout``), each seed."""
@@ -141,7 +146,9 @@ def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
         r = rewards(policy, loaded, [seed] * len(loaded))
         ref = reference_rewards(which, names, seed, heldout)
         sc = scores(r, ref["reference"], ref["closed"])
+        gain = (ref["reference"] - ref["closed"])[:, FIRST_SCORED:].mean(1)
         for i, name in enumerate(names):
             rows.append({"set": which, "scenario": name, "seed": seed, "score": float(sc[i]),
-                         "reward_per_step": float(r[i, FIRST_SCORED:].mean())})
+                         "reward_per_step": float(r[i, FIRST_SCORED:].mean()),
+                         "reference_gain_per_step": float(gain[i])})
     return rows
