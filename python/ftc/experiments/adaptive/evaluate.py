@@ -84,13 +84,16 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
 
 
 def benchmark_rewards(results_csv: Path) -> dict[str, Any]:
-    """A benchmark's results.csv as reference_scores' layout: scenario -> {"rewards":
-    method -> seed (str) -> reward per step of each interval}."""
+    """A benchmark's results.csv (or its cells trimmed to scenario, method,
+    seed, interval and reward_per_step, '#' lines first, as
+    scenarios/reference/{heldout,drawn,final}.csv) as reference_scores' layout:
+    scenario -> {"rewards": method -> seed (str) -> reward per step of each
+    interval}."""
     import csv
 
     out: dict[str, Any] = {}
     with open(results_csv, newline="") as f:
-        for r in csv.DictReader(f):
+        for r in csv.DictReader(line for line in f if not line.startswith("#")):
             cells = out.setdefault(r["scenario"], {"rewards": {}})["rewards"]
             seq = cells.setdefault(r["method"], {}).setdefault(r["seed"], {})
             seq[int(r["interval"])] = float(r["reward_per_step"])
