@@ -21,7 +21,6 @@ A subclass supplies ``_begin_interval``, ``_act``, ``_observe``,
 
 from __future__ import annotations
 
-import concurrent.futures
 import copy
 from typing import Any, Callable
 
@@ -29,18 +28,18 @@ import numpy as np
 import torch
 
 from ftc.control.run.agent import Agent, StepContext, Transition
+from ftc.control.run.background import OneJob
 from ftc.plant.link import PlantObservation
 
 
 class DeferredAgent(Agent):
     """The protocol around a subclass's learning jobs (see the module doc)."""
 
-    _worker: concurrent.futures.ThreadPoolExecutor | None = None
-    _job: tuple[concurrent.futures.Future, int | None] | None = None
     _frozen: Any = None
     on_learned: Callable[[int], None] | None = None
 
     def __init__(self, seed: int) -> None:
+        self._jobs = OneJob("guided-fit")
         self._queue: list[tuple[Callable, tuple]] = []
         self._late: list[tuple[int, dict[str, Any]]] = []
         self._acting_generator = torch.Generator().manual_seed(seed)
@@ -56,36 +55,31 @@ class DeferredAgent(Agent):
         if not self.background_learning:
             return job()
         self._frozen = copy.deepcopy(self.acting_policy())
-        if self._worker is None:
-            self._worker = concurrent.futures.ThreadPoolExecutor(1, "guided-fit")
-        self._job = (self._worker.submit(job), interval)
+        self._jobs.submit(job, interval)
         return None
 
     @property
     def learning(self) -> bool:
         """A job is running (the frozen policy acts)."""
-        return self._job is not None
+        return self._jobs.running
 
     def _poll(self, wait: bool = False) -> None:
         """Take a finished job (or wait for it) and replay the queued calls, until
         none is left or a replayed call started another job that is running."""
-        while self._job is not None:
-            future, interval = self._job
-            if not (wait or future.done()):
-                return
-            self._job, self._frozen = None, None
-            metrics = future.result()  # a job's error is raised here, in the loop's thread
+        while (done := self._jobs.take(wait)) is not None:
+            self._frozen = None
+            metrics, interval = done  # a job's error was raised, in the loop's thread
             if interval is not None:
                 self._late.append((interval, metrics))
                 if self.on_learned is not None:
                     self.on_learned(interval)
-            while self._queue and self._job is None:
+            while self._queue and not self._jobs.running:
                 method, args = self._queue.pop(0)
                 method(*args)
 
     def _call(self, method: Callable, *args: Any) -> None:
         self._poll()
-        if self._job is not None:
+        if self._jobs.running:
             self._queue.append((method, args))
         else:
             method(*args)
@@ -96,7 +90,7 @@ class DeferredAgent(Agent):
 
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         self._poll()
-        if self._job is None:
+        if not self._jobs.running:
             return self._act(obs, ctx)
         x = torch.as_tensor(obs.level, dtype=torch.float32).unsqueeze(0)
         actions, _, _ = self._frozen.act(x, self._acting_generator, ctx.evaluation)
@@ -119,16 +113,14 @@ class DeferredAgent(Agent):
         self._finish()
 
     def close(self) -> None:
-        if self._worker is not None:
-            self._worker.shutdown(wait=True, cancel_futures=True)
-            self._worker = None
+        self._jobs.close()
         self._close()
 
     def exported_policy(self) -> Any:
-        return self._frozen if self._job is not None else self.acting_policy()
+        return self._frozen if self._jobs.running else self.acting_policy()
 
     def state_dict(self) -> dict[str, Any]:
-        if self._job is not None:  # the runner saves from on_learned instead
+        if self._jobs.running:  # the runner saves from on_learned instead
             raise RuntimeError("the agent's state is changing: a fit is running")
         return self._state_dict()
 

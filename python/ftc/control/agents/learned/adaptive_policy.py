@@ -17,7 +17,6 @@ contract "learned-no-equations" in pyproject.toml).
 
 from __future__ import annotations
 
-import concurrent.futures
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar
@@ -29,6 +28,7 @@ from ftc.common.errors import CheckpointError, UsageError
 from ftc.common.paths import SCENARIO_DIR
 from ftc.control.agents.learned.online_tune import FineTuneSettings, OnlineTeacher
 from ftc.control.run.agent import Agent, StepContext, Transition
+from ftc.control.run.background import OneJob
 from ftc.control.run.config import RunConfig
 from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, TrainingConfig, \
     checkpoint_file
@@ -105,8 +105,7 @@ class AdaptivePolicyAgent(Agent):
             margin=cfg.fine_tune_margin, candidates=cfg.fine_tune_candidates,
             lr=cfg.fine_tune_lr, epochs=cfg.fine_tune_epochs, memory=cfg.fine_tune_memory,
             seed=cfg.seed)) if cfg.fine_tune else None
-        self._worker: concurrent.futures.ThreadPoolExecutor | None = None
-        self._job: tuple[concurrent.futures.Future, int] | None = None
+        self._jobs = OneJob("adaptive-fine-tune")
         self._late: list[tuple[int, dict[str, Any]]] = []
         self.on_learned: Callable[[int], None] | None = None
 
@@ -165,21 +164,19 @@ class AdaptivePolicyAgent(Agent):
         if not self.background_learning:  # between intervals
             self.policy, metrics = job()
             return metrics
-        if self._worker is None:
-            self._worker = concurrent.futures.ThreadPoolExecutor(1, "adaptive-fine-tune")
-        self._job = (self._worker.submit(job), interval)
+        self._jobs.submit(job, interval)
         return {}
 
     @property
     def learning(self) -> bool:  # type: ignore[override]
-        return self._job is not None
+        return self._jobs.running
 
     def _poll(self, wait: bool = False) -> None:
         """Swap in the student a finished job tuned (between two steps)."""
-        if self._job is None or not (wait or self._job[0].done()):
+        done = self._jobs.take(wait)  # a job's error is raised here, in the loop
+        if done is None:
             return
-        (future, interval), self._job = self._job, None
-        self.policy, metrics = future.result()  # a job's error is raised here, in the loop
+        (self.policy, metrics), interval = done
         self._late.append((interval, metrics))
         if self.on_learned is not None:
             self.on_learned(interval)
@@ -193,14 +190,12 @@ class AdaptivePolicyAgent(Agent):
         self._poll(wait=True)
 
     def close(self) -> None:
-        if self._worker is not None:
-            self._worker.shutdown(wait=True, cancel_futures=True)
-            self._worker = None
+        self._jobs.close()
 
     def state_dict(self) -> dict[str, Any]:
         if self.teacher is None:
             return {}
-        if self._job is not None:  # the runner saves from on_learned instead
+        if self._jobs.running:  # the runner saves from on_learned instead
             raise RuntimeError("the agent's state is changing: a fine-tune is running")
         return {"student": self._load().record(), "fine_tune": self.teacher.state_dict()}
 
