@@ -550,8 +550,15 @@ def _signed_run(scenarios, attack: bool) -> tuple[list, dict]:
         rng = np.random.default_rng(0)
         for t in range(30):
             if attack and t % 10 == 5:
+                # the controller's last commands, as the bus delivered them to this
+                # process: on a loaded machine the loopback's delivery can lag the
+                # lockstep (once none of 5 had arrived when a bare drain ran)
+                deadline = time.monotonic() + 10
+                while len(captured) < t and time.monotonic() < deadline:
+                    lc.handle_timeout(50)
                 while lc.handle_timeout(0) > 0:
                     pass
+                assert len(captured) >= 3, f"{len(captured)} of the controller's commands heard"
                 cmd = valve_command_t()
                 cmd.session, cmd.seq = plant.session, plant._seq + 1  # exactly the next one
                 cmd.num_valves, cmd.valve = 6, [1, 1, 1, 0, 0, 0]
