@@ -31,10 +31,7 @@ from ftc.common.constants import NUM_ENGINES, NUM_TANKS
 from ftc.experiments.adaptive import distribution
 from ftc.learning.history_policy import TrainingConfig
 
-LIFE_STEPS = 10 * 512
-
-
-def draw_one(rng: np.random.Generator, name: str) -> str:
+def draw_one(rng: np.random.Generator, name: str, life_steps: int) -> str:
     """One scenario's TOML text."""
     tanks = [float("inf")] * NUM_TANKS
     for i in rng.choice(NUM_TANKS, size=rng.integers(0, 3), replace=False):
@@ -50,7 +47,7 @@ def draw_one(rng: np.random.Generator, name: str) -> str:
     if rng.random() < 0.2:
         lines += ["", "[noise]", f"std = {float(rng.uniform(0.0, 0.006)):.4f}"]
     stuck: set[int] = set()
-    for at in sorted(int(a) for a in rng.integers(512, LIFE_STEPS - 512, rng.integers(0, 4))):
+    for at in sorted(int(a) for a in rng.integers(512, life_steps - 512, rng.integers(0, 4))):
         lines += ["", "[[event]]", f"at_step = {at}"]
         free = [v for v in range(1, NUM_TANKS + 1) if v not in stuck]
         if rng.random() < 0.5 and free:
@@ -97,13 +94,15 @@ def main(argv: list[str] | None = None) -> int:
     if a.count < 1:
         p.error("--count must be >= 1")
     forbidden = distribution.benchmark_signatures() | training_signatures()
+    dist = distribution.load()  # the plants' life: the training distribution's
+    life_steps = dist.life_intervals * dist.steps_per_interval
     rng = np.random.default_rng(a.seed)
     a.out.mkdir(parents=True, exist_ok=True)
     for i in range(a.count):
         name = f"{a.prefix}-{i:02d}"
         path = a.out / f"{name}.toml"
         while True:
-            text = draw_one(rng, name)
+            text = draw_one(rng, name, life_steps)
             path.write_text(text)
             if distribution.signature(_core.load_scenario(str(path))) not in forbidden:
                 break

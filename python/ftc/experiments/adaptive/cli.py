@@ -223,6 +223,11 @@ def _scored(path: str) -> list[dict[str, str]]:
     return list(csv.DictReader(lines))
 
 
+def _defined(row: dict[str, str]) -> bool:
+    """A result row's score is defined (empty: the reference earns what closed earns)."""
+    return row["score"] not in ("", "nan")
+
+
 def _by_scenario(results: list[str]) -> list[dict[str, Any]]:
     """A row per (set, scenario): the reference's gain over closed per step
     (intervals 1-9) and each label's mean score there (empty: undefined)."""
@@ -239,7 +244,7 @@ def _by_scenario(results: list[str]) -> list[dict[str, Any]]:
                                          "reference gain per step": ""})
             if r.get("reference_gain_per_step"):
                 row["reference gain per step"] = r["reference_gain_per_step"]
-            if r["score"] not in ("", "nan"):
+            if _defined(r):
                 per.setdefault(key, []).append(float(r["score"]))
         for key in table:
             if key in per:
@@ -270,7 +275,7 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         scored = _scored(path)
         for which in dict.fromkeys(r["set"] for r in scored):
             # an empty score is undefined (the reference earns what closed earns): not a run
-            cells = [r for r in scored if r["set"] == which and r["score"] not in ("", "nan")]
+            cells = [r for r in scored if r["set"] == which and _defined(r)]
             undefined = sum(r["set"] == which for r in scored) - len(cells)
             if not cells:
                 raise ValueError(f"{path}: no defined score in set {which}")
