@@ -430,13 +430,18 @@ def test_the_privileged_head_stays_out_of_the_checkpoint(one_torch_thread):
         TrainingConfig(privileged=-1.0)
 
 
-def test_a_drawn_held_out_set_is_disjoint_from_training_and_the_benchmark(tmp_path, capsys):
+def _draw_heldout():
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
         "draw_heldout", distribution.SCENARIO_DIR.parent / "scripts" / "draw_heldout.py")
     draw_heldout = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(draw_heldout)
+    return draw_heldout
+
+
+def test_a_drawn_held_out_set_is_disjoint_from_training_and_the_benchmark(tmp_path, capsys):
+    draw_heldout = _draw_heldout()
     assert draw_heldout.main(["--seed", "3", "--count", "4", "--out", str(tmp_path)]) == 0
     forbidden = distribution.benchmark_signatures() | draw_heldout.training_signatures()
     files = sorted(tmp_path.glob("*.toml"))
@@ -448,6 +453,56 @@ def test_a_drawn_held_out_set_is_disjoint_from_training_and_the_benchmark(tmp_pa
     again = tmp_path / "again"
     assert draw_heldout.main(["--seed", "3", "--count", "4", "--out", str(again)]) == 0
     assert [f.read_text() for f in sorted(again.glob("*.toml"))] == [f.read_text() for f in files]
+
+
+def test_the_well_conditioned_rule_keeps_the_first_scenarios_that_gain_on_every_seed():
+    # reference - closed over intervals 1-9 (interval 0 is not scored): a gains
+    # 1.0 on both seeds, b 0.2 on seed 1 only (its smaller gain decides), c 0.5
+    def cells(gain0, gain1):
+        closed = [2.0] * 10
+        return {"rewards": {"closed": {"0": closed, "1": closed},
+                            "reference": {"0": [9.0] + [2.0 + gain0] * 9,
+                                          "1": [9.0] + [2.0 + gain1] * 9}}}
+    rewards = {"a": cells(1.0, 1.0), "b": cells(0.8, 0.2), "c": cells(0.5, 0.5),
+               "d": cells(0.9, 0.9)}
+    kept, gains = _draw_heldout().well_conditioned(rewards, ["a", "b", "c", "d"], [0, 1], 2, 0.3)
+    assert kept == ["a", "c"]  # b falls on seed 1; d is not needed
+    assert gains == pytest.approx({"a": 1.0, "b": 0.2, "c": 0.5, "d": 0.9})
+    with pytest.raises(ValueError, match="of x, seed 0"):  # a scenario the benchmark lacks
+        _draw_heldout().well_conditioned(rewards, ["a", "x"], [0], 1, 0.3)
+
+
+def test_a_held_out_draw_with_a_min_gain_keeps_well_conditioned_scenarios_and_their_rewards(
+        tmp_path):
+    # the benchmark runs for real, with the balance rule as a cheap reference: on
+    # seed 9 the three candidates of draw seed 77 gain 1.22, 0.49 and 0.79 per
+    # step over all-closed (margins of 0.1 and more to the 0.6 asked)
+    draw_heldout = _draw_heldout()
+    out, rewards = tmp_path / "set", tmp_path / "rewards.csv"
+    args = ["--seed", "77", "--count", "2", "--candidates", "3", "--prefix", "t", "--out",
+            str(out), "--seeds", "9", "--reference", "balance", "--rewards-out", str(rewards),
+            "--jobs", "1"]
+    assert draw_heldout.main(args + ["--min-gain", "0.6"]) == 0
+    assert sorted(f.stem for f in out.glob("*.toml")) == ["t-00", "t-02"]
+    assert all("--min-gain" not in f.read_text() and ">= 0.6 per step" in f.read_text()
+               for f in out.glob("*.toml"))
+    cells = evaluate.benchmark_rewards(rewards)
+    assert sorted(cells) == ["t-00", "t-02"]
+    for name in cells:
+        gain = (np.array(cells[name]["rewards"]["reference"]["9"][1:]) -
+                np.array(cells[name]["rewards"]["closed"]["9"][1:])).mean()
+        assert gain >= 0.6
+    # what evaluate makes of them: all-closed scores 0 against the file
+    rows = evaluate.evaluate(None, "heldout", seeds=[9], heldout=rewards,
+                             heldout_files=sorted(out.glob("*.toml")))
+    assert [abs(r["score"]) < 1e-3 for r in rows] == [True, True]
+    # too few meet the gain: nothing is left behind
+    out2, rewards2 = tmp_path / "set2", tmp_path / "rewards2.csv"
+    args2 = [out2 if a == str(out) else rewards2 if a == str(rewards) else a for a in args]
+    assert draw_heldout.main([str(a) for a in args2] + ["--min-gain", "5"]) == 1
+    assert not list(out2.glob("*.toml")) and not rewards2.exists()
+    with pytest.raises(SystemExit):
+        draw_heldout.main(["--seed", "1", "--out", str(out2), "--min-gain", "0.3"])  # no file
 
 
 @pytest.mark.parametrize("which,seed", [("heldout", 0), ("drawn", 3), ("final", 5)])
