@@ -58,7 +58,8 @@ class DrawnPlants(VecEnv):
             self.env.close()
         self.batch += 1
         c = self.config
-        scenarios = distribution.draw(self.dist, c.envs, c.seed * 1000 + self.batch)
+        scenarios = distribution.draw(self.dist, c.envs,
+                                      distribution.draw_seed(c.seed, self.batch))
         self.env = FuelTransferVectorEnv(c.envs, scenarios, plant_seed=c.seed * 10**6 +
                                          self.batch * c.envs, autoreset="same_step", threads=1,
                                          copy=False)

@@ -128,14 +128,9 @@ def trimmed_rewards(results_csv: Path, names: list[str], reference: str = "refer
 
 def training_signatures() -> set[tuple]:
     """The fault signatures of every plant the default training draws."""
-    dist, config = distribution.load(), TrainingConfig()
-    signatures: set[tuple] = set()
-    for member in range(config.members):
-        seed = config.seed + member
-        for k in range(config.iterations):
-            signatures |= {distribution.signature(s)
-                           for s in distribution.draw(dist, config.envs, seed * 1000 + k)}
-    return signatures
+    return {distribution.signature(s)
+            for drawn in distribution.training_draws(distribution.load(), TrainingConfig())
+            for s in drawn}
 
 
 def main(argv: list[str] | None = None) -> int:

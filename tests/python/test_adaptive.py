@@ -57,10 +57,11 @@ def test_the_training_distribution_never_draws_a_benchmark_scenario():
     heldout = {distribution.signature(_core.load_scenario(str(p)))
                for p in (distribution.SCENARIO_DIR / "heldout").rglob("*.toml")}
     assert len(heldout) >= 25  # heldout/ itself, drawn/ and final/
-    for seed in range(config.seed, config.seed + config.members):
-        for k in range(config.iterations):
-            drawn = distribution.draw(dist, config.envs, seed * 1000 + k, forbidden)
-            assert not {distribution.signature(s) for s in drawn} & (forbidden | heldout)
+    batches = 0
+    for drawn in distribution.training_draws(dist, config, forbidden):
+        assert not {distribution.signature(s) for s in drawn} & (forbidden | heldout)
+        batches += 1
+    assert batches == config.members * config.iterations
     # and a draw that were a benchmark scenario is refused: the guard works
     single = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
     with pytest.raises(ValueError, match="faults of a benchmark scenario"):

@@ -4,8 +4,9 @@ distribution (docs/adaptive.md).
 
 Iteration k (of ``iterations``):
 
-1. ``envs`` plants drawn from the distribution (seed ``seed * 1000 + k``) in
-   the batched pool (``ftc.plant.vector``, same-step autoreset), each run for
+1. ``envs`` plants drawn from the distribution (seed ``seed * 1000 + k``,
+   ``distribution.draw_seed``) in the batched pool (``ftc.plant.vector``,
+   same-step autoreset), each run for
    its whole life (``life_intervals`` x 512 steps, ageing as a plant does);
 2. at every step, env i is driven by the teacher if i < beta_k * envs (beta
    halves each iteration from 1: iteration 0 is the teacher's own rollouts),
@@ -44,7 +45,7 @@ import torch
 
 from ftc.common.constants import NUM_TANKS
 from ftc.control.planning.physics.teacher import PoolTeacher
-from ftc.experiments.adaptive.distribution import TrainingDistribution, draw
+from ftc.experiments.adaptive.distribution import TrainingDistribution, draw, draw_seed
 from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, TrainingConfig, ensemble,
                                          rates_map)
 from ftc.plant.vector import FuelTransferVectorEnv
@@ -103,7 +104,7 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
             config: TrainingConfig, iteration: int, beta: float) -> dict[str, Any]:
     """One iteration's rollouts: (features, teacher valves) and statistics."""
     rng = np.random.default_rng([config.seed, iteration, 1])
-    scenarios = draw(dist, config.envs, config.seed * 1000 + iteration)
+    scenarios = draw(dist, config.envs, draw_seed(config.seed, iteration))
     env = FuelTransferVectorEnv(config.envs, scenarios, plant_seed=config.seed * 10**6 +
                                 iteration * config.envs, autoreset="same_step", threads=1,
                                 copy=False)

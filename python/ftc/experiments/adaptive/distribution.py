@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -111,6 +112,23 @@ def draw(dist: TrainingDistribution, count: int, seed: int,
         s.name = "training"
     refuse_benchmark(scenarios, benchmark_signatures() if forbidden is None else forbidden)
     return scenarios
+
+
+def draw_seed(seed: int, iteration: int) -> int:
+    """The draw seed of DAgger iteration ``iteration`` of the member trained
+    with seed ``seed``: the one numbering the trainer, the held-out draws' guard
+    and the tests share."""
+    return seed * 1000 + iteration
+
+
+def training_draws(dist: TrainingDistribution, config: Any,
+                   forbidden: set[tuple] | None = None) -> Iterator[list[Any]]:
+    """Every batch of plants a training run of ``config`` (a
+    ``TrainingConfig``: its seed, members, iterations and envs) draws, member
+    by member and iteration by iteration."""
+    for seed in range(config.seed, config.seed + config.members):
+        for k in range(config.iterations):
+            yield draw(dist, config.envs, draw_seed(seed, k), forbidden)
 
 
 def _another_stuck_valve(events: list[dict], rng: np.random.Generator,
