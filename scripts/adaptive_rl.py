@@ -13,8 +13,20 @@ The checkpoint is the actor's weights in the student's layout
 for a MultiBinary space opens a valve where its logit is positive, as the
 student does), so ``evaluate`` scores it exactly as it scores the student.
 PPO's settings are examples/train_vector.py's (learning rate 1e-3, gamma 0.9,
-rewards scaled by VecNormalize). Exit codes: 0 done, 2 bad input, 5 the
-checkpoint could not be written.
+rewards scaled by VecNormalize).
+
+With ``--init CHECKPOINT`` it fine-tunes a distilled student instead (one
+member, either head; the joint head's 64 logits are PPO's categorical action):
+the actor starts as the student, the critic is trained alone for ``--warmup``
+steps (the actor frozen, so that the first updates follow a fitted value),
+then both, on the true reward; ``--seed`` other than the student's draws
+other plants. The fine-tune measured in docs/adaptive.md ("Variants"):
+
+    OMP_NUM_THREADS=1 python scripts/adaptive_rl.py --init MEMBER.pt --seed 100 \
+        --steps 1500000 --warmup 600000 --lr 3e-5 --gamma 0.99 --clip 0.1 \
+        --target-kl 0.01 --out /tmp/fine-tuned.pt
+
+Exit codes: 0 done, 2 bad input, 5 the checkpoint could not be written.
 """
 
 from __future__ import annotations
@@ -48,8 +60,9 @@ class DrawnPlants(VecEnv):
         self.dist, self.config, self.batch = dist, config, -1
         self.life_steps = config.life_intervals * dist.steps_per_interval
         inputs = StudentConfig(window=config.window).inputs
+        self.joint = config.head == "joint"  # a setting's number: valve i open iff bit i
         super().__init__(config.envs, spaces.Box(-1.0, 1.0, (inputs,), np.float32),
-                         spaces.MultiBinary(6))
+                         spaces.Discrete(2 ** 6) if self.joint else spaces.MultiBinary(6))
         self.env: FuelTransferVectorEnv | None = None
         self._actions = np.zeros((config.envs, 6), np.int8)
 
@@ -73,7 +86,11 @@ class DrawnPlants(VecEnv):
         return self._next_batch() if self.env is None else self.window.features()
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions, np.int8)
+        if self.joint:
+            setting = np.asarray(actions, np.int64).reshape(-1)
+            self._actions = ((setting[:, None] >> np.arange(6)) & 1).astype(np.int8)
+        else:
+            self._actions = np.asarray(actions, np.int8)
 
     def step_wait(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
         obs, reward, terminated, truncated, _ = self.env.step(self._actions)
@@ -106,17 +123,36 @@ class DrawnPlants(VecEnv):
         return [False] * self.num_envs
 
 
+def actor_layers(model: PPO) -> list[torch.nn.Linear]:
+    actor = model.policy.mlp_extractor.policy_net
+    return [m for m in actor if isinstance(m, torch.nn.Linear)] + [model.policy.action_net]
+
+
+def copy_layers(dst: list[torch.nn.Linear], src: list[torch.nn.Linear]) -> None:
+    with torch.no_grad():
+        for d, s in zip(dst, src, strict=True):
+            d.weight.copy_(s.weight)
+            d.bias.copy_(s.bias)
+
+
 def student_record(model: PPO, config: TrainingConfig) -> dict[str, Any]:
     """The actor as a :class:`HistoryPolicy` record (same layers, same rule)."""
     student = HistoryPolicy(config.student())
-    actor = model.policy.mlp_extractor.policy_net
-    linear = [m for m in actor if isinstance(m, torch.nn.Linear)] + [model.policy.action_net]
-    student_linear = [m for m in student.net if isinstance(m, torch.nn.Linear)]
-    with torch.no_grad():
-        for dst, src in zip(student_linear, linear, strict=True):
-            dst.weight.copy_(src.weight)
-            dst.bias.copy_(src.bias)
+    copy_layers([m for m in student.net if isinstance(m, torch.nn.Linear)], actor_layers(model))
     return student.record()
+
+
+def load_student(path: str) -> HistoryPolicy:
+    """The student of a checkpoint of one member (ValueError otherwise)."""
+    try:
+        record = torch.load(path, weights_only=True)
+        student = HistoryPolicy.from_record(record["policy"])
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError, EOFError) as e:
+        raise ValueError(f"--init {path}: not a student checkpoint ({e})") from None
+    if int(record.get("config", {}).get("members", 1)) != 1:
+        raise ValueError(f"--init {path}: a checkpoint of {record['config']['members']} "
+                         f"members; fine-tune one member (train --members 1)")
+    return student
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,41 +165,76 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--life-intervals", type=int, default=TrainingConfig().life_intervals,
                    help="intervals each batch of plants lives")
     p.add_argument("--n-steps", type=int, default=256, help="steps per env per rollout")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="plants (the training draws of this seed), PPO's sampling and weights")
+    p.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="fine-tune this student (one member) instead of starting from scratch")
+    p.add_argument("--warmup", type=int, default=0,
+                   help="with --init: steps that train the critic alone first (default 0)")
+    p.add_argument("--lr", type=float, default=1e-3, help="Adam's learning rate (default 1e-3)")
+    p.add_argument("--gamma", type=float, default=0.9, help="discount (default 0.9)")
+    p.add_argument("--clip", type=float, default=0.2, help="PPO's clip range (default 0.2)")
+    p.add_argument("--target-kl", type=float, default=None,
+                   help="stop an update's epochs where the KL to the rollout's policy passes "
+                        "this (default: none)")
     a = p.parse_args(argv)
     try:
-        if a.envs < 1 or a.n_steps < 1 or a.steps < 0 or a.life_intervals < 1:
-            raise ValueError("--envs, --n-steps and --life-intervals must be >= 1, --steps >= 0")
+        if a.envs < 1 or a.n_steps < 1 or a.steps < 0 or a.life_intervals < 1 or a.warmup < 0:
+            raise ValueError("--envs, --n-steps and --life-intervals must be >= 1, --steps and "
+                             "--warmup >= 0")
+        if not (a.lr > 0 and 0 < a.gamma <= 1 and a.clip > 0):
+            raise ValueError("--lr and --clip must be > 0, --gamma in (0, 1]")
+        if a.warmup and a.init is None:
+            raise ValueError("--warmup goes with --init")
         dist = distribution.load(a.distribution)
         if a.life_intervals > dist.life_intervals:
             raise ValueError(f"--life-intervals {a.life_intervals} exceeds the distribution's "
                              f"{dist.life_intervals}")
+        init = load_student(a.init) if a.init else None
     except ValueError as e:
         print(f"adaptive_rl: error: {e}", file=sys.stderr)
         return EXIT_USAGE
+    shape = ({"head": "valves"} if init is None else
+             {"head": init.config.head, "window": init.config.window,
+              "hidden": init.config.hidden})
     config = TrainingConfig(envs=a.envs, seed=a.seed, life_intervals=a.life_intervals,
-                            head="valves", regret=0.0)
+                            regret=0.0, **shape)
     steps = a.steps or config.iterations * config.envs * config.life_intervals * \
         dist.steps_per_interval
     torch.set_num_threads(1)
-    venv = VecNormalize(DrawnPlants(dist, config), norm_obs=False, norm_reward=True, gamma=0.9)
+    venv = VecNormalize(DrawnPlants(dist, config), norm_obs=False, norm_reward=True,
+                        gamma=a.gamma)
     model = PPO("MlpPolicy", venv, n_steps=a.n_steps, batch_size=1024, n_epochs=4,
-                learning_rate=1e-3, gamma=0.9, seed=a.seed, device="cpu", verbose=0,
+                learning_rate=a.lr, gamma=a.gamma, clip_range=a.clip, target_kl=a.target_kl,
+                seed=a.seed, device="cpu", verbose=0,
                 policy_kwargs={"net_arch": {"pi": list(config.hidden), "vf": list(config.hidden)},
                                "activation_fn": torch.nn.Tanh})
     start = time.monotonic()
-    model.learn(total_timesteps=steps)
+    if init is not None:
+        actor = actor_layers(model)
+        copy_layers(actor, [m for m in init.net if isinstance(m, torch.nn.Linear)])
+        if a.warmup:  # the critic alone: the actor's weights get no gradient
+            for q in (q for m in actor for q in m.parameters()):
+                q.requires_grad_(False)
+            model.learn(total_timesteps=a.warmup)
+            for q in (q for m in actor for q in m.parameters()):
+                q.requires_grad_(True)
+    model.learn(total_timesteps=steps, reset_num_timesteps=init is None or not a.warmup)
     seconds = time.monotonic() - start
     student = student_record(model, config)
     states = model.rollout_buffer.observations.reshape(-1, venv.observation_space.shape[0])
-    sb3 = model.predict(states, deterministic=True)[0].astype(np.int8)
+    sb3 = model.predict(states, deterministic=True)[0].astype(np.int64)
+    if config.head == "joint":  # PPO's setting number, as valves
+        sb3 = (sb3.reshape(-1)[:, None] >> np.arange(6)) & 1
     mismatch = int((HistoryPolicy.from_record(student).act(states) != sb3).any(axis=1).sum())
     if mismatch:  # the transplant must act as PPO's own deterministic policy
         print(f"adaptive_rl: error: the student's layout acts otherwise than PPO on "
               f"{mismatch} of {len(states)} states", file=sys.stderr)
         return 1
     record = {"policy": student, "snapshots": [], "curve": [],
-              "config": {**config.to_json(), "ppo_steps": int(model.num_timesteps)},
+              "config": {**config.to_json(), "ppo_steps": int(model.num_timesteps),
+                         "init": a.init, "warmup": a.warmup, "lr": a.lr, "gamma": a.gamma,
+                         "clip": a.clip, "target_kl": a.target_kl},
               "distribution": dist.text, "train_seconds": seconds,
               "load_average": os.getloadavg()}
     try:

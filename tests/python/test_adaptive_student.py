@@ -145,6 +145,40 @@ def test_the_no_teacher_ablation_saves_ppos_actor_in_the_students_layout(tmp_pat
     assert not (tmp_path / "x.pt").exists()
 
 
+def test_the_rl_fine_tune_starts_from_the_student_and_keeps_its_layout(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "adaptive_rl.py"
+    spec = importlib.util.spec_from_file_location("adaptive_rl", script)
+    rl = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rl)
+    torch.manual_seed(0)
+    init = HistoryPolicy(StudentConfig(window=2, hidden=(8, 8), head="joint"))
+    torch.save({"policy": init.record(), "config": {"members": 1}}, tmp_path / "init.pt")
+    common = ["--init", str(tmp_path / "init.pt"), "--steps", "1024", "--envs", "2",
+              "--n-steps", "128", "--life-intervals", "1", "--warmup", "256"]
+    # the script refuses (exit 1) a checkpoint that acts otherwise than PPO's
+    # deterministic policy: the 64 logits are PPO's categorical action, decoded to valves
+    weights = {}
+    for lr in ("1e-12", "1e-2"):
+        assert rl.main(common + ["--lr", lr, "--out", str(tmp_path / f"{lr}.pt")]) == 0
+        record = torch.load(tmp_path / f"{lr}.pt", weights_only=True)
+        assert record["config"]["ppo_steps"] == 256 + 1024 and record["config"]["head"] == "joint"
+        weights[lr] = record["policy"]["state"]
+    start = init.record()["state"]
+    # a learning rate of 1e-12 leaves the student where it started (to float rounding):
+    # the actor was the student; 1e-2 moved it (PPO trained that actor)
+    assert all(torch.allclose(weights["1e-12"][k], start[k], atol=1e-6) for k in start)
+    assert not all(torch.allclose(weights["1e-2"][k], start[k], atol=1e-3) for k in start)
+    torch.save({"policy": init.record(), "config": {"members": 3}}, tmp_path / "three.pt")
+    assert rl.main(["--init", str(tmp_path / "three.pt"), "--out", str(tmp_path / "x.pt")]) == 2
+    assert rl.main(["--warmup", "5", "--out", str(tmp_path / "x.pt")]) == 2
+    err = capsys.readouterr().err
+    assert "3 members; fine-tune one member" in err and "--warmup goes with --init" in err
+    assert not (tmp_path / "x.pt").exists()
+
+
 def test_export_writes_a_joint_head_student_for_the_node(tmp_path):
     from ftc.tools import policy_weights as pw
     from ftc.tools.export import main as export_main
