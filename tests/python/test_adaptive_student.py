@@ -123,6 +123,35 @@ def test_bad_options_to_train_and_evaluate_are_one_line_and_exit_2(tmp_path, cap
     assert not list(tmp_path.iterdir())  # nothing written
 
 
+def test_evaluate_scores_the_teacher_it_is_asked_for_without_a_checkpoint(tmp_path, capsys):
+    import csv
+
+    from ftc.experiments.adaptive import evaluate
+    from ftc.experiments.adaptive.cli import main
+
+    scenario = str(distribution.SCENARIO_DIR / "heldout" / "stuck-open.toml")
+    common = ["evaluate", "--policy", "teacher", "--cache", str(tmp_path / "empty"), "--sets",
+              "heldout", "--heldout-results",
+              str(distribution.SCENARIO_DIR / "reference" / "heldout.csv"),
+              "--heldout-scenarios", scenario, "--seeds", "0"]
+    scores = {}
+    for hold, horizon in ((3, 10), (1, 1)):
+        out = tmp_path / f"{hold}x{horizon}.csv"
+        assert main(common + ["--hold", str(hold), "--horizon", str(horizon),
+                              "--out", str(out)]) == 0
+        (row,) = csv.DictReader(line for line in open(out) if not line.startswith("#"))
+        scores[hold, horizon] = float(row["score"])
+        assert f"holding {hold} over {horizon}" in out.read_text().splitlines()[0]
+    # the planner of the flags, as the pool scores it (oracle-mpc's 3 over 10), and
+    # another plan shape scores otherwise
+    (expected,) = evaluate.evaluate(PoolTeacher(3, 10), "heldout", heldout=(
+        distribution.SCENARIO_DIR / "reference" / "heldout.csv"), heldout_files=[scenario])
+    assert scores[3, 10] == pytest.approx(expected["score"], abs=1e-4)  # the file's rounding
+    assert abs(scores[1, 1] - scores[3, 10]) > 0.01
+    assert main(common + ["--curve", str(tmp_path / "c.csv")]) == 2
+    assert "--curve is the student's learning curve" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_no_teacher_ablation_saves_ppos_actor_in_the_students_layout(tmp_path):
     import importlib.util

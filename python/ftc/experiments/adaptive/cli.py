@@ -137,12 +137,17 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             raise ValueError(f"--heldout-scenarios {f}: no such file")
     if a.heldout_name in ("suite", "check") or not a.heldout_name:
         raise ValueError(f"--heldout-name {a.heldout_name!r}: another set's name, or empty")
-    record, path = load_record(a)
-    policy = HistoryPolicy.from_record(record["policy"])
-    if a.policy == "teacher":
-        policy = PoolTeacher(record["config"]["hold"], record["config"]["horizon"])
+    if a.policy != "student" and a.curve:
+        raise ValueError(f"--curve is the student's learning curve: not with --policy {a.policy}")
+    record: dict[str, Any] = {}
+    if a.policy == "teacher":  # the planner alone: no checkpoint
+        policy: Any = PoolTeacher(a.hold, a.horizon)
+        what = f"teacher (the planner holding {a.hold} over {a.horizon})"
     elif a.policy == "balance":
-        policy = balance_rule
+        policy, what = balance_rule, "balance (the rule)"
+    else:
+        record, path = load_record(a)
+        policy, what = HistoryPolicy.from_record(record["policy"]), f"student ({path.name})"
     rows = []
     for which in a.sets:
         if which == "heldout" and not a.heldout_results:
@@ -166,7 +171,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
               f"{worst['score']:.3f} ({worst['scenario']}, seed {worst['seed']}){note}")
     try:
         if a.out:
-            write_result(a.out, f"{a.policy} ({path.name}), per-scenario normalized score "
+            write_result(a.out, f"{what}, per-scenario normalized score "
                          "(intervals 1-9 against the shipped reference and closed rewards) "
                          "in the batched pool, 10 x 512 steps",
                          [{**r, "score": round(r["score"], 4) if np.isfinite(r["score"]) else "",
@@ -387,9 +392,10 @@ def parser() -> argparse.ArgumentParser:
                            help="the held-out set's name in the output (e.g. drawn)")
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
-                           help="what to score: the checkpoint's student, its teacher (the "
-                                "planner on the true physics, with the checkpoint's --hold and "
-                                "--horizon; 3 and 10 are oracle-mpc's) or the balance rule")
+                           help="what to score: the checkpoint's student, the teacher (the "
+                                "planner on the true physics with --hold and --horizon, no "
+                                "checkpoint needed; 3 and 10 are oracle-mpc's) or the balance "
+                                "rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
