@@ -506,7 +506,7 @@ def test_a_held_out_draw_with_a_min_gain_keeps_well_conditioned_scenarios_and_th
         draw_heldout.main(["--seed", "1", "--out", str(out2), "--min-gain", "0.3"])  # no file
 
 
-@pytest.mark.parametrize("which,seed", [("heldout", 0), ("drawn", 3), ("final", 5)])
+@pytest.mark.parametrize("which,seed", [("heldout", 0), ("drawn", 3), ("final", 5), ("margin", 7)])
 def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     # all valves closed, run in the pool, earns what the committed file says closed
     # earns (score 0) wherever the score is defined: the file belongs to these
@@ -515,7 +515,8 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     # more here, so 1e-3)
     directory = {"heldout": distribution.SCENARIO_DIR / "heldout",
                  "drawn": distribution.SCENARIO_DIR / "heldout" / "drawn",
-                 "final": distribution.SCENARIO_DIR / "heldout" / "final"}[which]
+                 "final": distribution.SCENARIO_DIR / "heldout" / "final",
+                 "margin": distribution.SCENARIO_DIR / "heldout" / "margin"}[which]
     files = sorted(directory.glob("*.toml"))
     reference = distribution.SCENARIO_DIR / "reference" / f"{which}.csv"
     rows = evaluate.evaluate(None, "heldout", seeds=[seed], heldout=reference,
@@ -524,3 +525,5 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     defined = [r for r in rows if np.isfinite(r["score"])]
     assert len(defined) >= len(rows) - 2
     assert all(abs(r["score"]) < 1e-3 for r in defined), defined
+    if which == "margin":  # drawn with --min-gain 0.3: every score well conditioned
+        assert all(r["reference_gain_per_step"] >= 0.3 for r in rows)
