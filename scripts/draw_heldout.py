@@ -47,6 +47,7 @@ import numpy as np
 from ftc import _core
 from ftc.common.atomic import atomic_write_text
 from ftc.common.constants import NUM_ENGINES, NUM_TANKS
+from ftc.experiments.adaptive import evaluate
 from ftc.experiments.adaptive.evaluate import FIRST_SCORED, benchmark_rewards
 from ftc.experiments.adaptive import distribution
 from ftc.learning.history_policy import TrainingConfig
@@ -105,7 +106,8 @@ def well_conditioned(rewards: dict, names: list[str], seeds: list[int], count: i
             except KeyError:
                 raise ValueError(f"no reference and closed rewards of {name}, seed {seed}") \
                     from None
-            per_seed.append(float((ref[FIRST_SCORED:] - closed[FIRST_SCORED:]).mean()))
+            per_seed.append(float(evaluate.gains(ref[None], closed[None])[0])
+                            / (len(ref) - FIRST_SCORED))
         gains[name] = min(per_seed)
     return [n for n in names if gains[n] >= min_gain][:count], gains
 

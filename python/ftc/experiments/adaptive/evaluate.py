@@ -120,14 +120,19 @@ def reference_rewards(which: str, names: Sequence[str], seed: int,
             for m in ("reference", "closed")}
 
 
+def gains(r: np.ndarray, closed: np.ndarray) -> np.ndarray:
+    """Reward per step of rewards (S, intervals) over closed's, summed over the
+    scored intervals (S,)."""
+    return (r[:, FIRST_SCORED:] - closed[:, FIRST_SCORED:]).sum(1)
+
+
 def scores(r: np.ndarray, reference: np.ndarray, closed: np.ndarray) -> np.ndarray:
     """Per-scenario normalized score of rewards (S, intervals); NaN (undefined)
     where the reference earns exactly what closed earns over the scored
     intervals, as the benchmark's normalized_score leaves such a cell empty."""
-    s = slice(FIRST_SCORED, None)
-    gain = (reference[:, s] - closed[:, s]).sum(1)
+    gain = gains(reference, closed)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(gain != 0, (r[:, s] - closed[:, s]).sum(1) / gain, np.nan)
+        return np.where(gain != 0, gains(r, closed) / gain, np.nan)
 
 
 def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
@@ -149,7 +154,7 @@ def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
         r = rewards(policy, loaded, [seed] * len(loaded))
         ref = reference_rewards(which, names, seed, heldout)
         sc = scores(r, ref["reference"], ref["closed"])
-        gain = (ref["reference"] - ref["closed"])[:, FIRST_SCORED:].mean(1)
+        gain = gains(ref["reference"], ref["closed"]) / (r.shape[1] - FIRST_SCORED)
         for i, name in enumerate(names):
             rows.append({"set": which, "scenario": name, "seed": seed, "score": float(sc[i]),
                          "reward_per_step": float(r[i, FIRST_SCORED:].mean()),
