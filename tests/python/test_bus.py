@@ -194,6 +194,16 @@ def test_lcm_echo_survives_a_negative_valve_count():
             lc.publish(prefix + "COMMAND", cmd.encode())
             lc.handle_timeout(100)
         assert answers[0].command_seq == 5 and echo.poll() is None
+        # the echo may have come up between the two publishes and never heard the bad
+        # one: now that it listens, the bad command, then a valid one it answers only
+        # after it (one sender on loopback: in order)
+        cmd.seq = 6
+        while not any(a.command_seq == 6 for a in answers):
+            assert time.monotonic() < deadline and echo.poll() is None
+            lc.publish(prefix + "COMMAND", bytes(bad))
+            lc.publish(prefix + "COMMAND", cmd.encode())
+            lc.handle_timeout(100)
+        assert echo.poll() is None
     finally:
         echo.terminate()
         _, err = echo.communicate(timeout=5)
