@@ -45,10 +45,13 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from ftc.common.atomic import atomic_torch_save
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE
+from ftc.control.planning.planners import valve_settings
 from ftc.experiments.adaptive import distribution
 from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, StudentConfig,
                                          TrainingConfig)
 from ftc.plant.vector import FuelTransferVectorEnv
+
+SETTINGS = valve_settings().astype(np.int8)  # (64, 6): setting a opens valve i iff bit i
 
 
 class DrawnPlants(VecEnv):
@@ -87,8 +90,7 @@ class DrawnPlants(VecEnv):
 
     def step_async(self, actions: np.ndarray) -> None:
         if self.joint:
-            setting = np.asarray(actions, np.int64).reshape(-1)
-            self._actions = ((setting[:, None] >> np.arange(6)) & 1).astype(np.int8)
+            self._actions = SETTINGS[np.asarray(actions, np.int64).reshape(-1)]
         else:
             self._actions = np.asarray(actions, np.int8)
 
@@ -214,18 +216,19 @@ def main(argv: list[str] | None = None) -> int:
         actor = actor_layers(model)
         copy_layers(actor, [m for m in init.net if isinstance(m, torch.nn.Linear)])
         if a.warmup:  # the critic alone: the actor's weights get no gradient
-            for q in (q for m in actor for q in m.parameters()):
+            actor_params = [q for m in actor for q in m.parameters()]
+            for q in actor_params:
                 q.requires_grad_(False)
             model.learn(total_timesteps=a.warmup)
-            for q in (q for m in actor for q in m.parameters()):
+            for q in actor_params:
                 q.requires_grad_(True)
-    model.learn(total_timesteps=steps, reset_num_timesteps=init is None or not a.warmup)
+    model.learn(total_timesteps=steps, reset_num_timesteps=not a.warmup)
     seconds = time.monotonic() - start
     student = student_record(model, config)
     states = model.rollout_buffer.observations.reshape(-1, venv.observation_space.shape[0])
     sb3 = model.predict(states, deterministic=True)[0].astype(np.int64)
     if config.head == "joint":  # PPO's setting number, as valves
-        sb3 = (sb3.reshape(-1)[:, None] >> np.arange(6)) & 1
+        sb3 = SETTINGS[sb3.reshape(-1)]
     mismatch = int((HistoryPolicy.from_record(student).act(states) != sb3).any(axis=1).sum())
     if mismatch:  # the transplant must act as PPO's own deterministic policy
         print(f"adaptive_rl: error: the student's layout acts otherwise than PPO on "

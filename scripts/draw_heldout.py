@@ -47,9 +47,8 @@ import numpy as np
 from ftc import _core
 from ftc.common.atomic import atomic_write_text
 from ftc.common.constants import NUM_ENGINES, NUM_TANKS
-from ftc.experiments.adaptive import evaluate
+from ftc.experiments.adaptive import distribution, evaluate
 from ftc.experiments.adaptive.evaluate import FIRST_SCORED, benchmark_rewards
-from ftc.experiments.adaptive import distribution
 from ftc.learning.history_policy import TrainingConfig
 
 def draw_one(rng: np.random.Generator, name: str, life_steps: int) -> str:
@@ -218,11 +217,10 @@ def _keep_well_conditioned(a: argparse.Namespace, paths: list[Path]) -> int:
             print(f"draw_heldout: error: the benchmark exited {done.returncode} (the candidates "
                   f"were removed)", file=sys.stderr)
             return 1
-        rewards = benchmark_rewards(results)
-        if a.reference != "reference":  # the cheaper reference's cells, named as the rule reads
-            for cells in rewards.values():
-                cells["rewards"]["reference"] = cells["rewards"].get(a.reference, {})
         names = [p.stem for p in paths]
+        trimmed = Path(tmp) / "trimmed.csv"  # the cells as the rule and evaluate read them
+        trimmed.write_text(trimmed_rewards(results, names, a.reference))
+        rewards = benchmark_rewards(trimmed)
         kept, gains = well_conditioned(rewards, names, a.seeds, a.count, a.min_gain)
         for name in names:
             fate = ("" if name in kept else " (dropped: below --min-gain)"
