@@ -497,9 +497,10 @@ def test_a_held_out_draw_with_a_min_gain_keeps_well_conditioned_scenarios_and_th
     rows = evaluate.evaluate(None, "heldout", seeds=[9], heldout=rewards,
                              heldout_files=sorted(out.glob("*.toml")))
     assert [abs(r["score"]) < 1e-3 for r in rows] == [True, True]
-    # too few meet the gain: nothing is left behind
+    # too few meet the gain (one candidate, the first, gains 1.22): nothing is left behind
     out2, rewards2 = tmp_path / "set2", tmp_path / "rewards2.csv"
     args2 = [out2 if a == str(out) else rewards2 if a == str(rewards) else a for a in args]
+    args2[args2.index("--count") + 1] = args2[args2.index("--candidates") + 1] = "1"
     assert draw_heldout.main([str(a) for a in args2] + ["--min-gain", "5"]) == 1
     assert not list(out2.glob("*.toml")) and not rewards2.exists()
     with pytest.raises(SystemExit):

@@ -76,6 +76,32 @@ def test_the_teachers_regrets_are_its_plans_summed_reward_lost():
     assert regrets[0].max() > 0  # some plans are worse: a real choice
 
 
+def test_a_teacher_with_more_holds_values_each_setting_by_its_best_plan():
+    # the multi-hold teacher against its definition, computed here from the hold
+    # planners' own plans: setting a's total is the best of its plans holding 2, 1
+    # or 4 steps, then closed; the label is the first setting of the largest total
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    light_left = np.array([[0.2, 0.2, 0.2, 1.0, 1.0, 1.0], [0.9, 0.5, 0.1, 0.3, 0.6, 0.8]])
+    oracle = OracleEvaluator(scenario, closed_form=True)
+    oracle.set_step(600)
+    teacher = PoolTeacher(2, 6, extra_holds=(1, 4, 2))  # a repeated hold counts once
+    u, regrets = teacher.label_with_regrets([0, 0], [scenario], np.array([600, 600]), light_left)
+    assert [p.hold for p in teacher.planners] == [2, 1, 4] and teacher.labels == 2
+    one = PoolTeacher(2, 6)
+    u_one, regrets_one = one.label_with_regrets([0, 0], [scenario], np.array([600, 600]),
+                                                light_left)
+    for k in range(2):
+        totals = np.max([oracle(light_left[k], HoldPlanner(h, 6).candidates(6))
+                         for h in (2, 1, 4)], axis=0)
+        best = int(np.argmax(totals))
+        assert u[k].tolist() == HoldPlanner(2, 6).candidates(6)[best, 0].tolist()
+        np.testing.assert_allclose(regrets[k], totals.max() - totals, atol=1e-5)  # float32
+        # the plans include the single-hold teacher's: its best is never better
+        assert totals.max() >= oracle(light_left[k], HoldPlanner(2, 6).candidates(6)).max()
+    # the extra holds change the values: the single-hold teacher's regrets differ
+    assert not np.allclose(regrets, regrets_one, atol=1e-5)
+
+
 @pytest.mark.parametrize("regret", [0.0, 1.0])
 def test_the_joint_head_learns_a_rule_of_its_window(one_torch_thread, regret):
     # a known answer: valve i opens iff tank i's newest level is below 0.5; the regret
@@ -229,8 +255,10 @@ def test_the_teacher_comparison_refuses_bad_input_and_writes_nothing(tmp_path, c
     teachers = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(teachers)
     out = tmp_path / "teachers.csv"
-    assert teachers.plan_shape("2x6") == (2, 6) and teachers.plan_shape("3X10") == (3, 10)
-    for bad in ("2y6", "6x2", "0x4"):  # not HOLDxHORIZON; hold > horizon; hold 0
+    assert teachers.plan_shape("2x6") == ((2,), 6) and teachers.plan_shape("3X10") == ((3,), 10)
+    assert teachers.plan_shape("2,1,3,6x6") == ((2, 1, 3, 6), 6)
+    # not HOLDxHORIZON; hold > horizon; hold 0; a hold twice; an extra hold > horizon
+    for bad in ("2y6", "6x2", "0x4", "2,2x6", "2,7x6"):
         with pytest.raises(SystemExit) as e:
             teachers.main([bad, "--sets", "check", "--out", str(out)])
         assert e.value.code == 2

@@ -101,7 +101,8 @@ class TrainingConfig:
     weight of the expected regret (the teacher's summed-reward loss of the
     student's choice, per unit of the data's mean regret) added to the cross
     entropy (the valves head has none); hold, horizon: the teacher's planner
-    (oracle-mpc's H and L); seed: draws, pool plants, initial weights and
+    (oracle-mpc's H and L); extra_holds: more hold lengths the teacher's
+    plans try, each setting valued by the best of its plans; seed: draws, pool plants, initial weights and
     minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
     network whose logits are their mean (:func:`ensemble`); privileged: weight
@@ -125,6 +126,7 @@ class TrainingConfig:
     regret: float = 5.0
     hold: int = 2
     horizon: int = 6
+    extra_holds: tuple[int, ...] = ()
     seed: int = 0
     members: int = 3
     privileged: float = 0.0

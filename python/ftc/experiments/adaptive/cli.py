@@ -56,6 +56,8 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "regret": "weight of the expected regret under the student's softmax (joint head)",
     "hold": "the teacher's plans hold a setting this many steps, then all closed",
     "horizon": "the teacher's planning horizon, steps",
+    "extra_holds": "more hold lengths the teacher's plans try, each setting valued by the "
+                   "best of its plans (none: --hold alone)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -75,7 +77,8 @@ def _config_options(p: argparse.ArgumentParser) -> None:
                            metavar="BOOL", help=f"{OPTION_HELP[f.name]} (default {value})")
         elif isinstance(value, tuple):
             p.add_argument(flag, type=int, nargs="+", default=list(value),
-                           help=f"{OPTION_HELP[f.name]} (default {' '.join(map(str, value))})")
+                           help=f"{OPTION_HELP[f.name]} (default "
+                                f"{' '.join(map(str, value)) or 'none'})")
         else:
             p.add_argument(flag, type=type(value), default=value,
                            help=f"{OPTION_HELP[f.name]} (default {value})")
@@ -84,10 +87,13 @@ def _config_options(p: argparse.ArgumentParser) -> None:
 def config_of(a: argparse.Namespace) -> TrainingConfig:
     values = {f.name: getattr(a, f.name) for f in dataclasses.fields(TrainingConfig)}
     values["hidden"] = tuple(values["hidden"])
+    values["extra_holds"] = tuple(values["extra_holds"])
     for name in ("iterations", "envs", "life_intervals", "epochs", "batch", "max_samples",
                  "window", "hold", "horizon"):
         if values[name] < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {values[name]}")
+    if any(h < 1 for h in values["extra_holds"]):
+        raise ValueError(f"--extra-holds must be >= 1 each, got {list(values['extra_holds'])}")
     if not 0.0 <= values["label_fraction"] <= 1.0 or not values["lr"] > 0:
         raise ValueError("--label-fraction must be in [0, 1] and --lr > 0")
     return TrainingConfig(**values)
@@ -141,8 +147,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         raise ValueError(f"--curve is the student's learning curve: not with --policy {a.policy}")
     record: dict[str, Any] = {}
     if a.policy == "teacher":  # the planner alone: no checkpoint
-        policy: Any = PoolTeacher(a.hold, a.horizon)
-        what = f"teacher (the planner holding {a.hold} over {a.horizon})"
+        policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds)
+        holds = " or ".join(map(str, dict.fromkeys((a.hold, *a.extra_holds))))
+        what = f"teacher (the planner holding {holds} over {a.horizon})"
     elif a.policy == "balance":
         policy, what = balance_rule, "balance (the rule)"
     else:

@@ -6,6 +6,8 @@ steps (the age and the events in force) and its published levels, the
 teacher returns the valves ``oracle-mpc`` would apply there: the best of the
 64 "hold H steps, then all closed" plans over a horizon of L steps, the
 horizon cut at the interval's end (oracle-mpc's defaults: H = 3, L = 10).
+With more hold lengths (``extra_holds``), each setting is valued by the best
+of its plans: held H steps or any of those, then all closed.
 It is used for training only: the student never sees it at run time.
 """
 
@@ -23,12 +25,17 @@ from ftc.control.planning.planners import HoldPlanner
 class PoolTeacher:
     """Labels states of many plants with oracle-mpc's decision.
 
-    hold, horizon: the planner's H and L; closed_form: the rollouts step the
-    conduit in closed form (``_core.BatchRollout``'s exact_active_conduit,
-    several times faster than CVODE, within its tolerances)."""
+    hold, horizon: the planner's H and L; extra_holds: more hold lengths, a
+    setting valued by the best of its plans (its first step is what they
+    share); closed_form: the rollouts step the conduit in closed form
+    (``_core.BatchRollout``'s exact_active_conduit, several times faster than
+    CVODE, within its tolerances)."""
 
-    def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True) -> None:
-        self.planner = HoldPlanner(hold, horizon)
+    def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True,
+                 extra_holds: Sequence[int] = ()) -> None:
+        self.planners = [HoldPlanner(h, horizon)
+                         for h in dict.fromkeys((hold, *extra_holds))]  # in order, once each
+        self.planner = self.planners[0]
         self.horizon = horizon
         self.closed_form = closed_form
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
@@ -69,13 +76,23 @@ class PoolTeacher:
             evaluator.set_step(step)
             steps_left = scenario.steps_per_interval - step % scenario.steps_per_interval
             horizon = max(1, min(self.horizon, steps_left))
-            totals = np.asarray(evaluator(np.asarray(levels[k], np.float64),
-                                          self.planner.candidates(horizon)), np.float64)
+            totals = self._setting_totals(evaluator, np.asarray(levels[k], np.float64),
+                                          horizon)
             best = int(np.argmax(totals))  # the planner's rule: first maximum
             out[k] = self.planner.candidates(horizon)[best, 0]
             regrets[k] = regrets_of(totals)
         self.labels += len(envs)
         return out, regrets
+
+    def _setting_totals(self, evaluator: OracleEvaluator, x0: np.ndarray, horizon: int
+                        ) -> np.ndarray:
+        """(64,) summed reward of each setting's best plan over ``horizon`` steps
+        (row a: setting a, as every hold planner numbers them)."""
+        if len(self.planners) == 1:
+            return np.asarray(evaluator(x0, self.planner.candidates(horizon)), np.float64)
+        plans = np.concatenate([p.candidates(horizon) for p in self.planners])
+        totals = np.asarray(evaluator(x0, plans), np.float64)
+        return totals.reshape(len(self.planners), -1).max(axis=0)
 
 
 def regrets_of(totals: np.ndarray) -> np.ndarray:
