@@ -142,10 +142,14 @@ def test_bad_options_to_train_and_evaluate_are_one_line_and_exit_2(tmp_path, cap
     assert main(["train", "--regret", "-1", "--cache", str(tmp_path)]) == 2
     assert main(["evaluate", "--sets", "heldout", "--heldout-results",
                  str(tmp_path / "none.csv"), "--out", str(tmp_path / "x.csv")]) == 2
+    assert main(["train", "--extra-holds", "2", "0", "--cache", str(tmp_path)]) == 2
+    assert main(["evaluate", "--policy", "teacher", "--extra-holds", "0", "--sets", "check",
+                 "--out", str(tmp_path / "x.csv")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 3 and all(line.startswith("adaptive: error: ") for line in err)
+    assert len(err) == 5 and all(line.startswith("adaptive: error: ") for line in err)
     assert "head must be one of" in err[0] and "regret must be >= 0" in err[1]
     assert "none.csv: no such file" in err[2]
+    assert all("--extra-holds must be >= 1 each" in line for line in err[3:])
     assert not list(tmp_path.iterdir())  # nothing written
 
 

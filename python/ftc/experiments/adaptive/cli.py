@@ -147,6 +147,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         raise ValueError(f"--curve is the student's learning curve: not with --policy {a.policy}")
     record: dict[str, Any] = {}
     if a.policy == "teacher":  # the planner alone: no checkpoint
+        config_of(a)  # refuses a hold, horizon or extra hold below 1
         policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds)
         holds = " or ".join(map(str, dict.fromkeys((a.hold, *a.extra_holds))))
         what = f"teacher (the planner holding {holds} over {a.horizon})"
