@@ -87,9 +87,8 @@ def test_a_teacher_with_more_holds_values_each_setting_by_its_best_plan():
     teacher = PoolTeacher(2, 6, extra_holds=(1, 4, 2))  # a repeated hold counts once
     u, regrets = teacher.label_with_regrets([0, 0], [scenario], np.array([600, 600]), light_left)
     assert [p.hold for p in teacher.planners] == [2, 1, 4] and teacher.labels == 2
-    one = PoolTeacher(2, 6)
-    u_one, regrets_one = one.label_with_regrets([0, 0], [scenario], np.array([600, 600]),
-                                                light_left)
+    _, regrets_one = PoolTeacher(2, 6).label_with_regrets([0, 0], [scenario],
+                                                          np.array([600, 600]), light_left)
     for k in range(2):
         totals = np.max([oracle(light_left[k], HoldPlanner(h, 6).candidates(6))
                          for h in (2, 1, 4)], axis=0)

@@ -102,8 +102,8 @@ class TrainingConfig:
     student's choice, per unit of the data's mean regret) added to the cross
     entropy (the valves head has none); hold, horizon: the teacher's planner
     (oracle-mpc's H and L); extra_holds: more hold lengths the teacher's
-    plans try, each setting valued by the best of its plans; seed: draws, pool plants, initial weights and
-    minibatches; members: students trained one after another with seeds seed,
+    plans try, each setting valued by the best of its plans; seed: draws,
+    pool plants, initial weights and minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
     network whose logits are their mean (:func:`ensemble`); privileged: weight
     of the privileged head's loss (a second head on the last hidden layer that

@@ -149,7 +149,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     if a.policy == "teacher":  # the planner alone: no checkpoint
         config_of(a)  # refuses a hold, horizon or extra hold below 1
         policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds)
-        holds = " or ".join(map(str, dict.fromkeys((a.hold, *a.extra_holds))))
+        holds = " or ".join(str(p.hold) for p in policy.planners)
         what = f"teacher (the planner holding {holds} over {a.horizon})"
     elif a.policy == "balance":
         policy, what = balance_rule, "balance (the rule)"

@@ -36,6 +36,7 @@ class PoolTeacher:
         self.planners = [HoldPlanner(h, horizon)
                          for h in dict.fromkeys((hold, *extra_holds))]  # in order, once each
         self.planner = self.planners[0]
+        self._plans: dict[int, np.ndarray] = {}  # horizon -> every planner's plans, stacked
         self.horizon = horizon
         self.closed_form = closed_form
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
@@ -88,10 +89,9 @@ class PoolTeacher:
                         ) -> np.ndarray:
         """(64,) summed reward of each setting's best plan over ``horizon`` steps
         (row a: setting a, as every hold planner numbers them)."""
-        if len(self.planners) == 1:
-            return np.asarray(evaluator(x0, self.planner.candidates(horizon)), np.float64)
-        plans = np.concatenate([p.candidates(horizon) for p in self.planners])
-        totals = np.asarray(evaluator(x0, plans), np.float64)
+        if horizon not in self._plans:
+            self._plans[horizon] = np.concatenate([p.candidates(horizon) for p in self.planners])
+        totals = np.asarray(evaluator(x0, self._plans[horizon]), np.float64)
         return totals.reshape(len(self.planners), -1).max(axis=0)
 
 
