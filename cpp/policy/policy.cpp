@@ -57,14 +57,20 @@ std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>&
 }
 
 std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>& params,
-                       int window) {
+                       int window, bool stuck_memory) {
   std::uint64_t h = Checksum(widths, params);  // FNV-1a continues from its state
   const auto b = Le32(static_cast<std::uint32_t>(window));
   Mix(&h, b.data(), b.size());
+  if (stuck_memory) {
+    const auto one = Le32(1u);
+    Mix(&h, one.data(), one.size());
+  }
   return h;
 }
 
-History::History() : slots_(static_cast<std::size_t>(kMaxWindow) * kStepFeatures, 0.0f) {}
+History::History() : slots_(static_cast<std::size_t>(kMaxWindow) * kStepFeatures, 0.0f) {
+  Forget();
+}
 
 void History::Scale(const std::array<double, kTanks>& level, float* out) {
   for (int i = 0; i < kTanks; ++i) {
@@ -85,12 +91,19 @@ void History::Start(const std::array<double, kTanks>& level) {
 }
 
 void History::Push(const std::array<double, kTanks>& level,
-                   const std::array<std::int8_t, kTanks>& valves) {
+                   const std::array<std::int8_t, kTanks>& valves,
+                   const std::array<std::int8_t, kTanks>& applied) {
   newest_ = (newest_ + kMaxWindow - 1) % kMaxWindow;  // the oldest slot becomes the newest
   float* step = slots_.data() + newest_ * kStepFeatures;
   Scale(level, step);
   for (int i = 0; i < kTanks; ++i) step[kTanks + i] = valves[i] ? 1.0f : -1.0f;
   level_ = level;
+  for (int i = 0; i < kTanks; ++i) {
+    const bool commanded = valves[i] != 0, held = applied[i] != 0;
+    if (commanded == held) continue;  // followed its command: says nothing
+    stuck_[i] = commanded ? 1.0f : -1.0f;           // stuck closed
+    stuck_[kTanks + i] = commanded ? -1.0f : 1.0f;  // stuck open
+  }
 }
 
 void History::Newest(int window, float* out) const {
@@ -102,19 +115,24 @@ void History::Newest(int window, float* out) const {
 
 std::unique_ptr<Policy> Policy::Make(int window, std::vector<int> widths,
                                      std::vector<float> params, std::int64_t version,
-                                     std::string* error) {
+                                     std::string* error, bool stuck_memory) {
   if (window < 0 || window > kMaxWindow) {
     *error = "a window of " + std::to_string(window) + " steps (allowed: 0.." +
              std::to_string(kMaxWindow) + ")";
     return nullptr;
   }
-  const int input = InputWidth(window);
+  if (stuck_memory && window == 0) {
+    *error = "the stuck memory is read after a history window (window 0 given)";
+    return nullptr;
+  }
+  const int input = InputWidth(window, stuck_memory);
   if (widths.size() < 2 || widths.front() != input ||
       (widths.back() != kTanks && widths.back() != kSettings)) {
     *error = "widths must run from " + std::to_string(input) +
              (window == 0 ? " (the levels)"
                           : " (a window of " + std::to_string(window) +
-                                " steps of levels and valves)") +
+                                " steps of levels and valves" +
+                                (stuck_memory ? ", then the stuck memory)" : ")")) +
              " to 6 (a logit per valve) or 64 (a logit per valve setting)";
     return nullptr;
   }
@@ -137,7 +155,7 @@ std::unique_ptr<Policy> Policy::Make(int window, std::vector<int> widths,
     }
   }
   return std::unique_ptr<Policy>(
-      new Policy(window, std::move(widths), std::move(params), version));
+      new Policy(window, std::move(widths), std::move(params), version, stuck_memory));
 }
 
 // The layers as they are flown: each layer's weights split into the blocks of
@@ -221,8 +239,9 @@ struct Policy::Net {
 };
 
 Policy::Policy(int window, std::vector<int> widths, std::vector<float> params,
-               std::int64_t version)
+               std::int64_t version, bool stuck_memory)
     : window_(window),
+      stuck_memory_(stuck_memory),
       widths_(std::move(widths)),
       params_(std::move(params)),
       version_(version),
@@ -249,6 +268,7 @@ std::array<std::int8_t, kTanks> Policy::Act(const std::array<double, kTanks>& le
 std::array<std::int8_t, kTanks> Policy::Act(const History& history) {
   if (window_ == 0) return Act(history.level());
   history.Newest(window_, net_->input.data());  // row-major (1, 12 W): the slots in order
+  if (stuck_memory_) history.Memory(net_->input.data() + kStepFeatures * window_);
   return Decide();
 }
 
@@ -284,7 +304,7 @@ std::unique_ptr<Policy> Policy::FromFile(const std::string& path, std::string* e
   std::vector<int> widths;
   std::vector<float> params;
   std::int64_t version = 0;
-  int format = 0, window = 0;
+  int format = 0, window = 0, stuck_memory = 0;
   bool have_window = false;
   std::size_t expected = 0;
   bool have_checksum = false;
@@ -301,6 +321,9 @@ std::unique_ptr<Policy> Policy::FromFile(const std::string& path, std::string* e
     } else if (word == "window" && format == 2) {
       if (!(fields >> window)) return fail(line, "window: an integer expected");
       have_window = true;
+    } else if (word == "stuck_memory" && format == 2) {
+      if (!(fields >> stuck_memory) || (stuck_memory != 0 && stuck_memory != 1))
+        return fail(line, "stuck_memory: 0 or 1 expected");
     } else if (word == "version") {
       if (!(fields >> version)) return fail(line, "version: an integer expected");
     } else if (word == "widths") {
@@ -329,10 +352,12 @@ std::unique_ptr<Policy> Policy::FromFile(const std::string& path, std::string* e
                           std::to_string(params.size()) + " (truncated?)");
   if (!have_checksum) return fail(line, "no checksum line");
   if (format == 2 && !have_window) return fail(line, "no window line (ftc-policy 2 needs one)");
-  if ((format == 2 ? Checksum(widths, params, window) : Checksum(widths, params)) != checksum)
+  if ((format == 2 ? Checksum(widths, params, window, stuck_memory == 1)
+                   : Checksum(widths, params)) != checksum)
     return fail(line, "checksum mismatch: the weights were changed or truncated");
   std::string why;
-  auto policy = Make(window, std::move(widths), std::move(params), version, &why);
+  auto policy = Make(window, std::move(widths), std::move(params), version, &why,
+                     stuck_memory == 1);
   if (!policy) return fail(line, why);
   return policy;
 }

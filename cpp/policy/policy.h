@@ -3,7 +3,9 @@
 // policy_t / policy_v2_t, checked whole before use. Its input is either the
 // newest levels mapped to 2 x - 1 (window 0: the PPO policies) or a window of
 // the last W steps of levels and valve commands (the adaptive student,
-// python/ftc/learning/history_policy.py), kept by History. No LCM in here,
+// python/ftc/learning/history_policy.py), kept by History, optionally followed
+// by History's stuck memory (the valves seen applied otherwise than
+// commanded). No LCM in here,
 // and no Eigen in this header: the arithmetic (learning/tanh_mlp.h) is
 // compiled with the learning kernels' flags (-march=native), whose Eigen
 // types must not meet those of code compiled without them.
@@ -35,19 +37,30 @@ constexpr int kMaxWindow = 256;
 // little-endian): the checksum of an ftc-policy 1 weights file and of policy_t.
 std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>& params);
 
-// The same, continued with the window (int32 little-endian): the checksum of
-// an ftc-policy 2 weights file and of policy_v2_t.
+// The same, continued with the window (int32 little-endian), then for a
+// policy that reads the stuck memory with the int32 1: the checksum of an
+// ftc-policy 2 weights file and of policy_v2_t.
 std::uint64_t Checksum(const std::vector<int>& widths, const std::vector<float>& params,
-                       int window);
+                       int window, bool stuck_memory = false);
 
-// The input width of a policy reading `window` steps (0: the levels alone).
-inline int InputWidth(int window) { return window == 0 ? kTanks : kStepFeatures * window; }
+// The stuck memory's width: per valve, seen stuck closed, then seen stuck open.
+constexpr int kStuckFeatures = 2 * kTanks;
+
+// The input width of a policy reading `window` steps (0: the levels alone),
+// and the stuck memory after them if it reads it.
+inline int InputWidth(int window, bool stuck_memory = false) {
+  return (window == 0 ? kTanks : kStepFeatures * window) + (stuck_memory ? kStuckFeatures : 0);
+}
 
 // The last kMaxWindow steps an episode went through, as the adaptive student's
 // HistoryWindow keeps them for one plant: slot k holds the levels acted on k
 // steps ago and the valves commanded on the step that led to them (closed for
 // the episode's first levels), each clipped to [0, 1] and mapped to 2 x - 1 in
-// float32 (the same roundings as NumPy's float32 arithmetic there).
+// float32 (the same roundings as NumPy's float32 arithmetic there). Its stuck
+// memory holds, per valve, whether it was last seen stuck closed (applied
+// closed when commanded open) or stuck open (applied open when commanded
+// closed), 1 or -1; it outlives episodes (a plant's valves stay stuck) until
+// Forget.
 class History final {
  public:
   History();
@@ -57,7 +70,21 @@ class History final {
 
   // After commanding `valves` the plant published `level`: it becomes slot 0.
   void Push(const std::array<double, kTanks>& level,
-            const std::array<std::int8_t, kTanks>& valves);
+            const std::array<std::int8_t, kTanks>& valves) {
+    Push(level, valves, valves);
+  }
+
+  // The same, the plant having applied `applied` (its state message's valves):
+  // a valve applied otherwise than commanded enters the stuck memory.
+  void Push(const std::array<double, kTanks>& level,
+            const std::array<std::int8_t, kTanks>& valves,
+            const std::array<std::int8_t, kTanks>& applied);
+
+  // Clears the stuck memory (another plant).
+  void Forget() { stuck_.fill(-1.0f); }
+
+  // The stuck memory, kStuckFeatures floats of +-1, into out.
+  void Memory(float* out) const { std::copy(stuck_.begin(), stuck_.end(), out); }
 
   // The newest `window` slots (1..kMaxWindow), newest first, into out
   // (kStepFeatures x window floats): the student's input.
@@ -72,17 +99,19 @@ class History final {
   std::vector<float> slots_;  // kMaxWindow x kStepFeatures, a ring
   int newest_ = 0;            // the ring index of slot 0
   std::array<double, kTanks> level_{};
+  std::array<float, kStuckFeatures> stuck_;
 };
 
 class Policy {
  public:
   // A policy of this window, widths and params, or null with the reason in
-  // *error: window must be in 0..kMaxWindow, widths must run InputWidth(window)
-  // -> ... -> 6 or 64 (the head) with every width in 1..4096, params must
-  // hold exactly their weights and biases, every value finite.
+  // *error: window must be in 0..kMaxWindow, widths must run InputWidth(window,
+  // stuck_memory) -> ... -> 6 or 64 (the head) with every width in 1..4096,
+  // params must hold exactly their weights and biases, every value finite; a
+  // policy that reads the stuck memory needs a window.
   static std::unique_ptr<Policy> Make(int window, std::vector<int> widths,
                                       std::vector<float> params, std::int64_t version,
-                                      std::string* error);
+                                      std::string* error, bool stuck_memory = false);
   // The same with window 0 (a policy of the levels).
   static std::unique_ptr<Policy> Make(std::vector<int> widths, std::vector<float> params,
                                       std::int64_t version, std::string* error) {
@@ -96,8 +125,8 @@ class Policy {
   // Valve commands (0/1) for tank levels in metres (a policy of window 0).
   std::array<std::int8_t, kTanks> Act(const std::array<double, kTanks>& level);
 
-  // Valve commands (0/1) for the history: its newest `window()` steps, or
-  // its newest levels for window 0.
+  // Valve commands (0/1) for the history: its newest `window()` steps (and
+  // its stuck memory if the policy reads it), or its newest levels for window 0.
   std::array<std::int8_t, kTanks> Act(const History& history);
 
   // The valves of the joint head's kSettings logits: the bits of the first
@@ -107,6 +136,7 @@ class Policy {
   ~Policy();
   std::int64_t version() const { return version_; }
   int window() const { return window_; }
+  bool stuck_memory() const { return stuck_memory_; }
   const std::vector<int>& widths() const { return widths_; }
   // Per layer, the diagonal blocks it is flown as (1: dense; K: an ensemble
   // of K members' layer, the zeros between them skipped).
@@ -115,11 +145,13 @@ class Policy {
   const std::vector<float>& params() const { return params_; }
 
  private:
-  Policy(int window, std::vector<int> widths, std::vector<float> params, std::int64_t version);
+  Policy(int window, std::vector<int> widths, std::vector<float> params, std::int64_t version,
+         bool stuck_memory);
   std::array<std::int8_t, kTanks> Decide();
 
   struct Net;  // the layers (policy.cpp)
   int window_;
+  bool stuck_memory_;
   std::vector<int> widths_;
   std::vector<float> params_;
   std::int64_t version_;

@@ -17,7 +17,13 @@
 // acted on that opens an episode (step 0, another episode, or the session's
 // first) starts it; any other state acted on is pushed with the command sent
 // on the state acted on before it. States never acted on (newest-wins) do not
-// enter it, as they do not in Python.
+// enter it, as they do not in Python. A policy that reads the stuck memory
+// (policy.h History) learns a valve is stuck from a state's published valves
+// only when that state answers the command sent on the state acted on before
+// (its command_seq) and the watchdog was not holding the valves: a step taken
+// on an older command or on the safe state says nothing about a valve. The
+// memory is kept for the node's life, across episodes and sessions (the
+// plant's valves stay stuck).
 //
 // The node opens a control session of its own (OPEN with a random 64-bit id,
 // re-sent until the plant answers in it) and acts only on states of that
@@ -94,7 +100,9 @@ std::string Shape(const ftc::policy::Policy& policy) {
   std::string text = "widths ";
   for (std::size_t i = 0; i < policy.widths().size(); ++i)
     text += (i ? "-" : "") + std::to_string(policy.widths()[i]);
-  text += ", window " + std::to_string(policy.window()) + ", diagonal blocks";
+  text += ", window " + std::to_string(policy.window());
+  if (policy.stuck_memory()) text += ", stuck memory";
+  text += ", diagonal blocks";
   for (int k : policy.blocks()) text += " " + std::to_string(k);
   return text;
 }
@@ -282,6 +290,7 @@ class Node {
   struct Push {
     std::int64_t utime = 0, version = 0, checksum = 0;
     int window = 0;
+    bool stuck_memory = false;
     bool v2 = false;
     std::vector<int> widths;
     std::vector<float> params;
@@ -293,7 +302,9 @@ class Node {
     if (ftc::policy::IsPolicyV2(data, size)) {
       ftc::policy_v2_t m{};
       if (!ftc::policy::DecodePolicyV2(data, size, &m, &why)) return why;
-      *out = {m.utime, m.version, m.checksum, m.window, true,
+      if (m.stuck_memory != 0 && m.stuck_memory != 1)
+        return "stuck_memory " + std::to_string(m.stuck_memory) + " (0 or 1 expected)";
+      *out = {m.utime, m.version, m.checksum, m.window, m.stuck_memory == 1, true,
               std::vector<int>(m.widths.begin(), m.widths.end()),
               std::vector<float>(m.params.begin(), m.params.end())};
       return {};
@@ -301,7 +312,7 @@ class Node {
     ftc::policy_t m{};
     if (!ftc::wire::Decode(data, size, &m, &why))
       return why + " (nor a " + ftc::policy_v2_t::getTypeName() + ")";
-    *out = {m.utime, m.version, m.checksum, 0, false,
+    *out = {m.utime, m.version, m.checksum, 0, false, false,
             std::vector<int>(m.widths.begin(), m.widths.end()),
             std::vector<float>(m.params.begin(), m.params.end())};
     return {};
@@ -323,7 +334,8 @@ class Node {
       Ack(0, 0, why);
       return;
     }
-    const auto expected = m.v2 ? ftc::policy::Checksum(m.widths, m.params, m.window)
+    const auto expected = m.v2 ? ftc::policy::Checksum(m.widths, m.params, m.window,
+                                                       m.stuck_memory)
                                : ftc::policy::Checksum(m.widths, m.params);
     if (m.version <= policy_->version()) {
       why = "version " + std::to_string(m.version) + " is not above the running " +
@@ -334,7 +346,7 @@ class Node {
     std::unique_ptr<ftc::policy::Policy> next;
     if (why.empty())
       next = ftc::policy::Policy::Make(m.window, std::move(m.widths), std::move(m.params),
-                                       m.version, &why);
+                                       m.version, &why, m.stuck_memory);
     if (!next) {
       std::cerr << "policy_node: rejected policy version " << m.version << ": " << why
                 << "; keeping version " << policy_->version() << "\n";
@@ -367,7 +379,7 @@ class Node {
     if (!acted_ || pending_->step == 0 || pending_->episode != episode_)
       history_.Start(level);
     else
-      history_.Push(level, last_u_);
+      history_.Push(level, last_u_, Applied(*pending_));
     const auto u = policy_->Act(history_);
     acted_ = true;
     episode_ = pending_->episode;
@@ -386,6 +398,19 @@ class Node {
     pending_.reset();
     warmed_ = false;
     ++steps_;
+  }
+
+  // The valves the plant applied on the step that led to state `s`, for the
+  // stuck memory: its published valves if that step was taken on the command
+  // sent on the state acted on before (its command_seq) and the watchdog did
+  // not hold the valves; otherwise the command itself, which says nothing (the
+  // plant applied an older command or its safe state, not a stuck valve).
+  std::array<std::int8_t, ftc::policy::kTanks> Applied(const ftc::plant_state_t& s) const {
+    if (!last_sent_seq_ || s.command_seq != *last_sent_seq_ || s.watchdog_tripped)
+      return last_u_;
+    std::array<std::int8_t, ftc::policy::kTanks> applied{};
+    for (int i = 0; i < ftc::policy::kTanks; ++i) applied[i] = s.valve[i] != 0;
+    return applied;
   }
 
   // The policy once on the history it holds, the valves dropped (see Spin).

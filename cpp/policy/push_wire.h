@@ -19,7 +19,7 @@ inline std::string CheckPolicyV2(const void* data, std::size_t size) {
   wire::Reader r(data, size);
   std::int64_t widths = 0, params = 0;
   std::string why = wire::CheckFingerprint<policy_v2_t>(&r);
-  if (why.empty()) why = wire::Fixed(&r, 8 + 8 + 4, "utime..window");
+  if (why.empty()) why = wire::Fixed(&r, 8 + 8 + 4 + 1, "utime..stuck_memory");
   if (why.empty()) why = wire::Array(&r, "num_widths", 4, policy_v2_t::MAX_WIDTHS, 4, &widths);
   if (why.empty()) why = wire::Array(&r, "num_params", 4, policy_v2_t::MAX_PARAMS, 4, &params);
   if (why.empty()) why = wire::Fixed(&r, 8, "checksum");

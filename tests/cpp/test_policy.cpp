@@ -145,6 +145,68 @@ TEST(History, TheWindowIsNewestFirstLevelsThenValves) {
   EXPECT_EQ(command->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
 }
 
+TEST(History, TheStuckMemoryHoldsValvesAppliedAgainstTheirCommand) {
+  // a window of 1 step and the memory (24 inputs): a policy reading the memory's
+  // first six floats opens the valves seen stuck closed, one reading the next six
+  // those seen stuck open
+  std::string error;
+  auto closed = Policy::Make(1, {24, 6}, Picks(24, 12), 1, &error, true);
+  auto open = Policy::Make(1, {24, 6}, Picks(24, 18), 1, &error, true);
+  ASSERT_TRUE(closed && open) << error;
+  EXPECT_TRUE(closed->stuck_memory());
+  History h;
+  h.Start({0.5, 0.5, 0.5, 0.5, 0.5, 0.5});
+  EXPECT_EQ(closed->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
+  // valve 1 commanded open stayed closed, valve 3 commanded closed stayed open
+  h.Push({0.4, 0.4, 0.4, 0.4, 0.4, 0.4}, {1, 1, 0, 0, 0, 0}, {0, 1, 1, 0, 0, 0});
+  EXPECT_EQ(closed->Act(h), (std::array<std::int8_t, 6>{1, 0, 0, 0, 0, 0}));
+  EXPECT_EQ(open->Act(h), (std::array<std::int8_t, 6>{0, 0, 1, 0, 0, 0}));
+  // a new episode keeps it; a valve that follows its command says nothing; one
+  // seen in the other state flips; the two-argument Push sees nothing
+  h.Start({0.5, 0.5, 0.5, 0.5, 0.5, 0.5});
+  h.Push({0.4, 0.4, 0.4, 0.4, 0.4, 0.4}, {0, 0, 0, 0, 0, 0}, {1, 0, 0, 0, 0, 0});
+  h.Push({0.4, 0.4, 0.4, 0.4, 0.4, 0.4}, {1, 1, 1, 1, 1, 1});
+  EXPECT_EQ(closed->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
+  EXPECT_EQ(open->Act(h), (std::array<std::int8_t, 6>{1, 0, 1, 0, 0, 0}));
+  h.Forget();
+  EXPECT_EQ(open->Act(h), (std::array<std::int8_t, 6>{0, 0, 0, 0, 0, 0}));
+  // the memory needs a window, and the window's width plus its 12
+  EXPECT_FALSE(Policy::Make(0, {18, 6}, Picks(18, 0), 1, &error, true));
+  EXPECT_EQ(error, "the stuck memory is read after a history window (window 0 given)");
+  EXPECT_FALSE(Policy::Make(1, {12, 6}, Picks(12, 0), 1, &error, true));
+  EXPECT_NE(error.find("from 24 (a window of 1 steps of levels and valves, then the stuck "
+                       "memory)"), std::string::npos) << error;
+}
+
+TEST(Policy, ReadsAWeightsFileWithTheStuckMemory) {
+  const auto p = Picks(24, 12);
+  const std::vector<int> widths{24, 6};
+  auto text = [&](std::uint64_t sum, const std::string& memory_line) {
+    std::ostringstream out;
+    out << "ftc-policy 2\nversion 7\nwindow 1\n" << memory_line << "widths 24 6\nparams "
+        << p.size() << "\n";
+    for (float v : p) out << v << " ";
+    out << "\nchecksum " << std::hex << sum << "\n";
+    return out.str();
+  };
+  std::string error;
+  auto policy = Policy::FromFile(
+      Write("m.txt", text(Checksum(widths, p, 1, true), "stuck_memory 1\n")), &error);
+  ASSERT_TRUE(policy) << error;
+  EXPECT_TRUE(policy->stuck_memory());
+  // the checksum covers the memory: a file that drops its line, or keeps the
+  // window's checksum, is refused; a value other than 0 or 1 is named
+  EXPECT_NE(Checksum(widths, p, 1, true), Checksum(widths, p, 1));
+  EXPECT_FALSE(Policy::FromFile(Write("m0.txt", text(Checksum(widths, p, 1, true), "")), &error));
+  EXPECT_NE(error.find("checksum mismatch"), std::string::npos) << error;
+  EXPECT_FALSE(Policy::FromFile(
+      Write("m1.txt", text(Checksum(widths, p, 1), "stuck_memory 1\n")), &error));
+  EXPECT_NE(error.find("checksum mismatch"), std::string::npos) << error;
+  EXPECT_FALSE(Policy::FromFile(
+      Write("m2.txt", text(Checksum(widths, p, 1, true), "stuck_memory 2\n")), &error));
+  EXPECT_NE(error.find(":4: stuck_memory: 0 or 1 expected"), std::string::npos) << error;
+}
+
 TEST(History, ScalesAsNumPysFloat32) {
   // float32 first, clipped, 2 x - 1 in float32: 0.1 as float32 is
   // 0.100000001490116..., so the input is 2 * that - 1 rounded to float32
@@ -332,9 +394,11 @@ TEST(PushWire, APolicyV2IsCheckedBeforeDecodingAndToldFromAPolicyT) {
   EXPECT_EQ(out.window, 2);
   EXPECT_EQ(out.params, m.params);
   EXPECT_TRUE(IsPolicyV2(buf.data(), buf.size()));
-  // num_params (after the fingerprint, utime, version, window, num_widths and
-  // the widths) declared as 250 million: refused by the count, nothing allocated
-  const std::size_t at = 8 + 8 + 8 + 4 + 4 + 2 * 4;
+  EXPECT_EQ(out.stuck_memory, 0);
+  // num_params (after the fingerprint, utime, version, window, stuck_memory,
+  // num_widths and the widths) declared as 250 million: refused by the count,
+  // nothing allocated
+  const std::size_t at = 8 + 8 + 8 + 4 + 1 + 4 + 2 * 4;
   std::vector<unsigned char> hostile(buf.begin(), buf.begin() + static_cast<long>(at) + 4);
   hostile[at] = 0x0e;
   hostile[at + 1] = 0xe6;

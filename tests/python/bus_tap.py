@@ -13,13 +13,17 @@ from ftc.valve_command_t import valve_command_t
 
 
 class BusTap:
-    """``states``: seq -> (levels, step, episode); ``commands``: (state_seq,
-    valves) in the order they were sent. Listens on a thread until ``stop``."""
+    """``states``: seq -> (levels, step, episode); ``answers``: seq -> (the
+    valves the plant applied on the step before, the command_seq it answers,
+    watchdog_tripped); ``commands``: (state_seq, valves) in the order they were
+    sent, ``command_seqs`` their seqs. Listens on a thread until ``stop``."""
 
     def __init__(self, url: str, prefix: str) -> None:
         self.lc = lcm.LCM(url)
         self.states: dict[int, tuple[np.ndarray, int, int]] = {}
+        self.answers: dict[int, tuple[np.ndarray, int, bool]] = {}
         self.commands: list[tuple[int, np.ndarray]] = []
+        self.command_seqs: list[int] = []
         self.lc.subscribe(prefix + "STATE", self._state)
         self.lc.subscribe(prefix + "COMMAND", self._command)
         self.stop = False
@@ -29,10 +33,12 @@ class BusTap:
     def _state(self, channel: str, data: bytes) -> None:
         s = plant_state_t.decode(data)
         self.states[s.seq] = (np.array(s.level), s.step, s.episode)
+        self.answers[s.seq] = (np.array(s.valve, np.int8), s.command_seq, s.watchdog_tripped)
 
     def _command(self, channel: str, data: bytes) -> None:
         c = valve_command_t.decode(data)
         self.commands.append((c.state_seq, np.array(c.valve, np.int8)))
+        self.command_seqs.append(c.seq)
 
     def _spin(self) -> None:
         while not self.stop:

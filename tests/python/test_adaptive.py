@@ -45,6 +45,32 @@ def test_window_pairs_levels_with_the_command_that_led_to_them():
     assert w.features().max() == 1.0 and w.features().min() == -1.0  # clipped to [0, 1]
 
 
+def test_the_stuck_memory_remembers_valves_applied_against_their_command():
+    w = HistoryWindow(2, 2, stuck_memory=True)
+    assert w.features().shape == (2, 2 * 12 + 12)
+    w.start(np.full((2, 6), 0.5))
+    assert np.all(w.features()[:, 24:] == -1.0)  # nothing seen stuck yet
+    u = np.array([[1, 1, 0, 0, 0, 0], [1, 1, 0, 0, 0, 0]], np.int8)
+    applied = np.array([[0, 1, 1, 0, 0, 0], [1, 1, 0, 0, 0, 0]], np.int8)
+    w.push(np.full((2, 6), 0.4), u, applied=applied)
+    m = w.features()[:, 24:]
+    # env 0: valve 1 commanded open stayed closed, valve 3 commanded closed stayed open
+    assert np.array_equal(m[0], [1, -1, -1, -1, -1, -1] + [-1, -1, 1, -1, -1, -1])
+    assert np.all(m[1] == -1.0)  # env 1: every valve followed its command
+    # a new episode keeps the memory (the plant's valves stay stuck); a valve that
+    # follows its command again says nothing; one seen in the other state flips
+    w.push(np.full((2, 6), 0.3), np.zeros((2, 6), np.int8), started=np.array([True, True]),
+           applied=np.array([[1, 0, 0, 0, 0, 0], [0] * 6], np.int8))
+    m = w.features()[:, 24:]
+    assert np.array_equal(m[0], [-1, -1, -1, -1, -1, -1] + [1, -1, 1, -1, -1, -1])
+    w.forget(np.array([True, False]))  # env 0 is a new plant
+    assert np.all(w.features()[0, 24:] == -1.0)
+    with pytest.raises(ValueError, match="applied valves"):
+        w.push(np.full((2, 6), 0.3), np.zeros((2, 6), np.int8))
+    # a policy with the memory reads it: its input is 12 wider
+    assert HistoryPolicy(StudentConfig(window=2, stuck_memory=True)).net[0].in_features == 36
+
+
 def test_the_training_distribution_never_draws_a_benchmark_scenario():
     dist = distribution.load()
     forbidden = distribution.benchmark_signatures()
@@ -245,16 +271,18 @@ def test_the_code_digest_is_the_import_closure(tmp_path):
     assert closure_digest(["ftc.a.top"], pkg) != before
 
 
-def _obs(level: np.ndarray, step: int) -> PlantObservation:
+def _obs(level: np.ndarray, step: int, valves: np.ndarray | None = None) -> PlantObservation:
     fields = {f.name: 0 for f in dataclasses.fields(PlantObservation)}
     fields.update(level=np.asarray(level, np.float64), terminal=False, truncated=False,
-                  operating_steps=step)
+                  operating_steps=step,
+                  valves=np.zeros(6, np.int8) if valves is None else np.asarray(valves, np.int8))
     return PlantObservation(**fields)
 
 
-def test_the_method_flies_the_checkpoint_as_the_trainer_windows_it(tmp_path):
+@pytest.mark.parametrize("stuck_memory", [False, True])
+def test_the_method_flies_the_checkpoint_as_the_trainer_windows_it(tmp_path, stuck_memory):
     torch.manual_seed(3)
-    policy = HistoryPolicy(StudentConfig(window=4, hidden=(16,)))
+    policy = HistoryPolicy(StudentConfig(window=4, hidden=(16,), stuck_memory=stuck_memory))
     with torch.no_grad():
         for p in policy.parameters():  # weights large enough that valves open
             p.mul_(4.0)
@@ -264,18 +292,23 @@ def test_the_method_flies_the_checkpoint_as_the_trainer_windows_it(tmp_path):
     agent.prepare()
     rng = np.random.default_rng(1)
     levels = rng.uniform(0, 1, (12, 6))
-    window = HistoryWindow(1, 4)
+    window = HistoryWindow(1, 4, stuck_memory)
     window.start(levels[:1])
     agent.start_episode(_obs(levels[0], 0))
     actions = []
     for t in range(12):
+        applied = None
         if t:
-            window.push(levels[t:t + 1], actions[-1][None, :])
+            applied = actions[-1].copy()
+            applied[1] = 1  # valve 2 stuck open: the plant publishes it applied open
+            window.push(levels[t:t + 1], actions[-1][None, :], applied=applied[None, :])
         expected = policy.act(window.features())[0]
-        u = agent.act(_obs(levels[t], t), StepContext(0, t, 512 - t))
+        u = agent.act(_obs(levels[t], t, applied), StepContext(0, t, 512 - t))
         assert u.tolist() == expected.tolist(), t
         actions.append(u)
     assert 0 < np.sum(actions) < 72  # the check saw both open and closed valves
+    if stuck_memory:  # valve 2 was commanded closed at least once: the memory holds it
+        assert window.stuck[0, 6 + 1] == 1.0
 
 
 def test_the_method_refuses_to_run_without_a_checkpoint(tmp_path):

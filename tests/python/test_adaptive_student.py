@@ -281,3 +281,32 @@ def test_a_refused_plan_gets_the_worst_finite_regret_not_infinity():
     totals = np.array([2.0, -np.inf, 3.5, -np.inf, 1.0])
     np.testing.assert_array_equal(regrets_of(totals), [1.5, 2.5, 0.0, 2.5, 2.5])
     np.testing.assert_array_equal(regrets_of(np.full(3, -np.inf)), [0.0, 0.0, 0.0])
+
+
+def test_a_teacher_that_plans_with_the_seen_stuck_valves_only(tmp_path):
+    # valve 4 sticks closed at step 100 and valve 2 open at step 200: with nothing seen
+    # the teacher plans the healthy plant's valves, with both seen it plans the true
+    # plant's (its decision and regrets those of the teacher told every stuck valve)
+    body = 'tank_factor = [inf, inf, 12.0, inf, inf, inf]\nengine_factor = [inf, inf]\n'
+    healthy, stuck = tmp_path / "healthy.toml", tmp_path / "stuck.toml"
+    healthy.write_text('name = "healthy"\n' + body)
+    stuck.write_text('name = "stuck"\n' + body + '[[event]]\nat_step = 100\nstuck_valve = 4\n'
+                     'state = "closed"\n[[event]]\nat_step = 200\nstuck_valve = 2\n'
+                     'state = "open"\n')
+    h, s = (_core.load_scenario(str(p)) for p in (healthy, stuck))
+    levels = np.array([[0.2, 0.2, 0.2, 1.0, 1.0, 1.0], [0.9, 0.5, 0.1, 0.3, 0.6, 0.8],
+                       [1.0, 1.0, 1.0, 0.3, 0.3, 0.3]])
+    ops = np.array([600, 600, 600])
+    truth = np.zeros((3, 12), np.float32)
+    truth[:, 3] = truth[:, 6 + 1] = 1.0  # valve 4 closed, valve 2 open
+    u_true, g_true = PoolTeacher(2, 6).label_with_regrets([0, 1, 2], [s] * 3, ops, levels)
+    u_seen, g_seen = PoolTeacher(2, 6).label_with_regrets([0, 1, 2], [s] * 3, ops, levels,
+                                                          truth)
+    u_none, g_none = PoolTeacher(2, 6).label_with_regrets([0, 1, 2], [s] * 3, ops, levels,
+                                                          np.zeros((3, 12), np.float32))
+    u_h, g_h = PoolTeacher(2, 6).label_with_regrets([0, 1, 2], [h] * 3, ops, levels)
+    np.testing.assert_array_equal(u_seen, u_true)
+    np.testing.assert_allclose(g_seen, g_true)
+    np.testing.assert_array_equal(u_none, u_h)
+    np.testing.assert_allclose(g_none, g_h)
+    assert not np.allclose(g_true, g_h)  # the stuck valves change the plans' values

@@ -26,6 +26,18 @@ from ftc.plant import private_lcm_url, private_prefix
 from ftc.tools import policy_weights as pw
 from ftc.tools.export import main as export_main
 
+# valve 2 sticks closed and valve 5 open early in the run (operating steps)
+STUCK_EVENTS = """
+[[event]]
+at_step = 10
+stuck_valve = 2
+state = "closed"
+
+[[event]]
+at_step = 30
+stuck_valve = 5
+state = "open"
+"""
 SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) ")
 # float32 in both, but torch and Eigen sum the 144 products of a unit in other
 # orders (and other BLAS kernels per CPU): logits agree to ~1e-6 of their
@@ -34,13 +46,15 @@ SUMMARY = re.compile(r"^steps (\d+) deadline_misses (\d+) ")
 NEAR_TIE = 1e-4
 
 
-def _student(seed: int, window: int = 12, head: str = "valves") -> HistoryPolicy:
+def _student(seed: int, window: int = 12, head: str = "valves",
+             stuck_memory: bool = False) -> HistoryPolicy:
     """An untrained student of the trained one's architecture (window 12,
     128 x 128 tanh), its output layer scaled up so that its logits are far from 0
     and from each other (a fresh layer's are ~0.1) and its valves change with
     the history."""
     torch.manual_seed(seed)
-    student = HistoryPolicy(StudentConfig(window=window, hidden=(128, 128), head=head))
+    student = HistoryPolicy(StudentConfig(window=window, hidden=(128, 128), head=head,
+                                          stuck_memory=stuck_memory))
     with torch.no_grad():
         student.net[-1].weight.mul_(30.0)
     return student.eval()
@@ -54,7 +68,8 @@ def _export(student: HistoryPolicy, tmp_path: Path, name: str) -> Path:
     return weights
 
 
-def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
+def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False,
+            forget: bool = False):
     """Python's student on the states the node acted on, in order: the window
     started where the real-time loop starts an episode (the first state, a
     state of step 0 or of another episode) and pushed with the command sent on
@@ -62,15 +77,25 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
     agent). Returns its valves per command and whether each is firm (no
     logit within NEAR_TIE of 0, or with the joint head the top two logits
     NEAR_TIE apart or more); ``reverse`` feeds the window oldest first (what a
-    node with its order broken would compute)."""
-    window = HistoryWindow(1, student.config.window)
-    valves, firm, episode, last = [], [], None, None
-    for state_seq, sent in bus.commands:
+    node with its order broken would compute). With the stuck memory, a
+    state's applied valves enter it when the state answers the command before
+    and the watchdog was not holding the valves (the node's rule); ``forget``
+    clears it before every step (what a node without it would compute).
+    Returns the valves, the firm flags and the stuck memory at the end (or
+    None)."""
+    window = HistoryWindow(1, student.config.window, student.config.stuck_memory)
+    valves, firm, episode, last, last_seq = [], [], None, None, None
+    for (state_seq, sent), seq in zip(bus.commands, bus.command_seqs):
         level, step, ep = bus.states[state_seq]
         if last is None or step == 0 or ep != episode:
             window.start(level[None])
         else:
-            window.push(level[None], last[None])
+            applied, answers, watchdog = bus.answers[state_seq]
+            if answers != last_seq or watchdog:
+                applied = last  # a step on an older command or the safe state
+            window.push(level[None], last[None], applied=applied[None])
+        if forget:
+            window.forget()
         x = window.features()
         if reverse:
             x = x.reshape(1, student.config.window, -1)[:, ::-1].reshape(1, -1).copy()
@@ -84,25 +109,34 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False):
             firm.append(not (np.abs(out) < NEAR_TIE).any())
         # the node's own command goes into the history (the same as Python's on
         # every step asserted below; at a near tie it keeps the two in step)
-        episode, last = ep, sent
-    return np.array(valves), np.array(firm)
+        episode, last, last_seq = ep, sent, seq
+    memory = None if window.stuck is None else window.stuck[0].copy()
+    return np.array(valves), np.array(firm), memory
 
 
 @pytest.mark.quick
-@pytest.mark.parametrize("head,members", [("valves", 1), ("joint", 1), ("joint", 3)])
+@pytest.mark.parametrize("head,members,memory", [("valves", 1, False), ("joint", 1, False),
+                                                 ("joint", 3, False), ("joint", 3, True)])
 def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path, scenarios,
-                                                                       head, members):
+                                                                       head, members, memory):
     # three members: the default's shape, whose middle layer the node flies as
-    # three packed blocks (the zeros between them skipped)
-    student = (_student(0, head=head) if members == 1
-               else ensemble([_student(seed, head=head) for seed in range(members)]).eval())
+    # three packed blocks (the zeros between them skipped); with the stuck memory,
+    # on a plant whose valves stick early (one open, one closed)
+    student = (_student(0, head=head, stuck_memory=memory) if members == 1
+               else ensemble([_student(seed, head=head, stuck_memory=memory)
+                              for seed in range(members)]).eval())
     weights = _export(student, tmp_path, "student")
     policy = pw.read_policy(weights)
     assert policy.window == 12 and policy.widths[-1] == student.config.outputs
+    assert policy.stuck_memory == memory
+    scenario = scenarios / "single.toml"
+    if memory:
+        scenario = tmp_path / "stuck.toml"
+        scenario.write_text((scenarios / "single.toml").read_text() + STUCK_EVENTS)
     url, prefix = private_lcm_url(), private_prefix()
     bus = BusTap(url, prefix)
     # short intervals: the run crosses several episode starts (the window refilled)
-    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenarios / "single.toml"),
+    plant = subprocess.Popen([str(plant_binary()), "--scenario", str(scenario),
                               "--mode", "realtime", "--rate", "200", "--watchdog", "1",
                               "--steps-per-interval", "48", "--lcm-url", url, "--prefix",
                               prefix], stderr=subprocess.DEVNULL)
@@ -132,7 +166,7 @@ def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path,
     missing = [s for s, _ in bus.commands if s not in bus.states]
     assert not missing, f"states the recorder missed: {missing[:5]}"
     sent = np.array([v for _, v in bus.commands])
-    expected, firm = _replay(student, bus)
+    expected, firm, seen = _replay(student, bus)
     assert firm.sum() >= 236, f"{240 - firm.sum()} near ties"  # rare: the test stays a test
     wrong = np.flatnonzero((sent != expected).any(axis=1) & firm)
     assert not len(wrong), (f"the node's valves differ from Python's at commands "
@@ -143,8 +177,12 @@ def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path,
     starts = sum(bus.states[s][1] == 0 for s, _ in bus.commands)
     assert starts >= 3, starts
     assert 0.05 < sent.mean() < 0.95 and (np.diff(sent, axis=0) != 0).any(axis=1).sum() >= 10
-    reversed_valves, _ = _replay(student, bus, reverse=True)
+    reversed_valves, _, _ = _replay(student, bus, reverse=True)
     assert (reversed_valves != sent).any(axis=1).sum() >= 10
+    if memory:  # it saw both valves stuck, and without the memory the valves differ
+        assert seen.tolist() == [0, 1, 0, 0, 0, 0] + [0, 0, 0, 0, 1, 0], seen
+        forgetting, _, _ = _replay(student, bus, forget=True)
+        assert (forgetting != sent).any(axis=1).sum() >= 5
 
 
 def test_a_windowed_weights_file_round_trips_and_damage_is_named(tmp_path):

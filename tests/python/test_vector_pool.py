@@ -84,10 +84,8 @@ def _single_trajectory(path: Path, seed: int, actions: np.ndarray, method: str =
         else:
             obs, r, term, trunc, info = env.step(a)
         done = term or trunc
-        rows.append((obs, r, term, trunc, info["age"]))
-    return (np.array([x[0] for x in rows]), np.array([x[1] for x in rows]),
-            np.array([x[2] for x in rows]), np.array([x[3] for x in rows]),
-            np.array([x[4] for x in rows]))
+        rows.append((obs, r, term, trunc, info["age"], env._last[0].valves))  # as published
+    return tuple(np.array([x[k] for x in rows]) for k in range(6))
 
 
 def _pool_trajectory(env: FuelTransferVectorEnv, actions: np.ndarray):
@@ -95,7 +93,7 @@ def _pool_trajectory(env: FuelTransferVectorEnv, actions: np.ndarray):
     out = [env.step(a) for a in actions]
     return (np.array([o[0] for o in out]), np.array([o[1] for o in out]),
             np.array([o[2] for o in out]), np.array([o[3] for o in out]),
-            np.array([o[4]["age"] for o in out]))
+            np.array([o[4]["age"] for o in out]), np.array([o[4]["valves"] for o in out]))
 
 
 def _random_actions(steps: int, n: int, seed: int = 0) -> np.ndarray:
@@ -105,17 +103,21 @@ def _random_actions(steps: int, n: int, seed: int = 0) -> np.ndarray:
 @pytest.mark.parametrize("method", ["cvode", "closed_form"])
 def test_each_env_is_the_single_env_bit_for_bit_on_every_suite_scenario(tmp_path, method):
     # The same integrator in both: the pool's env is the same Plant, driven the same
-    # way, so every observation, reward, flag and age is identical (==, no tolerance),
-    # over 200 steps = 3 intervals of aging, with events, stuck valves and noise.
+    # way, so every observation, reward, flag, age and applied valve is identical (==,
+    # no tolerance), over 200 steps = 3 intervals of aging, with events, stuck valves
+    # and noise.
     files = _scenario_files(tmp_path)
     actions = _random_actions(200, len(files))
     pool = FuelTransferVectorEnv(len(files), [str(f) for f in files], plant_seed=7,
                                  method=method, threads=2)
     got = _pool_trajectory(pool, actions)
     assert got[2].sum() > 0 and got[3].sum() > 0  # episodes ended both ways
+    events = files.index(tmp_path / "events.toml")  # valve 4 stuck open overrode "closed"
+    assert ((got[5][:, events, 3] == 1) & (actions[:, events, 3] == 0)).any()
     for i, path in enumerate(files):
         want = _single_trajectory(path, 7 + i, actions[:, i], method)
-        for g, w, what in zip(got, want, ("obs", "reward", "terminated", "truncated", "age")):
+        for g, w, what in zip(got, want, ("obs", "reward", "terminated", "truncated", "age",
+                                          "applied valves")):
             np.testing.assert_array_equal(g[:, i], w, err_msg=f"{path.name}: {what}")
 
 

@@ -184,7 +184,7 @@ void BindPool(py::module_& m) {
               const py::object& terminated, const py::object& truncated, const py::object& age,
               const py::object& episode_step, const py::object& cg, const py::object& spread,
               const py::object& activity, const py::object& final_obs,
-              const py::object& final_mask) {
+              const py::object& final_mask, const py::object& valves) {
              const py::ssize_t n = p.pool->size();
              std::vector<py::object> keep;
              ftc::PoolOutput out;
@@ -199,6 +199,8 @@ void BindPool(py::module_& m) {
              out.activity = Buffer<double>(activity, "activity", n, false, &keep);
              out.final_obs = Buffer<float>(final_obs, "final_obs", n, true, &keep);
              out.final_mask = Buffer<bool>(final_mask, "final_mask", n, false, &keep);
+             if (!valves.is_none())
+               out.valves = Buffer<std::int8_t>(valves, "valves", n, true, &keep);
              p.keep = std::move(keep);
              p.out = out;
              p.bound = true;
@@ -206,9 +208,12 @@ void BindPool(py::module_& m) {
            py::arg("obs"), py::arg("reward"), py::arg("terminated"), py::arg("truncated"),
            py::arg("age"), py::arg("episode_step"), py::arg("cg"), py::arg("spread"),
            py::arg("activity"), py::arg("final_obs"), py::arg("final_mask"),
+           py::arg("valves") = py::none(),
            "Arrays every reset and step writes into: obs (N, 6) float32, reward float64, "
            "terminated and truncated bool, age float64, episode_step int64, cg, spread, "
-           "activity float64, final_obs (N, 6) float32, final_mask bool (N,)")
+           "activity float64, final_obs (N, 6) float32, final_mask bool (N,), and if given "
+           "valves (N, 6) int8: the valves applied during the step just taken (stuck ones "
+           "as they stayed; 0 after a reset), as the plant's state message publishes them")
       .def("reset", [](PyPool& p) {
              p.Require();
              py::gil_scoped_release release;

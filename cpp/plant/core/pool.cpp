@@ -157,10 +157,17 @@ void PlantPool::WriteState(int i, const PoolOutput& out) const {
   if (out.episode_step != nullptr) out.episode_step[i] = o.step;
 }
 
+void PlantPool::WriteValves(int i, const Valves& applied, const PoolOutput& out) {
+  if (out.valves == nullptr) return;
+  for (int k = 0; k < kTanks; ++k)
+    out.valves[i * kTanks + k] = static_cast<std::int8_t>(applied[k] != 0);
+}
+
 void PlantPool::Reset(const PoolOutput& out) {
   workers_.Run(size(), [&](int i) {
     StartEpisode(i);
     WriteState(i, out);
+    WriteValves(i, Valves::Zero(), out);
     if (out.reward != nullptr) out.reward[i] = 0.0;
     if (out.terminated != nullptr) out.terminated[i] = false;
     if (out.truncated != nullptr) out.truncated[i] = false;
@@ -196,6 +203,7 @@ void PlantPool::StepOne(int i, const std::int8_t* actions, const PoolOutput& out
   if (e.needs_reset) {  // kNextStep: this step is the reset
     StartEpisode(i);
     WriteState(i, out);
+    WriteValves(i, Valves::Zero(), out);
     if (out.reward != nullptr) out.reward[i] = 0.0;
     if (out.terminated != nullptr) out.terminated[i] = false;
     if (out.truncated != nullptr) out.truncated[i] = false;
@@ -212,6 +220,7 @@ void PlantPool::StepOne(int i, const std::int8_t* actions, const PoolOutput& out
   const StepOutcome& o = e.plant.Step(u);
   const RewardTerms t = ComputeReward(o.observed, u, nominal_);
   WriteState(i, out);
+  WriteValves(i, o.valves, out);  // this step's, also when kSameStep starts another episode
   if (out.reward != nullptr) out.reward[i] = t.reward;
   if (out.cg != nullptr) out.cg[i] = t.cg;
   if (out.spread != nullptr) out.spread[i] = t.spread;

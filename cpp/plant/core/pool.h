@@ -60,6 +60,8 @@ struct PoolOutput {
   double* activity = nullptr;
   float* final_obs = nullptr;           // kSameStep: the observation that ended an episode
   bool* final_mask = nullptr;           // kSameStep: whether final_obs[i] was written
+  std::int8_t* valves = nullptr;        // (N, 6) valves applied during the step just taken
+                                        // (stuck ones as they stayed; 0 after a reset)
 };
 
 // A fixed set of worker threads running one index loop at a time; the caller
@@ -126,6 +128,7 @@ class PlantPool final {
   };
   void StartEpisode(int i);
   void WriteState(int i, const PoolOutput& out) const;
+  static void WriteValves(int i, const Valves& applied, const PoolOutput& out);
   void StepOne(int i, const std::int8_t* actions, const PoolOutput& out);
 
   static constexpr int kValveMasks = 1 << kTanks;

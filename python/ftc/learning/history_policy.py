@@ -33,12 +33,14 @@ from ftc.common.constants import NUM_TANKS
 from ftc.common.source_key import closure_digest, native_source_digest
 
 STEP_FEATURES = 2 * NUM_TANKS  # levels and valves of one step
+STUCK_FEATURES = 2 * NUM_TANKS  # the stuck memory: per valve seen stuck closed, then open
 # the module whose import closure trains the checkpoint (its code is the cache key's);
 # named, not imported: this module stays free of the plant equations training uses
 TRAINER = "ftc.experiments.adaptive.dagger"
 CACHE_VERSION = 1  # bump when the checkpoint record's layout changes
 HEADS = {"valves": NUM_TANKS, "joint": 2 ** NUM_TANKS}  # outputs of each head
 INPUTS = ("window", "rates")  # the training-time input parametrizations (TrainingConfig.inputs)
+TEACHER_STUCK = ("all", "seen")  # which stuck valves the teacher plans with (TrainingConfig)
 
 
 @dataclass(frozen=True)
@@ -49,11 +51,13 @@ class StudentConfig:
         valves only); hidden: widths of its tanh layers; head: "valves" (six
         logits, valve i opens where logit i > 0) or "joint" (64 logits, one per
         valve setting: the setting a of the largest logit, first on ties, opens
-        valve i iff bit i of a is set)."""
+        valve i iff bit i of a is set); stuck_memory: 12 more inputs, the valves
+        seen stuck (:class:`HistoryWindow`)."""
 
     window: int = 12
     hidden: tuple[int, ...] = (128, 128)
     head: str = "valves"
+    stuck_memory: bool = False
 
     def __post_init__(self) -> None:
         if self.window < 1 or not self.hidden or min(self.hidden) < 1:
@@ -65,7 +69,7 @@ class StudentConfig:
 
     @property
     def inputs(self) -> int:
-        return STEP_FEATURES * self.window
+        return STEP_FEATURES * self.window + (STUCK_FEATURES if self.stuck_memory else 0)
 
     @property
     def outputs(self) -> int:
@@ -79,7 +83,8 @@ class StudentConfig:
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "StudentConfig":
         return cls(window=int(d["window"]), hidden=tuple(int(h) for h in d["hidden"]),
-                   head=str(d.get("head", "valves")))
+                   head=str(d.get("head", "valves")),
+                   stuck_memory=bool(d.get("stuck_memory", False)))
 
 
 @dataclass(frozen=True)
@@ -108,7 +113,11 @@ class TrainingConfig:
     network whose logits are their mean (:func:`ensemble`); privileged: weight
     of the privileged head's loss (a second head on the last hidden layer that
     learns which valves are stuck, in training only: see
-    ftc.experiments.adaptive.dagger), 0 for none."""
+    ftc.experiments.adaptive.dagger), 0 for none; stuck_memory: the student
+    also reads which valves it has seen stuck (:class:`HistoryWindow`);
+    teacher_stuck: which stuck valves the teacher plans with, "all" (every
+    one, from its event on) or "seen" (those in the student's stuck memory
+    at that step, the others as healthy: what the student can know)."""
 
     iterations: int = 8
     envs: int = 48
@@ -130,6 +139,8 @@ class TrainingConfig:
     seed: int = 0
     members: int = 3
     privileged: float = 0.0
+    stuck_memory: bool = False
+    teacher_stuck: str = "all"
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
@@ -141,9 +152,19 @@ class TrainingConfig:
             raise ValueError(f"TrainingConfig: privileged must be >= 0, got {self.privileged}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
+        if self.teacher_stuck not in TEACHER_STUCK:
+            raise ValueError(f"TrainingConfig: teacher_stuck must be one of "
+                             f"{list(TEACHER_STUCK)}, got {self.teacher_stuck!r}")
+        if self.teacher_stuck == "seen" and not self.stuck_memory:
+            raise ValueError("TrainingConfig: teacher_stuck 'seen' needs the stuck memory "
+                             "(the valves seen stuck are the student's)")
+        if self.stuck_memory and self.inputs != "window":
+            raise ValueError("TrainingConfig: the stuck memory needs inputs 'window', got "
+                             f"{self.inputs!r}")
 
     def student(self) -> StudentConfig:
-        return StudentConfig(window=self.window, hidden=tuple(self.hidden), head=self.head)
+        return StudentConfig(window=self.window, hidden=tuple(self.hidden), head=self.head,
+                             stuck_memory=self.stuck_memory)
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -152,21 +173,32 @@ class TrainingConfig:
 
 
 class HistoryWindow:
-    """N windows of history, newest first: ``features()`` is (N, 12 W) float32.
+    """N windows of history, newest first: ``features()`` is (N, 12 W) float32,
+    followed with the stuck memory by 12 more.
 
     Slot k holds the levels published k steps ago and the valves commanded on
     the step that led to them (closed for an episode's first levels), so the
     newest slot pairs the current levels with the last command.
     ``start(levels, which)``: envs ``which`` (bool (N,), default all) begin an
-    episode at ``levels`` (N, 6); ``push(levels, valves, started)``: after a
-    step with ``valves`` (N, 6) the plant published ``levels`` (N, 6); rows
-    where ``started`` is set began a new episode with these levels (their
-    window is refilled). Levels are clipped to [0, 1] as the observation space
-    is."""
+    episode at ``levels`` (N, 6); ``push(levels, valves, started, applied)``:
+    after a step with ``valves`` (N, 6) commanded the plant published
+    ``levels`` (N, 6) and the valves it ``applied`` (N, 6); rows where
+    ``started`` is set began a new episode with these levels (their window is
+    refilled). Levels are clipped to [0, 1] as the observation space is.
 
-    def __init__(self, num_envs: int, window: int) -> None:
+    The stuck memory (``stuck_memory``): per valve, whether it was last seen
+    stuck closed (applied closed when commanded open) or stuck open (applied
+    open when commanded closed), 1 or -1, closed for valves 1-6 then open for
+    valves 1-6. A valve stuck as it is commanded cannot be told from a healthy
+    one, so it is seen at the first command against its state. The memory
+    outlives episodes (a plant's valves stay stuck); ``forget(which)`` clears
+    it for envs that are new plants."""
+
+    def __init__(self, num_envs: int, window: int, stuck_memory: bool = False) -> None:
         self.window = window
         self._buf = np.zeros((num_envs, window, STEP_FEATURES), np.float32)
+        self.stuck = (np.zeros((num_envs, STUCK_FEATURES), np.float32) if stuck_memory
+                      else None)
 
     def start(self, levels: np.ndarray, which: np.ndarray | None = None) -> None:
         rows = np.arange(len(self._buf)) if which is None else np.flatnonzero(which)
@@ -176,17 +208,34 @@ class HistoryWindow:
         self._buf[rows, :, :NUM_TANKS] = scaled[:, None, :]
         self._buf[rows, :, NUM_TANKS:] = -1.0  # closed
 
+    def forget(self, which: np.ndarray | None = None) -> None:
+        """Clear the stuck memory of envs ``which`` (bool (N,), default all)."""
+        if self.stuck is not None:
+            self.stuck[slice(None) if which is None else np.asarray(which, bool)] = 0.0
+
     def push(self, levels: np.ndarray, valves: np.ndarray,
-             started: np.ndarray | None = None) -> None:
+             started: np.ndarray | None = None, applied: np.ndarray | None = None) -> None:
+        if self.stuck is not None and applied is None:
+            raise ValueError("HistoryWindow.push: the stuck memory needs the applied valves")
         self._buf[:, 1:] = self._buf[:, :-1]
         self._buf[:, 0, :NUM_TANKS] = 2.0 * np.clip(np.asarray(levels, np.float32), 0.0,
                                                     1.0) - 1.0
         self._buf[:, 0, NUM_TANKS:] = 2.0 * np.asarray(valves, np.float32) - 1.0
+        if self.stuck is not None:
+            commanded = np.asarray(valves, np.int8) != 0
+            held = np.asarray(applied, np.int8) != 0
+            closed, opened = commanded & ~held, ~commanded & held
+            seen = closed | opened
+            self.stuck[:, :NUM_TANKS][seen] = closed[seen]
+            self.stuck[:, NUM_TANKS:][seen] = opened[seen]
         if started is not None and np.any(started):
             self.start(levels, started)
 
     def features(self) -> np.ndarray:
-        return self._buf.reshape(len(self._buf), -1).copy()
+        x = self._buf.reshape(len(self._buf), -1)
+        if self.stuck is None:
+            return x.copy()
+        return np.concatenate([x, 2.0 * self.stuck - 1.0], axis=1)
 
 
 class HistoryPolicy(nn.Module):
@@ -258,11 +307,13 @@ def ensemble(policies: list[HistoryPolicy]) -> HistoryPolicy:
     vote would, in one forward pass, so the node flies it as any student."""
     first = policies[0].config
     if any(p.config.window != first.window or p.config.head != first.head or
+           p.config.stuck_memory != first.stuck_memory or
            len(p.config.hidden) != len(first.hidden) for p in policies):
-        raise ValueError("ensemble: the members differ in window, head or depth: "
+        raise ValueError("ensemble: the members differ in window, head, stuck memory or depth: "
                          f"{[p.config for p in policies]}")
     widths = tuple(sum(p.config.hidden[j] for p in policies) for j in range(len(first.hidden)))
-    merged = HistoryPolicy(StudentConfig(window=first.window, hidden=widths, head=first.head))
+    merged = HistoryPolicy(StudentConfig(window=first.window, hidden=widths, head=first.head,
+                                         stuck_memory=first.stuck_memory))
     records = [p.record()["state"] for p in policies]  # input maps folded in
     layers = len(first.hidden) + 1
     with torch.no_grad():

@@ -24,8 +24,10 @@ env resets within the step; the observation returned is the new episode's and
 the last one is ``info["final_obs"]`` (rows where ``info["_final_obs"]``).
 
 Info: a dict of arrays (N,): ``age`` (intervals), ``step`` (in the episode),
-``cg``, ``spread``, ``activity`` (the reward's terms), each with its ``_key``
-mask (all True).
+``cg``, ``spread``, ``activity`` (the reward's terms), and (N, 6) int8
+``valves``: the valves the plant applied during the step just taken (a stuck
+valve as it stayed, whatever was commanded; 0 after a reset), what the
+plant's state message publishes. Each has its ``_key`` mask (all True).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from ftc.plant.env import MAX_SEED, _check_scenario_file, resolve_scenario
 
 AUTORESET = {"next_step": AutoresetMode.NEXT_STEP, "same_step": AutoresetMode.SAME_STEP}
 METHODS = ("closed_form", "cvode")
-INFO_KEYS = ("age", "step", "cg", "spread", "activity")
+INFO_KEYS = ("age", "step", "cg", "spread", "activity", "valves")
 
 
 def scenario_distribution(**fields: Any) -> Any:
@@ -189,14 +191,15 @@ class FuelTransferVectorEnv(gym.vector.VectorEnv):
         self._terminated = np.zeros(n, bool)
         self._truncated = np.zeros(n, bool)
         self._info = {"age": np.zeros(n), "step": np.zeros(n, np.int64), "cg": np.zeros(n),
-                      "spread": np.zeros(n), "activity": np.zeros(n)}
+                      "spread": np.zeros(n), "activity": np.zeros(n),
+                      "valves": np.zeros((n, NUM_TANKS), np.int8)}
         self._final_obs = np.zeros((n, NUM_TANKS), np.float32)
         self._final_mask = np.zeros(n, bool)
         self._all = np.ones(n, bool)
         self.pool.bind_outputs(self._obs, self._reward, self._terminated, self._truncated,
                                self._info["age"], self._info["step"], self._info["cg"],
                                self._info["spread"], self._info["activity"], self._final_obs,
-                               self._final_mask)
+                               self._final_mask, self._info["valves"])
         self._reset_once = False
 
     def _out(self, a: np.ndarray) -> np.ndarray:

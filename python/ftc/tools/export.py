@@ -297,10 +297,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                         f"{student.config.window} steps) exports as --weights only: the ONNX "
                         "graph takes the levels alone")
                 window, widths, params = policy_weights.student_layers(student)
+                memory = student.config.stuck_memory
                 policy_weights.write_weights(args.weights, widths, params, version=1,
-                                             window=window)
+                                             window=window, stuck_memory=memory)
                 print(f"{TOOL}: wrote {args.weights} (adaptive-policy student of {path}, "
-                      f"window {window}, widths {' '.join(map(str, widths))}, version 1)")
+                      f"window {window}{', stuck memory' if memory else ''}, widths "
+                      f"{' '.join(map(str, widths))}, version 1)")
                 return
             policy, source = load_policy(path)
             written = []

@@ -46,7 +46,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         w = read_policy(args.weights)
         outcome = push(args.lcm_url, args.prefix,
                        policy_message(w.widths, w.params, args.version or w.version,
-                                      window=w.window), args.timeout, key=key)
+                                      window=w.window, stuck_memory=w.stuck_memory),
+                       args.timeout, key=key)
     except (UsageError, ValueError) as e:
         parser.error(str(e))
     if not outcome.accepted:

@@ -33,7 +33,11 @@ A policy with a history window (the adaptive student,
 ``window W`` line after the version, widths from ``12 W`` (the last W steps,
 newest first, each the six levels and the six valves commanded before them,
 ``2 x - 1``), and the checksum continued over the window (int32
-little-endian) after the params. Its last layer is 6 logits (a valve opens
+little-endian) after the params. A student that also reads its stuck memory
+(the valves it has seen applied otherwise than commanded, 12 inputs after
+the window: :class:`ftc.learning.history_policy.HistoryWindow`) has a
+``stuck_memory 1`` line after the window, widths from ``12 W + 12``, and its
+checksum continued with the int32 1. Its last layer is 6 logits (a valve opens
 where its logit is positive) or 64, one per valve setting: the node applies
 the setting of the largest (the first on ties), valve i open where bit i is set. It is pushed as a ``policy_v2_t`` (a window
 field); policies of the levels stay ``ftc-policy 1`` files and ``policy_t``
@@ -61,11 +65,14 @@ FORMAT_WINDOW = "ftc-policy 2"  # with a history window
 FNV_OFFSET, FNV_PRIME, MASK = 1469598103934665603, 1099511628211, (1 << 64) - 1
 
 
-def checksum(widths: Sequence[int], params: np.ndarray, window: int | None = None) -> int:
+def checksum(widths: Sequence[int], params: np.ndarray, window: int | None = None,
+             stuck_memory: bool = False) -> int:
     """FNV-1a 64 of the widths (int32 LE) then the params (float32 LE), then
-    the window (int32 LE) when given (``ftc-policy 2``, ``policy_v2_t``)."""
+    the window (int32 LE) when given (``ftc-policy 2``, ``policy_v2_t``), then
+    the int32 1 for a policy that reads the stuck memory."""
     data = (np.asarray(widths, "<i4").tobytes() + np.asarray(params, "<f4").tobytes()
-            + (b"" if window is None else np.asarray([window], "<i4").tobytes()))
+            + (b"" if window is None else np.asarray([window], "<i4").tobytes())
+            + (np.asarray([1], "<i4").tobytes() if stuck_memory else b""))
     h = FNV_OFFSET
     for byte in data:
         h = ((h ^ byte) * FNV_PRIME) & MASK
@@ -74,12 +81,14 @@ def checksum(widths: Sequence[int], params: np.ndarray, window: int | None = Non
 
 @dataclass(frozen=True)
 class Weights:
-    """A weights file's contents: ``window`` 0 for a policy of the levels."""
+    """A weights file's contents: ``window`` 0 for a policy of the levels;
+    ``stuck_memory``: its input ends with the stuck memory."""
 
     widths: list[int]
     params: np.ndarray
     version: int
     window: int = 0
+    stuck_memory: bool = False
 
 
 def actor_layers(policy) -> tuple[list[int], np.ndarray]:
@@ -98,7 +107,8 @@ def actor_layers(policy) -> tuple[list[int], np.ndarray]:
 def student_layers(policy) -> tuple[int, list[int], np.ndarray]:
     """(window, widths, params float32) of a
     :class:`ftc.learning.history_policy.HistoryPolicy`: its dense layers in
-    order, each W (in x out) then b."""
+    order, each W (in x out) then b (its ``config.stuck_memory`` says whether
+    its input ends with the stuck memory)."""
     import torch
 
     linears = [m for m in policy.net.modules() if isinstance(m, torch.nn.Linear)]
@@ -124,20 +134,26 @@ def actions(widths: Sequence[int], params: np.ndarray, levels: np.ndarray) -> np
 
 
 def format_weights(widths: Sequence[int], params: np.ndarray, version: int = 1,
-                   window: int = 0) -> str:
-    """The weights file's text: ``ftc-policy 1``, or ``2`` with ``window`` >= 1."""
+                   window: int = 0, stuck_memory: bool = False) -> str:
+    """The weights file's text: ``ftc-policy 1``, or ``2`` with ``window`` >= 1
+    (and a ``stuck_memory 1`` line after the window for a policy that reads it)."""
+    if stuck_memory and not window:
+        raise ValueError("the stuck memory is read after a history window (window 0 given)")
     params = np.asarray(params, np.float32)
     rows = [" ".join(f"{v:.9g}" for v in params[i:i + 8]) for i in range(0, len(params), 8)]
     head = [FORMAT_WINDOW, f"version {int(version)}", f"window {int(window)}"] if window else \
         [FORMAT, f"version {int(version)}"]
+    if stuck_memory:
+        head.append("stuck_memory 1")
     return "\n".join([*head, "widths " + " ".join(map(str, widths)),
                       f"params {len(params)}", *rows,
-                      f"checksum {checksum(widths, params, window or None):016x}"]) + "\n"
+                      f"checksum {checksum(widths, params, window or None, stuck_memory):016x}"]
+                     ) + "\n"
 
 
 def write_weights(path: Path, widths: Sequence[int], params: np.ndarray, version: int = 1,
-                  window: int = 0) -> None:
-    atomic_write_text(Path(path), format_weights(widths, params, version, window))
+                  window: int = 0, stuck_memory: bool = False) -> None:
+    atomic_write_text(Path(path), format_weights(widths, params, version, window, stuck_memory))
 
 
 def read_weights(path: Path) -> tuple[list[int], np.ndarray, int]:
@@ -165,7 +181,8 @@ def read_policy(path: Path) -> Weights:
     fields, values = {}, []
     for n, line in enumerate(lines[1:], start=2):
         head, _, rest = line.partition(" ")
-        if head in ("version", "widths", "params", "checksum") or (windowed and head == "window"):
+        if head in ("version", "widths", "params", "checksum") or (
+                windowed and head in ("window", "stuck_memory")):
             fields[head] = rest.split()
         elif line.strip() and not line.startswith("#"):
             try:
@@ -177,6 +194,9 @@ def read_policy(path: Path) -> Weights:
         count, version = int(fields["params"][0]), int(fields.get("version", ["0"])[0])
         expected = int(fields["checksum"][0], 16)
         window = int(fields["window"][0]) if windowed else None
+        memory = int(fields.get("stuck_memory", ["0"])[0])
+        if memory not in (0, 1):
+            raise ValueError(memory)
     except (KeyError, IndexError, ValueError):
         raise UsageError(f"{path}: a version, {'window, ' if windowed else ''}widths, params or "
                          "checksum line is missing or malformed") from None
@@ -184,7 +204,7 @@ def read_policy(path: Path) -> Weights:
     if len(params) != count:
         raise UsageError(f"{path}: params says {count} values, the file holds {len(params)} "
                          "(truncated?)")
-    if checksum(widths, params, window) != expected:
+    if checksum(widths, params, window, bool(memory)) != expected:
         raise UsageError(f"{path}: checksum mismatch: the weights were changed or truncated")
     if window is not None:
         from ftc.policy_v2_t import policy_v2_t  # generated by lcm-gen at build time
@@ -192,18 +212,23 @@ def read_policy(path: Path) -> Weights:
         if not 1 <= window <= policy_v2_t.MAX_WINDOW:
             raise UsageError(f"{path}: a window of {window} steps (allowed: "
                              f"1..{policy_v2_t.MAX_WINDOW})")
-    return Weights(widths, params, version, window or 0)
+    return Weights(widths, params, version, window or 0, bool(memory))
 
 
 def policy_message(widths: Sequence[int], params: np.ndarray, version: int,
-                   checksum_value: int | None = None, window: int = 0):
+                   checksum_value: int | None = None, window: int = 0,
+                   stuck_memory: bool = False):
     """A ``policy_t`` carrying the weights (its checksum computed unless given),
-    or with ``window`` >= 1 a ``policy_v2_t`` carrying the window too."""
+    or with ``window`` >= 1 a ``policy_v2_t`` carrying the window (and whether
+    the policy reads the stuck memory) too."""
+    if stuck_memory and not window:
+        raise ValueError("the stuck memory is read after a history window (window 0 given)")
     if window:
         from ftc.policy_v2_t import policy_v2_t  # generated by lcm-gen at build time
 
         msg = policy_v2_t()
         msg.window = int(window)
+        msg.stuck_memory = int(bool(stuck_memory))
     else:
         from ftc.policy_t import policy_t  # generated by lcm-gen at build time
 
@@ -211,7 +236,8 @@ def policy_message(widths: Sequence[int], params: np.ndarray, version: int,
     msg.utime, msg.version = int(time.time() * 1e6), int(version)
     msg.num_widths, msg.widths = len(widths), [int(w) for w in widths]
     msg.num_params, msg.params = len(params), [float(v) for v in np.asarray(params, np.float32)]
-    value = checksum(widths, params, window or None) if checksum_value is None else checksum_value
+    value = (checksum(widths, params, window or None, stuck_memory) if checksum_value is None
+             else checksum_value)
     msg.checksum = value - (1 << 64) if value >= 1 << 63 else value  # int64 on the wire
     return msg
 

@@ -64,6 +64,12 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "privileged": "weight of the privileged head's loss: a second head, in training only, "
                   "learns from the student's last hidden layer which valves are stuck "
                   "(0: none)",
+    "stuck_memory": "the student also reads which valves it has seen stuck: applied by the "
+                    "plant otherwise than it commanded them (what the state message "
+                    "publishes), remembered for the plant's life",
+    "teacher_stuck": "which stuck valves the teacher plans with: all (every one from its "
+                     "event on) or seen (those in the student's stuck memory, the others as "
+                     "healthy)",
 }
 
 

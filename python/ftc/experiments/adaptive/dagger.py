@@ -110,7 +110,7 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
                                 copy=False)
     teacher.forget()
     obs, _ = env.reset()
-    window = HistoryWindow(config.envs, config.window)
+    window = HistoryWindow(config.envs, config.window, config.stuck_memory)
     window.start(obs)
     driven = np.arange(config.envs) < round(beta * config.envs)  # by the teacher
     xs, ys, gs, zs, reward, student_reward = [], [], [], [], 0.0, []
@@ -124,7 +124,8 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
         envs = np.flatnonzero(labelled)
         if len(envs):
             ops = np.array([env.pool.operating_steps(int(i)) for i in envs])
-            labels, regrets = teacher.label_with_regrets(envs, scenarios, ops, obs[envs])
+            seen = window.stuck[envs] if config.teacher_stuck == "seen" else None
+            labels, regrets = teacher.label_with_regrets(envs, scenarios, ops, obs[envs], seen)
             xs.append(features[envs])
             ys.append(labels)
             if keep_regrets:
@@ -132,11 +133,11 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
             if config.privileged > 0:
                 zs.append(np.stack([stuck_valves(events[i], op) for i, op in zip(envs, ops)]))
             u[driven] = labels[driven[envs]]
-        obs, r, terminated, truncated, _ = env.step(u)
+        obs, r, terminated, truncated, info = env.step(u)
         reward += float(r.mean())
         if (~driven).any():
             student_reward.append(float(r[~driven].mean()))
-        window.push(obs, u, terminated | truncated)
+        window.push(obs, u, terminated | truncated, info["valves"])
     env.close()
     return {"x": np.concatenate(xs), "y": np.concatenate(ys),
             "regrets": np.concatenate(gs) if keep_regrets else None,

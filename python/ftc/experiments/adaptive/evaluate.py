@@ -62,7 +62,7 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
     obs, _ = env.reset()
     window = None
     if isinstance(policy, HistoryPolicy):
-        window = HistoryWindow(n, policy.config.window)
+        window = HistoryWindow(n, policy.config.window, policy.config.stuck_memory)
         window.start(obs)
     out = np.zeros((n, intervals))
     u = np.zeros((n, 6), np.int8)
@@ -75,10 +75,10 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
                     [env.pool.operating_steps(i) for i in range(n)]), obs)
             elif policy is not None:
                 u = np.asarray(policy(obs), np.int8)
-            obs, r, terminated, truncated, _ = env.step(u)
+            obs, r, terminated, truncated, info = env.step(u)
             out[:, k] += r
             if window is not None:
-                window.push(obs, u, terminated | truncated)
+                window.push(obs, u, terminated | truncated, info["valves"])
     env.close()
     return out / steps_per_interval
 

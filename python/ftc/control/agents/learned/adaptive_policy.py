@@ -127,7 +127,8 @@ class AdaptivePolicyAgent(Agent):
             except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
                 raise UsageError(f"adaptive-policy: {self.path} is not a student checkpoint "
                                  f"({type(e).__name__}: {e})") from None
-            self.window = HistoryWindow(1, self.policy.config.window)
+            self.window = HistoryWindow(1, self.policy.config.window,
+                                        self.policy.config.stuck_memory)
         return self.policy
 
     def prepare(self) -> dict[str, Any]:
@@ -142,7 +143,9 @@ class AdaptivePolicyAgent(Agent):
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         self._load()
         if self._last is not None:  # the levels this step's command acts on
-            self.window.push(obs.level[None, :], self._last[None, :])
+            self.window.push(obs.level[None, :], self._last[None, :],
+                             applied=obs.valves[None, :] if self.window.stuck is not None
+                             else None)
         self._poll()
         features = self.window.features()
         u = self.policy.act(features)[0]

@@ -61,13 +61,20 @@ class PoolTeacher:
         return self.label_with_regrets(envs, scenarios, operating_steps, levels)[0]
 
     def label_with_regrets(self, envs: Sequence[int], scenarios: Sequence[Any],
-                           operating_steps: np.ndarray, levels: np.ndarray
+                           operating_steps: np.ndarray, levels: np.ndarray,
+                           seen_stuck: np.ndarray | None = None
                            ) -> tuple[np.ndarray, np.ndarray]:
         """(valves (len(envs), 6) int8, regrets (len(envs), 64) float32): the
         decision of :meth:`label` and, for each of the 64 settings a (valve i
         open iff bit i of a), the summed reward its plan loses against the
         best plan over the horizon (0 for the decision and its exact ties;
-        a refused plan's: :func:`regrets_of`)."""
+        a refused plan's: :func:`regrets_of`).
+
+        seen_stuck: (len(envs), 12), valves seen stuck closed then seen stuck
+        open (> 0: seen; a student's stuck memory): the teacher then plans with
+        those stuck valves only, every other valve as healthy, knowing what a
+        controller that watches its valves knows (the rest of the physics stays
+        the true one); None: with every valve stuck at that step."""
         out = np.zeros((len(envs), NUM_TANKS), np.int8)
         regrets = np.zeros((len(envs), 2 ** NUM_TANKS), np.float32)
         for k, env in enumerate(envs):
@@ -75,6 +82,10 @@ class PoolTeacher:
             evaluator = self._evaluator(int(env), scenario)
             step = int(operating_steps[k])
             evaluator.set_step(step)
+            if seen_stuck is not None:
+                closed, opened = seen_stuck[k, :NUM_TANKS] > 0, seen_stuck[k, NUM_TANKS:] > 0
+                mask = closed | opened
+                evaluator.stuck = (mask, opened.astype(np.int64)) if mask.any() else None
             steps_left = scenario.steps_per_interval - step % scenario.steps_per_interval
             horizon = max(1, min(self.horizon, steps_left))
             totals = self._setting_totals(evaluator, np.asarray(levels[k], np.float64),
