@@ -21,7 +21,7 @@ from ftc.control.agents.learned.adaptive_policy import AdaptiveConfig, AdaptiveP
 from ftc.control.planning.physics.evaluators import OracleEvaluator
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.control.planning.planners import HoldPlanner
-from ftc.control.run.agent import StepContext
+from ftc.control.run.agent import StepContext, Transition
 from ftc.experiments.adaptive import dagger, distribution, evaluate
 from ftc.experiments.suite import default_suite
 from ftc.learning.history_policy import (TRAINER, HistoryPolicy, HistoryWindow, StudentConfig,
@@ -65,8 +65,8 @@ def test_the_stuck_memory_remembers_valves_applied_against_their_command():
     assert np.array_equal(m[0], [-1, -1, -1, -1, -1, -1] + [1, -1, 1, -1, -1, -1])
     w.forget(np.array([True, False]))  # env 0 is a new plant
     assert np.all(w.features()[0, 24:] == -1.0)
-    with pytest.raises(ValueError, match="applied valves"):
-        w.push(np.full((2, 6), 0.3), np.zeros((2, 6), np.int8))
+    w.see(np.ones((2, 6), np.int8), np.array([[1] * 6, [1, 1, 1, 1, 1, 0]], np.int8))
+    assert np.array_equal(w.features()[1, 24:], [-1] * 5 + [1] + [-1] * 6)  # valve 6
     # a policy with the memory reads it: its input is 12 wider
     assert HistoryPolicy(StudentConfig(window=2, stuck_memory=True)).net[0].in_features == 36
 
@@ -295,15 +295,17 @@ def test_the_method_flies_the_checkpoint_as_the_trainer_windows_it(tmp_path, stu
     window = HistoryWindow(1, 4, stuck_memory)
     window.start(levels[:1])
     agent.start_episode(_obs(levels[0], 0))
-    actions = []
+    actions, o = [], _obs(levels[0], 0)
     for t in range(12):
-        applied = None
-        if t:
+        if t:  # the runner's order: the step's Transition, then the next act
             applied = actions[-1].copy()
             applied[1] = 1  # valve 2 stuck open: the plant publishes it applied open
             window.push(levels[t:t + 1], actions[-1][None, :], applied=applied[None, :])
+            nxt = _obs(levels[t], t, applied)
+            agent.observe(Transition(o, actions[-1], 0.0, nxt, nxt))
+            o = nxt
         expected = policy.act(window.features())[0]
-        u = agent.act(_obs(levels[t], t, applied), StepContext(0, t, 512 - t))
+        u = agent.act(o, StepContext(0, t, 512 - t))
         assert u.tolist() == expected.tolist(), t
         actions.append(u)
     assert 0 < np.sum(actions) < 72  # the check saw both open and closed valves

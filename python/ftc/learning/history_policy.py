@@ -190,9 +190,11 @@ class HistoryWindow:
     stuck closed (applied closed when commanded open) or stuck open (applied
     open when commanded closed), 1 or -1, closed for valves 1-6 then open for
     valves 1-6. A valve stuck as it is commanded cannot be told from a healthy
-    one, so it is seen at the first command against its state. The memory
-    outlives episodes (a plant's valves stay stuck); ``forget(which)`` clears
-    it for envs that are new plants."""
+    one, so it is seen at the first command against its state. ``push`` with
+    ``applied`` or ``see(commanded, applied)`` (a controller's transitions:
+    the command in force and the valves the plant published) feed it. The
+    memory outlives episodes (a plant's valves stay stuck); ``forget(which)``
+    clears it for envs that are new plants."""
 
     def __init__(self, num_envs: int, window: int, stuck_memory: bool = False) -> None:
         self.window = window
@@ -215,21 +217,26 @@ class HistoryWindow:
 
     def push(self, levels: np.ndarray, valves: np.ndarray,
              started: np.ndarray | None = None, applied: np.ndarray | None = None) -> None:
-        if self.stuck is not None and applied is None:
-            raise ValueError("HistoryWindow.push: the stuck memory needs the applied valves")
         self._buf[:, 1:] = self._buf[:, :-1]
         self._buf[:, 0, :NUM_TANKS] = 2.0 * np.clip(np.asarray(levels, np.float32), 0.0,
                                                     1.0) - 1.0
         self._buf[:, 0, NUM_TANKS:] = 2.0 * np.asarray(valves, np.float32) - 1.0
-        if self.stuck is not None:
-            commanded = np.asarray(valves, np.int8) != 0
-            held = np.asarray(applied, np.int8) != 0
-            closed, opened = commanded & ~held, ~commanded & held
-            seen = closed | opened
-            self.stuck[:, :NUM_TANKS][seen] = closed[seen]
-            self.stuck[:, NUM_TANKS:][seen] = opened[seen]
+        if applied is not None:
+            self.see(valves, applied)
         if started is not None and np.any(started):
             self.start(levels, started)
+
+    def see(self, commanded: np.ndarray, applied: np.ndarray) -> None:
+        """The plant applied ``applied`` (N, 6) on a step ``commanded`` (N, 6):
+        a valve applied otherwise enters the stuck memory (if kept)."""
+        if self.stuck is None:
+            return
+        commanded = np.asarray(commanded, np.int8) != 0
+        held = np.asarray(applied, np.int8) != 0
+        closed, opened = commanded & ~held, ~commanded & held
+        seen = closed | opened
+        self.stuck[:, :NUM_TANKS][seen] = closed[seen]
+        self.stuck[:, NUM_TANKS:][seen] = opened[seen]
 
     def features(self) -> np.ndarray:
         x = self._buf.reshape(len(self._buf), -1)

@@ -143,9 +143,7 @@ class AdaptivePolicyAgent(Agent):
     def act(self, obs: PlantObservation, ctx: StepContext) -> np.ndarray:
         self._load()
         if self._last is not None:  # the levels this step's command acts on
-            self.window.push(obs.level[None, :], self._last[None, :],
-                             applied=obs.valves[None, :] if self.window.stuck is not None
-                             else None)
+            self.window.push(obs.level[None, :], self._last[None, :])
         self._poll()
         features = self.window.features()
         u = self.policy.act(features)[0]
@@ -156,6 +154,10 @@ class AdaptivePolicyAgent(Agent):
 
     # -- the fine-tune (--fine-tune) ---------------------------------------------------
     def observe(self, t: Transition) -> None:
+        # the stuck memory: the command in force against the valves the plant applied
+        # (a real-time step on an older command compares with that one)
+        self._load()
+        self.window.see(t.valves[None, :], t.next_obs.valves[None, :])
         if self.teacher is not None:
             self.teacher.observe(t)
 
