@@ -21,7 +21,9 @@
 // (policy.h History) learns a valve is stuck from a state's published valves
 // only when that state answers the command sent on the state acted on before
 // (its command_seq) and the watchdog was not holding the valves: a step taken
-// on an older command or on the safe state says nothing about a valve. The
+// on an older command or on the safe state says nothing about a valve (Python's
+// agent compares such a step with the command in force; the node keeps only
+// its last command and waits for a step that answers it). The
 // memory is kept for the node's life, across episodes and sessions (the
 // plant's valves stay stuck).
 //
