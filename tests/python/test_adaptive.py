@@ -563,3 +563,22 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     assert all(abs(r["score"]) < 1e-3 for r in defined), defined
     if which == "margin":  # drawn with --min-gain 0.3: every score well conditioned
         assert all(r["reference_gain_per_step"] >= 0.3 for r in rows)
+
+
+def test_a_teacher_told_the_seen_stuck_valves_never_commands_one(one_torch_thread):
+    # plants of the many-stuck-valves distribution, driven by the teacher that plans
+    # with the valves the student's memory holds: the memory fills from what the
+    # plant applied, and no label opens a valve the memory holds stuck (opening one
+    # costs the activity term and moves nothing, so the planner never does)
+    config = TrainingConfig(iterations=1, envs=3, life_intervals=10, window=2, hidden=(8,),
+                            hold=2, horizon=3, members=1, stuck_memory=True,
+                            teacher_stuck="seen")
+    dist = distribution.load(distribution.SCENARIO_DIR / "training" / "adaptive-stuck.toml")
+    policy = HistoryPolicy(config.student())
+    out = dagger.collect(policy, PoolTeacher(2, 3), dist, config, 0, beta=1.0)
+    memory = out["x"][:, -12:] > 0  # +1 where seen: closed for valves 1-6, then open
+    held = memory[:, :6] | memory[:, 6:]
+    assert held.any(axis=1).mean() > 0.2  # measured 0.75 (seed 0; seed 1: 0.34): met some
+    assert not (out["y"].astype(bool) & held).any()
+    with pytest.raises(ValueError, match="needs the stuck memory"):
+        TrainingConfig(teacher_stuck="seen")
