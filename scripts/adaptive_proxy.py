@@ -36,6 +36,9 @@ from ftc.learning.history_policy import HistoryPolicy, TrainingConfig, rates_map
 def collect(a: argparse.Namespace) -> None:
     dist = distribution.load(a.distribution)
     driver = HistoryPolicy.from_record(torch.load(a.driver, weights_only=True)["policy"])
+    if driver.config.stuck_memory:
+        raise ValueError(f"{a.driver}: a driver with the stuck memory: the proxy's data are "
+                         "windows alone")
     parts = {}
     for part, iteration, envs in (("train", 100, a.envs), ("val", 200, a.val_envs)):
         config = TrainingConfig(envs=envs, label_fraction=a.label_fraction, head="joint",
@@ -56,6 +59,8 @@ def parse_config(text: str, epochs: int) -> TrainingConfig:
         key, _, value = item.partition("=")
         if key not in types:
             raise ValueError(f"unknown TrainingConfig field {key!r} in {text!r}")
+        if key == "stuck_memory":
+            raise ValueError(f"{text!r}: the proxy's data are windows alone (no stuck memory)")
         if types[key] is tuple:
             values[key] = tuple(int(v) for v in value.split("x"))
         elif types[key] is bool:

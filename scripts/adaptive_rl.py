@@ -193,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--life-intervals {a.life_intervals} exceeds the distribution's "
                              f"{dist.life_intervals}")
         init = load_student(a.init) if a.init else None
+        if init is not None and init.config.stuck_memory:
+            raise ValueError(f"--init {a.init}: a student with the stuck memory; this script's "
+                             "plants feed windows alone")
     except ValueError as e:
         print(f"adaptive_rl: error: {e}", file=sys.stderr)
         return EXIT_USAGE

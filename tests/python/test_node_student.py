@@ -97,8 +97,10 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False,
         if forget:
             window.forget()
         x = window.features()
-        if reverse:
-            x = x.reshape(1, student.config.window, -1)[:, ::-1].reshape(1, -1).copy()
+        if reverse:  # the window's steps in the other order (the memory after them as is)
+            w = 12 * student.config.window
+            steps = x[:, :w].reshape(1, student.config.window, -1)[:, ::-1].reshape(1, -1)
+            x = np.concatenate([steps, x[:, w:]], axis=1)
         with torch.no_grad():
             out = student(torch.as_tensor(x)).numpy()[0]
         valves.append(student.act(x)[0])  # Python's rule for its head
@@ -208,6 +210,29 @@ def test_a_windowed_weights_file_round_trips_and_damage_is_named(tmp_path):
     assert path.read_text().startswith("ftc-policy 1\nversion 1\nwidths 6 ")
     assert pw.read_policy(path).window == 0 and pw.read_weights(path)[0] == levels[0]
     assert pw.checksum(*levels) != pw.checksum(*levels, 0)
+
+
+def test_a_weights_file_with_the_stuck_memory_round_trips_and_damage_is_named(tmp_path):
+    window, widths, params = pw.student_layers(_student(1, window=2, stuck_memory=True))
+    assert (window, widths[0]) == (2, 36)  # 12 per step, then the 12 of the memory
+    path = tmp_path / "m.txt"
+    pw.write_weights(path, widths, params, version=2, window=window, stuck_memory=True)
+    text = path.read_text()
+    assert text.startswith("ftc-policy 2\nversion 2\nwindow 2\nstuck_memory 1\nwidths 36 ")
+    w = pw.read_policy(path)
+    assert w.stuck_memory and w.window == 2 and np.array_equal(w.params, params)
+    path.write_text(text.replace("stuck_memory 1\n", ""))  # the checksum covers it
+    with pytest.raises(UsageError, match="checksum mismatch"):
+        pw.read_policy(path)
+    # the window's checksum, the memory's line dropped: its widths are not a window's
+    pw.write_weights(path, widths, params, version=2, window=window)
+    with pytest.raises(UsageError, match=r"widths must start at 24 \(a window of 2 steps\)"):
+        pw.read_policy(path)
+    with pytest.raises(ValueError, match="after a history window"):
+        pw.format_weights(widths, params, window=0, stuck_memory=True)
+    msg = pw.policy_message(widths, params, 3, window=window, stuck_memory=True)
+    assert msg.stuck_memory == 1  # the checksum as int64 on the wire
+    assert msg.checksum % 2**64 == pw.checksum(widths, params, 2, True)
 
 
 def test_export_writes_the_students_weights_only(tmp_path, capsys):

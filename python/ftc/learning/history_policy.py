@@ -186,14 +186,15 @@ class HistoryWindow:
     ``started`` is set began a new episode with these levels (their window is
     refilled). Levels are clipped to [0, 1] as the observation space is.
 
-    The stuck memory (``stuck_memory``): per valve, whether it was last seen
-    stuck closed (applied closed when commanded open) or stuck open (applied
-    open when commanded closed), 1 or -1, closed for valves 1-6 then open for
-    valves 1-6. A valve stuck as it is commanded cannot be told from a healthy
+    The stuck memory (``stuck_memory``, ``stuck`` (N, 12) of 0/1, read as
+    2 x - 1 by ``features``): per valve, whether it was last seen stuck
+    closed (applied closed when commanded open) or stuck open (applied open
+    when commanded closed), closed for valves 1-6 then open for valves 1-6. A valve stuck as it is commanded cannot be told from a healthy
     one, so it is seen at the first command against its state. ``push`` with
     ``applied`` or ``see(commanded, applied)`` (a controller's transitions:
-    the command in force and the valves the plant published) feed it. The
-    memory outlives episodes (a plant's valves stay stuck); ``forget(which)``
+    the command in force and the valves the plant published) feed it; from a
+    pool, take ``applied`` with same-step autoreset (with next-step autoreset
+    the reset step ignores its command and applies none). The memory outlives episodes (a plant's valves stay stuck); ``forget(which)``
     clears it for envs that are new plants."""
 
     def __init__(self, num_envs: int, window: int, stuck_memory: bool = False) -> None:

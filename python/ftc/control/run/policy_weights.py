@@ -212,6 +212,11 @@ def read_policy(path: Path) -> Weights:
         if not 1 <= window <= policy_v2_t.MAX_WINDOW:
             raise UsageError(f"{path}: a window of {window} steps (allowed: "
                              f"1..{policy_v2_t.MAX_WINDOW})")
+        inputs = 12 * window + (12 if memory else 0)
+        if widths[:1] != [inputs]:
+            raise UsageError(f"{path}: widths must start at {inputs} (a window of {window} "
+                             f"steps{', then the stuck memory' if memory else ''}), got "
+                             f"{widths[:1] or 'none'}")
     return Weights(widths, params, version, window or 0, bool(memory))
 
 

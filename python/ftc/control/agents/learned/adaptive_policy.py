@@ -144,6 +144,8 @@ class AdaptivePolicyAgent(Agent):
         self._load()
         if self._last is not None:  # the levels this step's command acts on
             self.window.push(obs.level[None, :], self._last[None, :])
+            if ctx.evaluation:  # no Transition comes: the memory from the answer itself
+                self.window.see(self._last[None, :], obs.valves[None, :])
         self._poll()
         features = self.window.features()
         u = self.policy.act(features)[0]
@@ -198,13 +200,25 @@ class AdaptivePolicyAgent(Agent):
         self._jobs.close()
 
     def state_dict(self) -> dict[str, Any]:
+        self._load()
+        memory = {} if self.window.stuck is None else {"stuck_memory": self.window.stuck.tolist()}
         if self.teacher is None:
-            return {}
+            return memory
         if self._jobs.running:  # the runner saves from on_learned instead
             raise RuntimeError("the agent's state is changing: a fine-tune is running")
-        return {"student": self._load().record(), "fine_tune": self.teacher.state_dict()}
+        return {"student": self._load().record(), "fine_tune": self.teacher.state_dict(),
+                **memory}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._load()
+        if self.window.stuck is not None:  # the valves seen stuck before the resume
+            if "stuck_memory" not in state:
+                raise CheckpointError("checkpoint lacks the student's stuck memory")
+            memory = np.asarray(state["stuck_memory"], np.float32)
+            if memory.shape != self.window.stuck.shape:
+                raise CheckpointError(f"checkpoint's stuck memory has shape {memory.shape}, "
+                                      f"not {self.window.stuck.shape}")
+            self.window.stuck[:] = memory
         if self.teacher is None:
             return
         if not {"student", "fine_tune"} <= set(state):
