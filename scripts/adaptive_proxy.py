@@ -42,7 +42,8 @@ def collect(a: argparse.Namespace) -> None:
     parts = {}
     for part, iteration, envs in (("train", 100, a.envs), ("val", 200, a.val_envs)):
         config = TrainingConfig(envs=envs, label_fraction=a.label_fraction, head="joint",
-                                window=driver.config.window, seed=0)
+                                window=driver.config.window, seed=0, stuck_memory=False,
+                                teacher_stuck="all")
         t = time.monotonic()
         r = dagger.collect(driver, PoolTeacher(), dist, config, iteration, a.beta)
         print(f"proxy: {part}: {len(r['x'])} labels in {time.monotonic() - t:.0f} s, "
@@ -54,7 +55,7 @@ def collect(a: argparse.Namespace) -> None:
 def parse_config(text: str, epochs: int) -> TrainingConfig:
     types = {f.name: type(getattr(TrainingConfig(), f.name)) for f in
              dataclasses.fields(TrainingConfig)}
-    values: dict = {"epochs": epochs}
+    values: dict = {"epochs": epochs, "stuck_memory": False, "teacher_stuck": "all"}
     for item in filter(None, text.split(",")):
         key, _, value = item.partition("=")
         if key not in types:

@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
              {"head": init.config.head, "window": init.config.window,
               "hidden": init.config.hidden})
     config = TrainingConfig(envs=a.envs, seed=a.seed, life_intervals=a.life_intervals,
-                            regret=0.0, **shape)
+                            regret=0.0, stuck_memory=False, teacher_stuck="all", **shape)
     steps = a.steps or config.iterations * config.envs * config.life_intervals * \
         dist.steps_per_interval
     torch.set_num_threads(1)

@@ -157,7 +157,8 @@ def test_the_student_learns_a_rule_of_its_window_from_labels(one_torch_thread):
     # a known answer: valve i opens iff tank i's newest level is below 0.5
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
-    config = TrainingConfig(window=2, hidden=(32,), epochs=20, batch=100, lr=1e-2, head="valves")
+    config = TrainingConfig(window=2, hidden=(32,), epochs=20, batch=100, lr=1e-2, head="valves",
+                            stuck_memory=False, teacher_stuck="all")
     levels = rng.uniform(0, 1, (1000, 6))
     w = HistoryWindow(1000, 2)
     w.start(levels)
@@ -211,7 +212,7 @@ def test_members_train_one_after_another_and_fly_as_their_ensemble(one_torch_thr
     assert curve[2]["env_steps"] == curve[1]["env_steps"] + second["curve"][0]["env_steps"]
     assert len(record["snapshots"]) == 4 and record["snapshots"][1]["config"]["hidden"] == [8]
     assert record["snapshots"][3]["config"]["hidden"] == [16]
-    x = np.random.default_rng(0).uniform(-1, 1, (50, 24)).astype(np.float32)
+    x = np.random.default_rng(0).uniform(-1, 1, (50, 36)).astype(np.float32)  # + memory
     assert np.array_equal(HistoryPolicy.from_record(record["policy"]).act(x),
                           ensemble([HistoryPolicy.from_record(record["snapshots"][1]),
                                     HistoryPolicy.from_record(second["policy"])]).act(x))
@@ -452,7 +453,8 @@ def test_the_privileged_head_learns_a_stuck_valve_from_the_window(one_torch_thre
     z[stuck, 0] = 1.0
     y = np.zeros((n, 6), np.int8)
     config = TrainingConfig(window=2, hidden=(32,), epochs=30, batch=100, lr=1e-2,
-                            head="joint", regret=0.0, privileged=1.0)
+                            head="joint", regret=0.0, privileged=1.0, stuck_memory=False,
+                            teacher_stuck="all")
     policy = HistoryPolicy(config.student())
     head = torch.nn.Linear(32, dagger.STUCK_TARGETS)
     optimizer = torch.optim.Adam([*policy.parameters(), *head.parameters()], lr=config.lr)
@@ -557,7 +559,8 @@ def test_a_held_out_draw_with_a_min_gain_keeps_well_conditioned_scenarios_and_th
         draw_heldout.main(["--seed", "1", "--out", str(out2), "--min-gain", "0.3"])  # no file
 
 
-@pytest.mark.parametrize("which,seed", [("heldout", 0), ("drawn", 3), ("final", 5), ("margin", 7)])
+@pytest.mark.parametrize("which,seed", [("heldout", 0), ("drawn", 3), ("final", 5), ("margin", 7),
+                                        ("fresh", 9)])
 def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     # all valves closed, run in the pool, earns what the committed file says closed
     # earns (score 0) wherever the score is defined: the file belongs to these
@@ -567,7 +570,8 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     directory = {"heldout": distribution.SCENARIO_DIR / "heldout",
                  "drawn": distribution.SCENARIO_DIR / "heldout" / "drawn",
                  "final": distribution.SCENARIO_DIR / "heldout" / "final",
-                 "margin": distribution.SCENARIO_DIR / "heldout" / "margin"}[which]
+                 "margin": distribution.SCENARIO_DIR / "heldout" / "margin",
+                 "fresh": distribution.SCENARIO_DIR / "heldout" / "fresh"}[which]
     files = sorted(directory.glob("*.toml"))
     reference = distribution.SCENARIO_DIR / "reference" / f"{which}.csv"
     rows = evaluate.evaluate(None, "heldout", seeds=[seed], heldout=reference,
@@ -609,4 +613,4 @@ def test_a_teacher_told_the_seen_stuck_valves_finds_them_and_never_commands_one(
     assert opened_unseen["seen"] >= 1 and opened_unseen["all"] == 0
     assert held["seen"] > 0.5 and held["seen"] > 2 * held["all"]
     with pytest.raises(ValueError, match="needs the stuck memory"):
-        TrainingConfig(teacher_stuck="seen")
+        TrainingConfig(stuck_memory=False, teacher_stuck="seen")

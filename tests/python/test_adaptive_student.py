@@ -108,7 +108,7 @@ def test_the_joint_head_learns_a_rule_of_its_window(one_torch_thread, regret):
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
     config = TrainingConfig(window=2, hidden=(64,), epochs=20, batch=100, lr=1e-2,
-                            head="joint", regret=regret)
+                            head="joint", regret=regret, stuck_memory=False, teacher_stuck="all")
     levels = rng.uniform(0, 1, (2000, 6))
     w = HistoryWindow(2000, 2)
     w.start(levels)

@@ -139,8 +139,8 @@ class TrainingConfig:
     seed: int = 0
     members: int = 3
     privileged: float = 0.0
-    stuck_memory: bool = False
-    teacher_stuck: str = "all"
+    stuck_memory: bool = True
+    teacher_stuck: str = "seen"
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
