@@ -156,7 +156,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         config_of(a)  # refuses a hold, horizon or extra hold below 1
         policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds)
         holds = " or ".join(str(p.hold) for p in policy.planners)
-        what = f"teacher (the planner holding {holds} over {a.horizon})"
+        what = (f"teacher (the planner holding {holds} over {a.horizon}, told "
+                + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"
+                   else "every stuck valve)"))
     elif a.policy == "balance":
         policy, what = balance_rule, "balance (the rule)"
     else:
@@ -169,7 +171,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                              "with reference and closed on scenarios/heldout/)")
         scored = evaluate.evaluate(policy, which, seeds=a.seeds,
                                    heldout=Path(a.heldout_results) if a.heldout_results else None,
-                                   heldout_files=[Path(f) for f in a.heldout_scenarios] or None)
+                                   heldout_files=[Path(f) for f in a.heldout_scenarios] or None,
+                                   teacher_stuck=a.teacher_stuck if a.policy == "teacher"
+                                   else "all")
         rows += [{**r, "set": a.heldout_name} if which == "heldout" else r for r in scored]
     for which in (a.heldout_name if w == "heldout" else w for w in a.sets):
         defined = [r for r in rows if r["set"] == which and np.isfinite(r["score"])]
@@ -407,9 +411,10 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
                            help="what to score: the checkpoint's student, the teacher (the "
-                                "planner on the true physics with --hold and --horizon, no "
-                                "checkpoint needed; 3 and 10 are oracle-mpc's) or the balance "
-                                "rule")
+                                "planner on the true physics with --hold, --horizon and "
+                                "--extra-holds, told the stuck valves --teacher-stuck says: all, "
+                                "or seen, those its own commands showed; no checkpoint needed; "
+                                "3 and 10 are oracle-mpc's) or the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")

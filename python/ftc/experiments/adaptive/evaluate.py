@@ -51,11 +51,13 @@ def scenario_files(which: str, directory: Path,
 
 def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndarray] | None,
             scenarios: Sequence[Any], seeds: Sequence[int], intervals: int = 10,
-            steps_per_interval: int = 512) -> np.ndarray:
+            steps_per_interval: int = 512, teacher_stuck: str = "all") -> np.ndarray:
     """Reward per step (len(scenarios), intervals) of ``policy`` on plant i with
     scenario i seeded seeds[i], from full tanks: the student, the teacher
-    (the planner on each plant's true physics), a function of the
-    levels (N, 6) -> valves (N, 6), or None (all valves closed)."""
+    (the planner on each plant's true physics; with ``teacher_stuck`` "seen"
+    told only the stuck valves its own commands have shown, as the student's
+    teacher in training), a function of the levels (N, 6) -> valves (N, 6),
+    or None (all valves closed)."""
     n = len(scenarios)
     env = FuelTransferVectorEnv(n, list(scenarios), plant_seed=list(seeds),
                                 autoreset="same_step", threads=1, copy=False)
@@ -64,6 +66,7 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
     if isinstance(policy, HistoryPolicy):
         window = HistoryWindow(n, policy.config.window, policy.config.stuck_memory)
         window.start(obs)
+    seen = HistoryWindow(n, 1, stuck_memory=True) if teacher_stuck == "seen" else None
     out = np.zeros((n, intervals))
     u = np.zeros((n, 6), np.int8)
     for k in range(intervals):
@@ -71,14 +74,17 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
             if window is not None:
                 u = policy.act(window.features())
             elif isinstance(policy, PoolTeacher):
-                u = policy.label(range(n), scenarios, np.array(
-                    [env.pool.operating_steps(i) for i in range(n)]), obs)
+                u = policy.label_with_regrets(range(n), scenarios, np.array(
+                    [env.pool.operating_steps(i) for i in range(n)]), obs,
+                    None if seen is None else seen.stuck)[0]
             elif policy is not None:
                 u = np.asarray(policy(obs), np.int8)
             obs, r, terminated, truncated, info = env.step(u)
             out[:, k] += r
             if window is not None:
                 window.push(obs, u, terminated | truncated, info["valves"])
+            if seen is not None:
+                seen.see(u, info["valves"])
     env.close()
     return out / steps_per_interval
 
@@ -136,8 +142,8 @@ def scores(r: np.ndarray, reference: np.ndarray, closed: np.ndarray) -> np.ndarr
 
 
 def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
-             heldout: Path | None = None,
-             heldout_files: Sequence[Path] | None = None) -> list[dict[str, Any]]:
+             heldout: Path | None = None, heldout_files: Sequence[Path] | None = None,
+             teacher_stuck: str = "all") -> list[dict[str, Any]]:
     """Rows (set, scenario, seed, score (NaN where undefined), reward per step
     of intervals 1-9, and the reference's over closed's per step there) of
     ``policy`` on the suite, the check set or the held-out set (``heldout_files``,
@@ -151,7 +157,7 @@ def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
         loaded = [_core.load_scenario(str(files[n])) for n in names]
     rows = []
     for seed in seeds:
-        r = rewards(policy, loaded, [seed] * len(loaded))
+        r = rewards(policy, loaded, [seed] * len(loaded), teacher_stuck=teacher_stuck)
         ref = reference_rewards(which, names, seed, heldout)
         sc = scores(r, ref["reference"], ref["closed"])
         gain = gains(ref["reference"], ref["closed"]) / (r.shape[1] - FIRST_SCORED)
