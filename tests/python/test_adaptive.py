@@ -525,6 +525,7 @@ def test_the_well_conditioned_rule_keeps_the_first_scenarios_that_gain_on_every_
         _draw_heldout().well_conditioned(rewards, ["a", "x"], [0], 1, 0.3)
 
 
+@pytest.mark.slow
 def test_a_held_out_draw_with_a_min_gain_keeps_well_conditioned_scenarios_and_their_rewards(
         tmp_path):
     # the benchmark runs for real, with the balance rule as a cheap reference: on

@@ -84,6 +84,7 @@ def _metrics(module: str, method: str, scenario: Path, out: Path) -> list[float]
         return [float(r["reward_per_step"]) for r in csv.DictReader(f)]
 
 
+@pytest.mark.slow
 def test_identified_mpc_plans_as_well_as_the_oracle(tmp_path, scenarios):
     scenario = scenarios / "multiple.toml"
     oracle = _metrics("ftc.mpc", "oracle-mpc", scenario, tmp_path / "oracle")

@@ -123,7 +123,10 @@ def _rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-@pytest.mark.parametrize("name", list(COMMANDS))
+# ppo-offline-pretrain (about a minute: the pretraining fit) runs with -m slow; its
+# PPO and world model are ppo-offline's, which runs always
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow)
+                                  if n == "ppo-offline-pretrain" else n for n in COMMANDS])
 def test_same_metrics_as_before_the_refactor(name, tmp_path):
     saved_path, mode = _saved(name)
     if name in CHANGED_BY_LEAVE_FIX and saved_path.parent.name not in REWRITTEN_AFTER_LEAVE_FIX:
