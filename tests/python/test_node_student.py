@@ -230,6 +230,11 @@ def test_a_weights_file_with_the_stuck_memory_round_trips_and_damage_is_named(tm
         pw.read_policy(path)
     with pytest.raises(ValueError, match="after a history window"):
         pw.format_weights(widths, params, window=0, stuck_memory=True)
+    with pytest.raises(ValueError, match="after a history window"):
+        pw.policy_message(widths, params, 3, window=0, stuck_memory=True)
+    # the file's rule and the student's own input width are one number
+    for w, memory in ((1, False), (2, True), (12, True), (50, False)):
+        assert pw.window_inputs(w, memory) == StudentConfig(window=w, stuck_memory=memory).inputs
     msg = pw.policy_message(widths, params, 3, window=window, stuck_memory=True)
     assert msg.stuck_memory == 1  # the checksum as int64 on the wire
     assert msg.checksum % 2**64 == pw.checksum(widths, params, 2, True)

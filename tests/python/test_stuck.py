@@ -16,7 +16,7 @@ from ftc.control.planning.physics.evaluators import ParamsEvaluator
 from ftc.control.planning.planners import hold_candidates
 from ftc.control.run.agent import StepContext, Transition
 from ftc.learning.physics_env import PhysicsEnv
-from ftc.learning.stuck import StuckValves, charge_commanded
+from ftc.learning.stuck import StuckMemory, StuckValves, charge_commanded
 from ftc.plant.link import PlantObservation
 
 
@@ -46,6 +46,30 @@ def test_state_round_trip_keeps_the_dict_the_evaluators_hold():
     t.load_state_dict(s.state_dict())
     assert t.stuck is held_by_t and t.stuck == {2: 1} and t.detections == [(2, 1, 3)]
     assert held == {2: 1}
+
+
+def test_the_learned_policies_memory_holds_what_the_detector_finds():
+    # one rule, two keepers: the detector's dict (planners) and the student's
+    # (N, 12) memory must agree after any sequence of commanded/applied valves,
+    # including a valve seen stuck closed, then open (the newest sighting wins)
+    rng = np.random.default_rng(3)
+    n, steps = 5, 40
+    detectors, memory = [StuckValves() for _ in range(n)], StuckMemory(n)
+    for t in range(steps):
+        commanded = rng.integers(0, 2, (n, 6))
+        applied = np.where(rng.random((n, 6)) < 0.1, 1 - commanded, commanded)
+        memory.see(commanded, applied)
+        for d, c, a in zip(detectors, commanded, applied):
+            d.observe(c, a, t)
+    for i, d in enumerate(detectors):
+        want = np.zeros(12, np.float32)
+        for valve, state in d.stuck.items():
+            want[valve + 6 * state] = 1.0
+        np.testing.assert_array_equal(memory.stuck[i], want)
+    assert memory.stuck.sum() > n  # the case is not empty
+    np.testing.assert_array_equal(memory.features(), 2.0 * memory.stuck - 1.0)
+    memory.forget(np.array([True, False, False, False, False]))
+    assert memory.stuck[0].sum() == 0 and memory.stuck[1:].sum() > 0
 
 
 def test_charge_commanded_known_answer():

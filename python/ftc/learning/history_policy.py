@@ -31,9 +31,10 @@ from torch import nn
 
 from ftc.common.constants import NUM_TANKS
 from ftc.common.source_key import closure_digest, native_source_digest
+from ftc.learning.stuck import NUM_VALVES, StuckMemory
 
 STEP_FEATURES = 2 * NUM_TANKS  # levels and valves of one step
-STUCK_FEATURES = 2 * NUM_TANKS  # the stuck memory: per valve seen stuck closed, then open
+STUCK_FEATURES = 2 * NUM_VALVES  # the stuck memory: per valve seen stuck closed, then open
 # the module whose import closure trains the checkpoint (its code is the cache key's);
 # named, not imported: this module stays free of the plant equations training uses
 TRAINER = "ftc.experiments.adaptive.dagger"
@@ -200,8 +201,12 @@ class HistoryWindow:
     def __init__(self, num_envs: int, window: int, stuck_memory: bool = False) -> None:
         self.window = window
         self._buf = np.zeros((num_envs, window, STEP_FEATURES), np.float32)
-        self.stuck = (np.zeros((num_envs, STUCK_FEATURES), np.float32) if stuck_memory
-                      else None)
+        self.memory = StuckMemory(num_envs) if stuck_memory else None
+
+    @property
+    def stuck(self) -> np.ndarray | None:
+        """The stuck memory (N, 12) of 0/1 (:class:`ftc.learning.stuck.StuckMemory`), or None."""
+        return None if self.memory is None else self.memory.stuck
 
     def start(self, levels: np.ndarray, which: np.ndarray | None = None) -> None:
         rows = np.arange(len(self._buf)) if which is None else np.flatnonzero(which)
@@ -213,8 +218,8 @@ class HistoryWindow:
 
     def forget(self, which: np.ndarray | None = None) -> None:
         """Clear the stuck memory of envs ``which`` (bool (N,), default all)."""
-        if self.stuck is not None:
-            self.stuck[slice(None) if which is None else np.asarray(which, bool)] = 0.0
+        if self.memory is not None:
+            self.memory.forget(which)
 
     def push(self, levels: np.ndarray, valves: np.ndarray,
              started: np.ndarray | None = None, applied: np.ndarray | None = None) -> None:
@@ -230,20 +235,14 @@ class HistoryWindow:
     def see(self, commanded: np.ndarray, applied: np.ndarray) -> None:
         """The plant applied ``applied`` (N, 6) on a step ``commanded`` (N, 6):
         a valve applied otherwise enters the stuck memory (if kept)."""
-        if self.stuck is None:
-            return
-        commanded = np.asarray(commanded, np.int8) != 0
-        held = np.asarray(applied, np.int8) != 0
-        closed, opened = commanded & ~held, ~commanded & held
-        seen = closed | opened
-        self.stuck[:, :NUM_TANKS][seen] = closed[seen]
-        self.stuck[:, NUM_TANKS:][seen] = opened[seen]
+        if self.memory is not None:
+            self.memory.see(commanded, applied)
 
     def features(self) -> np.ndarray:
         x = self._buf.reshape(len(self._buf), -1)
-        if self.stuck is None:
+        if self.memory is None:
             return x.copy()
-        return np.concatenate([x, 2.0 * self.stuck - 1.0], axis=1)
+        return np.concatenate([x, self.memory.features()], axis=1)
 
 
 class HistoryPolicy(nn.Module):

@@ -24,6 +24,42 @@ from typing import Any
 import numpy as np
 
 STATES = ("closed", "open")
+NUM_VALVES = 6
+
+
+def against_command(commanded: np.ndarray, applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rule: valves (..., 6) the plant ``applied`` otherwise than
+    ``commanded``, as (stuck closed, stuck open) bool arrays: commanded open
+    and applied closed, commanded closed and applied open."""
+    commanded = np.asarray(commanded) != 0
+    applied = np.asarray(applied) != 0
+    return commanded & ~applied, ~commanded & applied
+
+
+class StuckMemory:
+    """N plants' valves seen stuck, kept as a learned policy reads them.
+
+    ``stuck`` (N, 12) float32 of 0/1: per valve whether it was last seen stuck
+    closed, for valves 1-6, then whether last seen stuck open. ``see`` feeds
+    it a step's commanded and applied valves; ``forget`` clears the rows of
+    plants that are new; ``features`` is the memory as inputs, 2 x - 1."""
+
+    def __init__(self, num_envs: int) -> None:
+        self.stuck = np.zeros((num_envs, 2 * NUM_VALVES), np.float32)
+
+    def see(self, commanded: np.ndarray, applied: np.ndarray) -> None:
+        """A step where the plants ``applied`` (N, 6) on ``commanded`` (N, 6)."""
+        closed, opened = against_command(commanded, applied)
+        seen = closed | opened
+        self.stuck[:, :NUM_VALVES][seen] = closed[seen]
+        self.stuck[:, NUM_VALVES:][seen] = opened[seen]
+
+    def forget(self, which: np.ndarray | None = None) -> None:
+        """Clear the memory of plants ``which`` (bool (N,), default all)."""
+        self.stuck[slice(None) if which is None else np.asarray(which, bool)] = 0.0
+
+    def features(self) -> np.ndarray:
+        return 2.0 * self.stuck - 1.0
 
 
 class StuckValves:
@@ -42,11 +78,10 @@ class StuckValves:
         """One plant step: ``commanded`` and ``applied`` valves (6,) and the
         operating step it was taken at. Returns True when a valve not known
         stuck before (or known stuck in the other state) was found stuck."""
-        commanded = np.asarray(commanded).astype(np.int64)
-        applied = np.asarray(applied).astype(np.int64)
+        closed, opened = against_command(commanded, applied)
         found = False
-        for i in np.flatnonzero(applied != commanded):
-            found |= self._add(int(i), int(applied[i]), step)
+        for i in np.flatnonzero(closed | opened):
+            found |= self._add(int(i), int(opened[i]), step)
         return found
 
     def _add(self, valve: int, state: int, step: int) -> bool:

@@ -21,7 +21,7 @@ from ftc.common.errors import EXIT_FAILURE, UsageError
 from ftc.plant.signing import load_key
 from ftc.control.run.policy_weights import (actions, actor_layers, checksum, format_weights,  # noqa: F401
                                         policy_message, push, read_policy, read_weights,
-                                        student_layers, write_weights)
+                                        student_layers, window_inputs, write_weights)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

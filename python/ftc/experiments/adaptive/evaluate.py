@@ -25,6 +25,7 @@ from ftc.common.paths import SCENARIO_DIR
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.suite import write_suite
 from ftc.learning.history_policy import HistoryPolicy, HistoryWindow
+from ftc.learning.stuck import StuckMemory
 from ftc.plant.vector import FuelTransferVectorEnv
 
 REFERENCE_FILES = {"suite": SCENARIO_DIR / "reference" / "suite.json",
@@ -66,7 +67,7 @@ def rewards(policy: HistoryPolicy | PoolTeacher | Callable[[np.ndarray], np.ndar
     if isinstance(policy, HistoryPolicy):
         window = HistoryWindow(n, policy.config.window, policy.config.stuck_memory)
         window.start(obs)
-    seen = HistoryWindow(n, 1, stuck_memory=True) if teacher_stuck == "seen" else None
+    seen = StuckMemory(n) if teacher_stuck == "seen" else None
     out = np.zeros((n, intervals))
     u = np.zeros((n, 6), np.int8)
     for k in range(intervals):
