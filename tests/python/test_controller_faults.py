@@ -36,6 +36,7 @@ import numpy as np
 import pytest
 import torch
 
+from forked_tools import run_tool
 from proc_state import ended
 
 import ftc.tools.controller as controller
@@ -409,8 +410,7 @@ def test_bad_checkpoint_to_resume_exits_2_saying_why(tmp_path, stopped_runs, fau
     corrupt, expected = CORRUPTIONS[fault]
     (run / "checkpoint.pt").write_bytes(corrupt(good, others))
     before = _snapshot(run)
-    result = subprocess.run([PY, "-m", "ftc.controller", "--resume", str(run)],
-                            capture_output=True, text=True, env=ENV, cwd=REPO, timeout=60)
+    result = run_tool("ftc.controller", ["--resume", str(run)], cwd=REPO, env=ENV, timeout=60)
     assert result.returncode == 2, result.stderr
     line = _error_line(result.stderr)
     assert str(run / "checkpoint.pt") in line
@@ -431,8 +431,7 @@ def test_bad_config_to_resume_exits_2(tmp_path, stopped_runs, config_text, expec
     else:
         (run / "config.json").write_text(config_text)
     before = _snapshot(run)
-    result = subprocess.run([PY, "-m", "ftc.controller", "--resume", str(run)],
-                            capture_output=True, text=True, env=ENV, cwd=REPO, timeout=60)
+    result = run_tool("ftc.controller", ["--resume", str(run)], cwd=REPO, env=ENV, timeout=60)
     assert result.returncode == 2
     line = _error_line(result.stderr)
     assert "config.json" in line and expected in line

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from forked_tools import run_tool
 
 from ftc.common.build_info import plant_binary
 from ftc.plant import (LinkConfig, PlantGoneError, check_loopback_url, launch, private_lcm_url,
@@ -56,6 +57,10 @@ def tally(what: str, n: int) -> None:
 
 
 def run_cli(args: list[str], timeout: float = 60, cwd: Path | None = None):
+    """The command's CompletedProcess; ``python -m`` tools are forked from a
+    process that imported them once (tests/python/forked_tools.py)."""
+    if args[:2] == [PY, "-m"]:
+        return run_tool(args[2], args[3:], cwd=cwd or REPO, env=ENV, timeout=timeout)
     return subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=ENV,
                           cwd=cwd or REPO)
 

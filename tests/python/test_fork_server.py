@@ -26,7 +26,8 @@ PROBE = textwrap.dedent('''
     with open(out, "w") as f:
         json.dump({"argv": sys.argv, "pid": os.getpid(), "pgid": os.getpgid(0),
                    "sid": os.getsid(0), "nice": os.nice(0), "main": __name__,
-                   "stdin": sys.stdin.read()}, f)
+                   "stdin": sys.stdin.read(), "cwd": os.getcwd(),
+                   "probe_env": os.environ.get("FS_PROBE")}, f)
     print("to stdout")
     print("to stderr", file=sys.stderr)
     if action == "exit3":
@@ -65,6 +66,25 @@ def test_a_forked_child_is_what_python_dash_m_would_start(server, tmp_path):
     assert seen["nice"] == os.nice(0) + 3
     assert seen["stdin"] == ""  # /dev/null, not the server's request pipe
     assert (tmp_path / "ok.log").read_text().splitlines() == ["to stdout", "to stderr"]
+
+
+def test_a_child_can_get_its_own_stderr_directory_and_environment(server, tmp_path):
+    import json
+
+    work, log, err = tmp_path / "work", tmp_path / "own.log", tmp_path / "own.err"
+    work.mkdir()
+    env = {**os.environ, "FS_PROBE": "set for this child"}
+    proc = server.spawn("fs_probe", [str(tmp_path / "own.json"), "exit3"], log, err=err,
+                        cwd=work, env=env)
+    assert proc.wait(timeout=30) == 3
+    seen = json.loads((tmp_path / "own.json").read_text())
+    assert seen["cwd"] == str(work) and seen["probe_env"] == "set for this child"
+    assert log.read_text() == "to stdout\n" and err.read_text() == "to stderr\n"
+    # the next child is back to the server's directory and environment
+    proc = _probe(server, tmp_path, "ok")
+    assert proc.wait(timeout=30) == 0
+    seen = json.loads((tmp_path / "ok.json").read_text())
+    assert seen["cwd"] == os.getcwd() and seen["probe_env"] is None
 
 
 @pytest.mark.parametrize("action, code, text", [("exit3", 3, "to stderr"),

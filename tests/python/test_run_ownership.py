@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from forked_tools import run_tool
 
 from ftc.common.atomic import atomic_torch_save, atomic_write_bytes, atomic_write_text
 from ftc.tools import controller as controller_cli
@@ -43,8 +44,9 @@ TIME_COLUMNS = {"online_seconds", "offline_seconds", "wall_time", "refit_seconds
 
 
 def _tool(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([PY, "-m", *args], capture_output=True, text=True, cwd=REPO,
-                          timeout=timeout)
+    """``python -m args``, forked from a process that imported the tools once
+    (tests/python/forked_tools.py)."""
+    return run_tool(args[0], args[1:], cwd=REPO, timeout=timeout)
 
 
 def _digest(path: Path) -> dict[str, str]:

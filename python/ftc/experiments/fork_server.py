@@ -16,7 +16,11 @@ same state a fresh process reaches after its imports: results are
 bit-identical (tests/python/test_fork_server.py).
 
 Protocol (lines on the server's stdin and stdout): the orchestrator sends a
-JSON request ``{"id", "module", "args", "log", "nice"}``; the server answers
+JSON request ``{"id", "module", "args", "log", "nice"}``, optionally with
+``"err"`` (stderr to its own file), ``"cwd"`` and ``"env"`` (the child's
+working directory and whole environment, as ``subprocess.run`` takes them,
+read by what the child does, not by the imports it was forked with); the
+server answers
 ``started ID PID`` (or ``failed ID MESSAGE``) and, when a child ends,
 ``exited PID STATUS``. It exits when its stdin closes; its children then get
 SIGKILL (a parent-death signal, as subprocess runs had from the orchestrator).
@@ -113,15 +117,24 @@ class ForkServer:
             self._ready.set()
             self.changed.notify_all()
 
-    def spawn(self, module: str, args: Sequence[str], log: Path, nice: int = 0
-              ) -> ForkedProcess:
-        """Fork ``python -m module args`` with stdout and stderr appended to ``log``."""
+    def spawn(self, module: str, args: Sequence[str], log: Path, nice: int = 0,
+              err: Path | None = None, cwd: Path | None = None,
+              env: dict[str, str] | None = None) -> ForkedProcess:
+        """Fork ``python -m module args`` with stdout and stderr appended to
+        ``log`` (stderr to ``err`` when given), in ``cwd`` with environment
+        ``env`` when given (else the server's)."""
         with self.changed:
             if self.gone:
                 raise ForkServerGone(f"the fork server {self.gone}")
             request_id, self._next_id = self._next_id, self._next_id + 1
         request = {"id": request_id, "module": module, "args": list(args),
                    "log": str(Path(log).resolve()), "nice": nice}
+        if err is not None:
+            request["err"] = str(Path(err).resolve())
+        if cwd is not None:
+            request["cwd"] = str(Path(cwd).resolve())
+        if env is not None:
+            request["env"] = dict(env)
         try:
             with self._send_lock:
                 self.process.stdin.write(json.dumps(request) + "\n")
@@ -173,12 +186,19 @@ def _child(request: dict, inherited: Sequence[int], tie_to_server, in_session: i
         os.close(fd)
     if request["nice"]:
         os.nice(request["nice"])
+    if "env" in request:
+        os.environ.clear()
+        os.environ.update(request["env"])
+    if "cwd" in request:
+        os.chdir(request["cwd"])
     null = os.open(os.devnull, os.O_RDONLY)
     log = os.open(request["log"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    for fd, target in ((null, 0), (log, 1), (log, 2)):
+    err = (os.open(request["err"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+           if "err" in request else log)
+    for fd, target in ((null, 0), (log, 1), (err, 2)):
         if fd != target:
             os.dup2(fd, target)
-    for fd in {null, log} - {0, 1, 2}:
+    for fd in {null, log, err} - {0, 1, 2}:
         os.close(fd)
     sys.stdin = open(0, closefd=False)
     sys.argv = [request["module"], *request["args"]]
