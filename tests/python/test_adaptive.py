@@ -218,6 +218,27 @@ def test_members_train_one_after_another_and_fly_as_their_ensemble(one_torch_thr
                                     HistoryPolicy.from_record(second["policy"])]).act(x))
 
 
+def test_members_trained_at_once_in_processes_equal_members_trained_in_turn(one_torch_thread):
+    from ftc.experiments.adaptive import dagger
+
+    tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
+                          hidden=(8,), head="joint", hold=2, horizon=3, members=2)
+    dist = distribution.load()
+    lines: list[str] = []
+    turn = dagger.train(dist, tiny, log=lambda _: None)
+    together = dagger.train(dist, tiny, log=lines.append, jobs=2)
+    assert lines == ["adaptive: 2 members, 2 at a time (seeds 0 to 1)"]
+    for a, b in ((turn["policy"], together["policy"]),
+                 *zip(turn["snapshots"], together["snapshots"])):
+        assert a["state"].keys() == b["state"].keys()
+        assert all(torch.equal(a["state"][k], b["state"][k]) for k in a["state"])
+    timing = ("seconds",)
+    assert ([{k: v for k, v in r.items() if k not in timing} for r in turn["curve"]]
+            == [{k: v for k, v in r.items() if k not in timing} for r in together["curve"]])
+    with pytest.raises(ValueError, match="jobs must be >= 1"):
+        dagger.train(dist, tiny, jobs=0)
+
+
 def test_the_pool_evaluation_reproduces_the_shipped_rewards_and_scores():
     names = ["single", "random-03"]
     scenarios = [_core.Scenario() for _ in names]

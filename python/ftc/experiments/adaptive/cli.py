@@ -112,8 +112,10 @@ def cmd_train(a: argparse.Namespace) -> int:
     if path.is_file() and not a.force:
         print(f"adaptive: cached {path}")
         return 0
+    if a.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1, got {a.jobs}")
     start = time.monotonic()
-    record = dagger.train(dist, config, log=lambda line: print(line, flush=True))
+    record = dagger.train(dist, config, log=lambda line: print(line, flush=True), jobs=a.jobs)
     record["train_seconds"] = time.monotonic() - start
     record["load_average"] = os.getloadavg()
     try:
@@ -394,6 +396,11 @@ def parser() -> argparse.ArgumentParser:
         _config_options(s)
         if name == "train":
             s.add_argument("--force", action="store_true", help="train even if cached")
+            s.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)),
+                           help="members trained at once, each in a process of its own "
+                                "with one torch thread; the weights are the same whatever "
+                                "the number, and it is not part of the checkpoint's key "
+                                "(default: the CPUs this process may use, %(default)s here)")
         else:
             s.add_argument("--checkpoint", default="", help="a checkpoint file (default: the "
                            "cached one of the training options)")

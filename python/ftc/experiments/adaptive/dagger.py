@@ -221,16 +221,19 @@ def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, 
 
 
 def train(dist: TrainingDistribution, config: TrainingConfig,
-          log: Callable[[str], None] = print) -> dict[str, Any]:
+          log: Callable[[str], None] = print, jobs: int = 1) -> dict[str, Any]:
     """The student after ``config.iterations`` DAgger iterations: a record with its
     weights (``policy``), every iteration's weights (``snapshots``) and the
     curve (``curve``: per iteration, env steps, teacher labels, wall seconds,
-    loss, agreement, rewards)."""
+    loss, agreement, rewards). ``jobs`` > 1 trains that many members at once,
+    each in a process of its own (the same weights as one after another)."""
     if config.life_intervals > dist.life_intervals:
         raise ValueError(f"life_intervals {config.life_intervals} exceeds the distribution's "
                          f"{dist.life_intervals} (its events are drawn within it)")
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
     if config.members > 1:
-        return _train_members(dist, config, log)
+        return _train_members(dist, config, log, jobs)
     torch.set_num_threads(1)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng([config.seed, 2])
@@ -268,20 +271,53 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
             "config": config.to_json(), "distribution": dist.text}
 
 
+class _MemberLog:
+    """A member's log in a process of its own: its lines, named, on stdout."""
+
+    def __init__(self, member: int) -> None:
+        self.member = member
+
+    def __call__(self, line: str) -> None:
+        print(line.replace("adaptive: ", f"adaptive: member {self.member + 1}: ", 1), flush=True)
+
+
+def _member(dist: TrainingDistribution, config: TrainingConfig, m: int,
+            log: Callable[[str], None]) -> dict[str, Any]:
+    """Member ``m``: the student of seed ``config.seed + m``, trained alone."""
+    return train(dist, dataclasses.replace(config, members=1, seed=config.seed + m), log)
+
+
 def _train_members(dist: TrainingDistribution, config: TrainingConfig,
-                   log: Callable[[str], None]) -> dict[str, Any]:
-    """``config.members`` students, one after another (seeds seed, seed + 1, ...),
-    flown as their :func:`ensemble`. The curve runs through the members'
-    iterations in order, steps, labels and seconds adding up; its snapshot at
-    a member's iteration k is the ensemble of the members before it and that
-    member's student after iteration k."""
+                   log: Callable[[str], None], jobs: int = 1) -> dict[str, Any]:
+    """``config.members`` students (seeds seed, seed + 1, ...), flown as their
+    :func:`ensemble`: one after another, or ``jobs`` at a time in processes of
+    their own (spawned, one torch thread each: a member's weights do not depend
+    on where it trained). The curve runs through the members' iterations in
+    order, steps, labels and seconds adding up (seconds: the members' own,
+    summed, the work of one core); its snapshot at a member's iteration k is
+    the ensemble of the members before it and that member's student after
+    iteration k."""
+    if jobs > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        log(f"adaptive: {config.members} members, {min(jobs, config.members)} at a time "
+            f"(seeds {config.seed} to {config.seed + config.members - 1})")
+        with ProcessPoolExecutor(min(jobs, config.members),
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_member, dist, config, m, _MemberLog(m))
+                       for m in range(config.members)]
+            parts = [f.result() for f in futures]
+    else:
+        parts = []
+        for m in range(config.members):
+            log(f"adaptive: member {m + 1} of {config.members} (seed {config.seed + m})")
+            parts.append(_member(dist, config, m, log))
     done: list[HistoryPolicy] = []
     curve, snapshots = [], []
     steps = labels = 0
     seconds = 0.0
-    for m in range(config.members):
-        log(f"adaptive: member {m + 1} of {config.members} (seed {config.seed + m})")
-        part = train(dist, dataclasses.replace(config, members=1, seed=config.seed + m), log)
+    for m, part in enumerate(parts):
         for row, snap in zip(part["curve"], part["snapshots"]):
             curve.append({**row, "member": m, "env_steps": steps + row["env_steps"],
                           "teacher_labels": labels + row["teacher_labels"],
