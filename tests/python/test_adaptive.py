@@ -582,7 +582,7 @@ def test_a_held_out_draw_with_a_min_gain_keeps_well_conditioned_scenarios_and_th
 
 
 @pytest.mark.parametrize("which,seed", [("heldout", 0), ("drawn", 3), ("final", 5), ("margin", 7),
-                                        ("fresh", 9)])
+                                        ("fresh", 9), ("blind", 11)])
 def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     # all valves closed, run in the pool, earns what the committed file says closed
     # earns (score 0) wherever the score is defined: the file belongs to these
@@ -593,7 +593,8 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
                  "drawn": distribution.SCENARIO_DIR / "heldout" / "drawn",
                  "final": distribution.SCENARIO_DIR / "heldout" / "final",
                  "margin": distribution.SCENARIO_DIR / "heldout" / "margin",
-                 "fresh": distribution.SCENARIO_DIR / "heldout" / "fresh"}[which]
+                 "fresh": distribution.SCENARIO_DIR / "heldout" / "fresh",
+                 "blind": distribution.SCENARIO_DIR / "heldout" / "blind"}[which]
     files = sorted(directory.glob("*.toml"))
     reference = distribution.SCENARIO_DIR / "reference" / f"{which}.csv"
     rows = evaluate.evaluate(None, "heldout", seeds=[seed], heldout=reference,
@@ -602,7 +603,7 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     defined = [r for r in rows if np.isfinite(r["score"])]
     assert len(defined) >= len(rows) - 2
     assert all(abs(r["score"]) < 1e-3 for r in defined), defined
-    if which == "margin":  # drawn with --min-gain 0.3: every score well conditioned
+    if which in ("margin", "fresh", "blind"):  # drawn with --min-gain 0.3: well conditioned
         assert all(r["reference_gain_per_step"] >= 0.3 for r in rows)
 
 
