@@ -52,12 +52,17 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     .venv/bin/pip "$@" 2>&1 | { grep -v "^WARNING: Location .* is ignored" || true; }
     return "${PIPESTATUS[0]}"
   }
-  # --no-compile: pip would byte-compile every file of every package (torch, ray,
-  # scipy: over half the install's time, 85 s against 40 s here); Python
-  # compiles the modules a run imports, once, when it first imports them
+  # byte-compiled afterwards on every core (pip compiles file by file: 85 s of
+  # the install against 40 s without it here; compileall -j 0 takes 29 s). The
+  # .pyc files must exist: with PYTHONDONTWRITEBYTECODE set (as on CI machines)
+  # Python never writes them, and every process would compile torch's imports
+  # again (1.5 s more per `import torch`, measured)
   quiet_pip install -q --no-compile --upgrade pip
   quiet_pip install -q --no-compile -r requirements.txt
   quiet_pip install -q --no-compile -r requirements-extra.txt
+  .venv/bin/python -m compileall -q -j 0 \
+    "$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
+    >/dev/null 2>&1 || true  # a package's test data that is not Python is no error
   quiet_pip uninstall -q -y ftc >/dev/null 2>&1 || true  # an install of the package itself
   echo "$want" > "$stamp"
 fi
