@@ -6,11 +6,14 @@ session, argv and ``__main__``, stdin from /dev/null, its exit status
 (tests/python/test_fork_server.py, bit for bit on a PPO run). A start costs
 a fork instead of the 3-6 s of importing torch and the controllers that a
 fresh ``ftc.mpc`` or ``ftc.controller`` spends before it reads its first flag.
+What those modules do at import time happens once, in the server: tests of
+that stay on a fresh ``python -m`` (test_fault_injection keeps one per tool).
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
 import signal
 import subprocess
@@ -41,11 +44,15 @@ def run_tool(module: str, args: Sequence[str], cwd: Path | str, env: dict[str, s
     argv = [sys.executable, "-m", module, *args]
     with tempfile.TemporaryDirectory(prefix="ftc-forked-") as d:
         out, err = Path(d) / "stdout", Path(d) / "stderr"
-        proc = _fork_server().spawn(module, list(args), out, err=err, cwd=Path(cwd), env=env)
+        # the environment of the moment, as subprocess.run would take it (the
+        # server's is the one it started with)
+        proc = _fork_server().spawn(module, list(args), out, err=err, cwd=Path(cwd),
+                                    env=dict(os.environ) if env is None else env)
         try:
             code = proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
+            with contextlib.suppress(ProcessLookupError):  # it may have just ended
+                os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(30)
             raise
         return subprocess.CompletedProcess(argv, code, out.read_text(), err.read_text())

@@ -556,6 +556,17 @@ def test_bad_flag_exits_2_naming_the_flag_and_writes_nothing(tmp_path, tool, bas
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("tool", ["ftc.mpc", "ftc.controller"])
+def test_a_fresh_tool_process_refuses_a_bad_flag_and_writes_nothing(tmp_path, tool):
+    # the cases above fork the tools from a process that imported them elsewhere:
+    # one fresh `python -m` each, so that import-time writes or environment reads
+    # in the working directory would still show
+    out = subprocess.run([PY, "-m", tool, "--no-such-flag"], capture_output=True, text=True,
+                         timeout=60, env=ENV, cwd=tmp_path)
+    assert out.returncode == 2 and "no-such-flag" in out.stderr, (out.stdout, out.stderr)
+    assert list(tmp_path.iterdir()) == []
+
+
 # ---------------------------------------------------------------------------
 # Unwritable output
 # ---------------------------------------------------------------------------

@@ -87,6 +87,16 @@ def test_a_child_can_get_its_own_stderr_directory_and_environment(server, tmp_pa
     assert seen["cwd"] == os.getcwd() and seen["probe_env"] is None
 
 
+def test_a_child_that_cannot_start_says_why_in_its_own_stderr(server, tmp_path):
+    err = tmp_path / "gone.err"
+    proc = server.spawn("fs_probe", [str(tmp_path / "gone.json"), "ok"], tmp_path / "gone.log",
+                        err=err, cwd=tmp_path / "no-such-directory")
+    assert proc.wait(timeout=30) == 1
+    assert "cannot start fs_probe" in err.read_text() and "no-such-directory" in err.read_text()
+    assert not (tmp_path / "gone.json").exists()
+    assert _probe(server, tmp_path, "ok").wait(timeout=30) == 0  # the server serves on
+
+
 @pytest.mark.parametrize("action, code, text", [("exit3", 3, "to stderr"),
                                                 ("raise", 1, "ValueError: boom")])
 def test_exit_status_and_uncaught_exceptions_are_reported(server, tmp_path, action, code, text):

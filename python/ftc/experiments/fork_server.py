@@ -184,13 +184,7 @@ def _child(request: dict, inherited: Sequence[int], tie_to_server, in_session: i
     signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh python
     for fd in inherited:
         os.close(fd)
-    if request["nice"]:
-        os.nice(request["nice"])
-    if "env" in request:
-        os.environ.clear()
-        os.environ.update(request["env"])
-    if "cwd" in request:
-        os.chdir(request["cwd"])
+    # the run's files first (absolute paths), so that what fails after lands in them
     null = os.open(os.devnull, os.O_RDONLY)
     log = os.open(request["log"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     err = (os.open(request["err"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -200,6 +194,17 @@ def _child(request: dict, inherited: Sequence[int], tie_to_server, in_session: i
             os.dup2(fd, target)
     for fd in {null, log, err} - {0, 1, 2}:
         os.close(fd)
+    try:
+        if request["nice"]:
+            os.nice(request["nice"])
+        if "env" in request:
+            os.environ.clear()
+            os.environ.update(request["env"])
+        if "cwd" in request:
+            os.chdir(request["cwd"])
+    except OSError as e:  # as python -m would never have started: one line, status 1
+        os.write(2, f"fork server: cannot start {request['module']}: {e}\n".encode())
+        return 1
     sys.stdin = open(0, closefd=False)
     sys.argv = [request["module"], *request["args"]]
     try:
@@ -293,7 +298,11 @@ def serve(modules: Sequence[str]) -> int:
                     continue
                 if pid == 0:
                     os.close(session_r)
-                    _exit(_child(request, (wake_r, wake_w, 0), tie_to_server, session_w))
+                    code = 1
+                    try:
+                        code = _child(request, (wake_r, wake_w, 0), tie_to_server, session_w)
+                    finally:  # never back into the server's loop, whatever happened
+                        _exit(code)
                 os.close(session_w)
                 # reported once its process group exists (killpg on the pid must find it,
                 # as after Popen(start_new_session=True)); EOF: it died before that

@@ -396,7 +396,7 @@ def parser() -> argparse.ArgumentParser:
         _config_options(s)
         if name == "train":
             s.add_argument("--force", action="store_true", help="train even if cached")
-            s.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)),
+            s.add_argument("--jobs", type=int, default=_usable_cpus(),
                            help="members trained at once, each in a process of its own "
                                 "with one torch thread; the weights are the same whatever "
                                 "the number, and it is not part of the checkpoint's key "
@@ -426,6 +426,12 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
     return p
+
+
+def _usable_cpus() -> int:
+    """The CPUs this process may run on (all of them where affinity is unknown)."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -226,7 +226,9 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
     weights (``policy``), every iteration's weights (``snapshots``) and the
     curve (``curve``: per iteration, env steps, teacher labels, wall seconds,
     loss, agreement, rewards). ``jobs`` > 1 trains that many members at once,
-    each in a process of its own (the same weights as one after another)."""
+    each in a process of its own (the same weights as one after another), whose
+    lines go to stdout named by member rather than to ``log``; a member that
+    fails (or Ctrl-C) stops the others."""
     if config.life_intervals > dist.life_intervals:
         raise ValueError(f"life_intervals {config.life_intervals} exceeds the distribution's "
                          f"{dist.life_intervals} (its events are drawn within it)")
@@ -307,7 +309,14 @@ def _train_members(dist: TrainingDistribution, config: TrainingConfig,
                                  mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = [pool.submit(_member, dist, config, m, _MemberLog(m))
                        for m in range(config.members)]
-            parts = [f.result() for f in futures]
+            try:
+                parts = [f.result() for f in futures]
+            except BaseException:  # a member failed, or Ctrl-C: train no other member
+                workers = list(getattr(pool, "_processes", {}).values())
+                pool.shutdown(wait=False, cancel_futures=True)
+                for worker in workers:
+                    worker.terminate()
+                raise
     else:
         parts = []
         for m in range(config.members):
