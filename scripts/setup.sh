@@ -60,13 +60,16 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   quiet_pip install -q --no-compile --upgrade pip
   quiet_pip install -q --no-compile -r requirements.txt
   quiet_pip install -q --no-compile -r requirements-extra.txt
-  # (a package's test data that is not Python makes compileall exit 1: no error)
-  .venv/bin/python -m compileall -q -j 0 \
-    "$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
-    >/dev/null 2>&1 || [ "$?" -eq 1 ] \
-    || echo "setup: note: byte-compiling .venv failed; every Python start will be slower" >&2
   quiet_pip uninstall -q -y ftc >/dev/null 2>&1 || true  # an install of the package itself
-  echo "$want" > "$stamp"
+  # in the background while CVODE and the C++ build below run; the stamp is
+  # written once it is done (a package's test data that is not Python makes
+  # compileall exit 1: no error)
+  purelib="$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
+  ( .venv/bin/python -m compileall -q -j 0 "$purelib" >/dev/null 2>&1 || [ "$?" -eq 1 ] \
+      || echo "setup: note: byte-compiling .venv failed; every Python start will be slower" >&2
+  ) &
+  compile_pid=$!
+  stamp_after_compile="$want"
 fi
 # the lcm wheel, kept: tests/python/test_install.py installs it, with no index,
 # into a fresh venv beside the package (whose plant finds liblcm there)
@@ -153,5 +156,9 @@ if ! cmake --build build -j"$(nproc)" > build/build.log 2>&1; then
   cat build/build.log >&2
   echo "setup: build failed (full log: build/build.log)" >&2
   exit 1
+fi
+if [ -n "${compile_pid:-}" ]; then
+  wait "$compile_pid" || true
+  echo "$stamp_after_compile" > "$stamp"
 fi
 echo "setup: ready (build/plant, .venv)"
