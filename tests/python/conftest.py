@@ -27,20 +27,6 @@ QUICK_FILES = {
 }
 
 
-# The files that take longest, longest first (their test time on a two-core
-# AMD EPYC, 2026-12-06): pytest-xdist's --dist loadfile hands files to the
-# workers in collection order, so these start first and the workers end close
-# together (longest processing time first), instead of one long file
-# starting last and running alone. The other files keep their order after.
-LONGEST_FIRST = [
-    "test_plugins.py", "test_same_results.py", "test_learning.py",
-    "test_experiments_reliability.py", "test_experiments.py", "test_episode_planner.py",
-    "test_run_ownership.py", "test_install.py", "test_controller_faults.py",
-    "test_doc_commands.py", "test_sb3.py", "test_benchmark.py", "test_adaptive.py",
-    "test_bounded_episodes.py", "test_realtime.py",
-]
-
-
 def pytest_addoption(parser):
     parser.addoption("--quick", action="store_true",
                      help="the fast tier: unit files and one integration per boundary")
@@ -52,8 +38,6 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if Path(str(item.fspath)).name not in QUICK_FILES:
             item.add_marker(pytest.mark.subprocess)
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(Path(str(item.fspath)).name, len(rank)))  # stable
     if not config.getoption("--quick"):
         return
     keep, drop = [], []

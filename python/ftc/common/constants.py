@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 NUM_TANKS = 6
+NUM_VALVES = NUM_TANKS  # one valve per tank, on the shared conduit
 NUM_ENGINES = 2
 TANK_HEIGHT = 1.0  # m, nominal h_i of every tank; model predictions are clipped to it
 

@@ -8,10 +8,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from ftc.common.constants import NUM_TANKS
+from ftc.common.constants import NUM_TANKS, NUM_VALVES  # noqa: F401 (NUM_VALVES: read from here)
 
 OBS_DIM = NUM_TANKS     # the six published levels
-NUM_VALVES = NUM_TANKS  # one Bernoulli action per valve
 
 
 class RolloutBatch(NamedTuple):

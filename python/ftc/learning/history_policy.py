@@ -29,9 +29,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from ftc.common.constants import NUM_TANKS
+from ftc.common.constants import NUM_TANKS, NUM_VALVES
 from ftc.common.source_key import closure_digest, native_source_digest
-from ftc.learning.stuck import NUM_VALVES, StuckMemory
+from ftc.learning.stuck import StuckMemory
 
 STEP_FEATURES = 2 * NUM_TANKS  # levels and valves of one step
 STUCK_FEATURES = 2 * NUM_VALVES  # the stuck memory: per valve seen stuck closed, then open

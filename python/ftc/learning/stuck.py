@@ -23,8 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from ftc.common.constants import NUM_VALVES
+
 STATES = ("closed", "open")
-NUM_VALVES = 6
 
 
 def against_command(commanded: np.ndarray, applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
