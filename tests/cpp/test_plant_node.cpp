@@ -311,6 +311,24 @@ TEST_F(PlantNodeTest, RealtimeHoldSafeStateKeepsTheLastValves) {
   EXPECT_EQ(tripped.valve, kAllOpen);
 }
 
+// A node descheduled past --watchdog while the controller kept sending: the
+// command waiting in its socket when the tick is due is applied by that tick,
+// and the watchdog does not trip on the node's own silence.
+TEST_F(PlantNodeTest, RealtimeTickAppliesTheCommandWaitingForItBeforeTheWatchdog) {
+  StartNode(RunMode::kRealtime, SafeState::kHold);
+  SendCommand(1, kAllOpen);
+  ASSERT_TRUE(node_->RunOnce());
+  now_ += milliseconds(1500);  // beyond --watchdog (1 s) since command 1
+  const plant_state_t tick = ExchangeOne([&] {
+    SendCommand(2, kAllClosed);  // queued, not yet dispatched, when the tick is due
+    ASSERT_TRUE(node_->RunOnce());
+  });
+  EXPECT_FALSE(tick.watchdog_tripped);
+  EXPECT_EQ(tick.valve, kAllClosed);
+  EXPECT_EQ(tick.command_seq, 2);
+  EXPECT_EQ(tick.watchdog_trips, 0);
+}
+
 TEST_F(PlantNodeTest, RealtimeRetryIsCountedButNotAnswered) {
   StartNode(RunMode::kRealtime);
   SendCommand(1, kAllOpen);

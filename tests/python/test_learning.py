@@ -42,17 +42,18 @@ AMD machine does. Margins are mean reward per step over all-closed:
 from __future__ import annotations
 
 import csv
-import subprocess
-import sys
 from pathlib import Path
+
+from forked_tools import run_tool
 
 REPO = Path(__file__).resolve().parents[2]
 SEEDS = (0, 1, 2)
 
 
 def _rewards(args: list[str], out: Path) -> list[float]:
-    subprocess.run([sys.executable, "-m", "ftc.controller", *args, "--out", str(out), "--quiet"],
-                   cwd=REPO, check=True, timeout=1800)
+    # forked, not started afresh: the same run bit for bit (test_fork_server.py)
+    done = run_tool("ftc.controller", [*args, "--out", str(out), "--quiet"], REPO, timeout=1800)
+    assert done.returncode == 0, done.stderr[-3000:]
     with open(out / "metrics.csv") as f:
         return [float(r["reward_per_step"]) for r in csv.DictReader(f)]
 

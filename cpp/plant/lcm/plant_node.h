@@ -86,8 +86,8 @@ class PlantNode final {
   // Real-time tick: step with the held valves (or the safe state) and publish.
   void Tick(Clock::time_point now);
 
-  // One pass of the serve loop: in real-time mode a tick if one is due,
-  // otherwise waits for at most one message (until the next tick, or 100 ms
+  // One pass of the serve loop: in real-time mode a tick if one is due (the
+  // messages already waiting dispatched first, at most 64), otherwise waits for at most one message (until the next tick, or 100 ms
   // in lockstep mode so a stop request is seen) and dispatches it. Returns
   // false if LCM's receive failed (a signal interrupting the wait also does).
   bool RunOnce();
