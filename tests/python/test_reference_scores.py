@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from ftc.common import source_key
 from ftc.experiments import benchmark, reference_scores
 
 REPO = Path(__file__).resolve().parents[2]
@@ -75,11 +76,11 @@ def test_the_native_key_is_the_cores_sources_and_they_include_nothing_else(tmp_p
     # what the key covers is the include closure of the core's sources: every
     # project header they include is under NATIVE_DIRS
     base = REPO / "cpp" / "plant"
-    for d in reference_scores.NATIVE_DIRS:
+    for d in source_key.NATIVE_DIRS:
         for source in (base / d).rglob("*"):
             for header in re.findall(r'#include "([^"]+)"', source.read_text()):
                 assert header.split("/")[:2] in (["plant", x] for x in
-                                                 reference_scores.NATIVE_DIRS), (source, header)
+                                                 source_key.NATIVE_DIRS), (source, header)
 
 
 def _copy_package(tmp_path: Path) -> Path:

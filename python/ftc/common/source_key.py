@@ -14,7 +14,11 @@ from pathlib import Path
 
 from ftc.common.paths import PACKAGE_DIR, REPO_ROOT
 
-NATIVE_SOURCES = "cpp/plant"  # the physics core's C++ sources, relative to a checkout
+NATIVE = "cpp/plant"  # the plant's C++ sources, relative to a checkout
+# the native core's (ftc._core: the physics and its bindings), under NATIVE; the
+# same list is in cpp/cmake/native_sources.cmake (the install's digest). The
+# plant's LCM node and its tools are not in it: no computation in process runs them.
+NATIVE_DIRS = ("bindings", "core")
 INSTALLED_NATIVE_DIGEST = "native_sources.sha256"  # what an install writes into the package
 
 
@@ -73,16 +77,17 @@ def closure_digest(modules: list[str], package_dir: Path = PACKAGE_DIR) -> str:
     return h.hexdigest()
 
 
-def native_source_digest(root: Path = REPO_ROOT) -> str:
-    """SHA-256 over the physics core's C++ sources (``root/cpp/plant``: "path
-    sha256" per file, sorted), or in an installed package the digest its
-    install wrote; '' if neither (the key then holds the Python code only)."""
-    base = root / NATIVE_SOURCES
+def native_source_digest(root: Path | None = None) -> str | None:
+    """SHA-256 over every file under ``root/cpp/plant``'s :data:`NATIVE_DIRS` (the
+    checkout's by default): "relative/path sha256\\n" per file (relative to
+    cpp/plant), sorted by path; in an installed package, the digest its install
+    wrote (``ftc/native_sources.sha256``); None if neither."""
+    base = (REPO_ROOT if root is None else Path(root)) / NATIVE
     if base.is_dir():
+        files = [p for d in NATIVE_DIRS for p in (base / d).rglob("*") if p.is_file()]
         lines = "".join(f"{p.relative_to(base).as_posix()} "
                         f"{hashlib.sha256(p.read_bytes()).hexdigest()}\n"
-                        for p in sorted(base.rglob("*"), key=lambda q: q.as_posix())
-                        if p.is_file())
+                        for p in sorted(files, key=lambda q: q.relative_to(base).as_posix()))
         return hashlib.sha256(lines.encode()).hexdigest()
     installed = PACKAGE_DIR / INSTALLED_NATIVE_DIGEST
-    return installed.read_text().strip() if installed.is_file() else ""
+    return installed.read_text().strip() if root is None and installed.is_file() else None

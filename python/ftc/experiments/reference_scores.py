@@ -36,6 +36,7 @@ from typing import Any, Mapping, Sequence
 
 from ftc.common.atomic import atomic_write_json, atomic_write_text
 from ftc.common.paths import PACKAGE_DIR, REPO_ROOT
+from ftc.common.source_key import native_source_digest
 from ftc.control import registry
 from ftc.experiments.import_closure import closure
 
@@ -46,34 +47,13 @@ METHODS = (REFERENCE, CLOSED)
 # commit differ (measured: _core of the same commit built in two checkouts, two
 # digests), so shipped data is keyed by their sources instead.
 BUILT = ("_core", "plant")
-NATIVE = "cpp/plant"  # the plant's C++ sources, relative to the checkout
-# the native core's (ftc._core: the physics and its bindings), under NATIVE; the
-# same list is in cpp/cmake/native_sources.cmake (the install's digest)
-NATIVE_DIRS = ("bindings", "core")
 LINK = "core"  # the only link reference scores are made with (the native core in process)
-INSTALLED_DIGEST = "native_sources.sha256"  # written into the package by its install
 SHIPPED = "shipped"  # --reference-scores shipped: the file for the default suite
 PROTOCOL = ("intervals", "steps_per_interval", "link")  # run settings the rewards depend on
 
 
 class ReferenceScoresError(ValueError):
     """Reference scores that do not apply here; the message names the difference."""
-
-
-def native_source_digest(root: Path | None = None) -> str | None:
-    """SHA-256 over every file under ``root/cpp/plant``'s :data:`NATIVE_DIRS` (the
-    checkout's by default): "relative/path sha256\\n" per file (relative to
-    cpp/plant), sorted by path; in an installed package, the digest its install
-    wrote (``ftc/native_sources.sha256``); None if neither."""
-    base = (REPO_ROOT if root is None else Path(root)) / NATIVE
-    if base.is_dir():
-        files = [p for d in NATIVE_DIRS for p in (base / d).rglob("*") if p.is_file()]
-        lines = "".join(f"{p.relative_to(base).as_posix()} "
-                        f"{hashlib.sha256(p.read_bytes()).hexdigest()}\n"
-                        for p in sorted(files, key=lambda q: q.relative_to(base).as_posix()))
-        return hashlib.sha256(lines.encode()).hexdigest()
-    installed = PACKAGE_DIR / INSTALLED_DIGEST
-    return installed.read_text().strip() if root is None and installed.is_file() else None
 
 
 def entry_modules() -> list[str]:

@@ -366,7 +366,7 @@ def rates_map(window: int, features: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def code_digest() -> str:
     """The code a checkpoint depends on: the trainer's import closure and the
     C++ sources of the physics core it simulates with (:mod:`ftc.common.source_key`)."""
-    return hashlib.sha256((closure_digest([TRAINER]) + native_source_digest()).encode()
+    return hashlib.sha256((closure_digest([TRAINER]) + (native_source_digest() or "")).encode()
                           ).hexdigest()
 
 
