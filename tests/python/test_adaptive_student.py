@@ -166,8 +166,8 @@ def test_evaluate_scores_the_teacher_it_is_asked_for_without_a_checkpoint(tmp_pa
     scores = {}
     for hold, horizon in ((3, 10), (1, 1)):
         out = tmp_path / f"{hold}x{horizon}.csv"
-        assert main(common + ["--hold", str(hold), "--horizon", str(horizon),
-                              "--out", str(out)]) == 0
+        assert main(common + ["--hold", str(hold), "--horizon", str(horizon), "--extra-holds",
+                              "--out", str(out)]) == 0  # --extra-holds alone: that hold only
         (row,) = csv.DictReader(line for line in open(out) if not line.startswith("#"))
         scores[hold, horizon] = float(row["score"])
         assert f"holding {hold} over {horizon}" in out.read_text().splitlines()[0]

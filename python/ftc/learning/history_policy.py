@@ -108,7 +108,8 @@ class TrainingConfig:
     student's choice, per unit of the data's mean regret) added to the cross
     entropy (the valves head has none); hold, horizon: the teacher's planner
     (oracle-mpc's H and L); extra_holds: more hold lengths the teacher's
-    plans try, each setting valued by the best of its plans; seed: draws,
+    plans try, each setting valued by the best of its plans (() for hold
+    alone); seed: draws,
     pool plants, initial weights and minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
     network whose logits are their mean (:func:`ensemble`); privileged: weight
@@ -136,7 +137,7 @@ class TrainingConfig:
     regret: float = 5.0
     hold: int = 2
     horizon: int = 6
-    extra_holds: tuple[int, ...] = ()
+    extra_holds: tuple[int, ...] = (1, 3, 6)
     seed: int = 0
     members: int = 3
     privileged: float = 0.0

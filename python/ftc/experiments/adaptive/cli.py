@@ -57,7 +57,7 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "hold": "the teacher's plans hold a setting this many steps, then all closed",
     "horizon": "the teacher's planning horizon, steps",
     "extra_holds": "more hold lengths the teacher's plans try, each setting valued by the "
-                   "best of its plans (none: --hold alone)",
+                   "best of its plans (the flag with no value: none, --hold alone)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -82,7 +82,9 @@ def _config_options(p: argparse.ArgumentParser) -> None:
             p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value,
                            metavar="BOOL", help=f"{OPTION_HELP[f.name]} (default {value})")
         elif isinstance(value, tuple):
-            p.add_argument(flag, type=int, nargs="+", default=list(value),
+            # extra holds may be none (the flag alone); a network has a hidden layer
+            p.add_argument(flag, type=int, nargs="*" if f.name == "extra_holds" else "+",
+                           default=list(value),
                            help=f"{OPTION_HELP[f.name]} (default "
                                 f"{' '.join(map(str, value)) or 'none'})")
         else:
