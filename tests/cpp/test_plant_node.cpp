@@ -329,6 +329,49 @@ TEST_F(PlantNodeTest, RealtimeTickAppliesTheCommandWaitingForItBeforeTheWatchdog
   EXPECT_EQ(tick.watchdog_trips, 0);
 }
 
+// A RESET waiting when the tick is due opens the episode and is answered
+// with its first state; that state is not stepped at once with the old
+// valves: the controller gets a period to answer it.
+TEST_F(PlantNodeTest, RealtimeResetWaitingForATickIsAnsweredBeforeTheNextStep) {
+  StartNode(RunMode::kRealtime, SafeState::kHold);
+  SendCommand(1, kAllOpen);
+  ASSERT_TRUE(node_->RunOnce());  // sets the first tick at now + 100 ms
+  now_ += milliseconds(100);
+  ASSERT_EQ(ExchangeOne([&] { ASSERT_TRUE(node_->RunOnce()); }).step, 1);
+  now_ += milliseconds(100);
+  const plant_state_t opened = ExchangeOne([&] {
+    SendControl(2, plant_control_t::RESET);  // waiting when the tick is due
+    ASSERT_TRUE(node_->RunOnce());
+  });
+  EXPECT_EQ(opened.step, 0);
+  EXPECT_EQ(opened.command_seq, 2);
+  now_ += milliseconds(50);  // within the period: nothing
+  EXPECT_TRUE(Exchange([&] { ASSERT_TRUE(node_->RunOnce()); }).empty());
+  SendCommand(3, kAllClosed);
+  ASSERT_TRUE(node_->RunOnce());
+  now_ += milliseconds(50);  // a period after the reset: its first step
+  const plant_state_t first = ExchangeOne([&] { ASSERT_TRUE(node_->RunOnce()); });
+  EXPECT_EQ(first.step, 1);
+  EXPECT_EQ(first.valve, kAllClosed);
+  EXPECT_EQ(first.missed_ticks, 0);
+}
+
+// A SHUTDOWN waiting when the tick is due ends the node on its answer: no
+// later message is applied and no step is taken after it.
+TEST_F(PlantNodeTest, RealtimeShutdownWaitingForATickIsTheLastState) {
+  StartNode(RunMode::kRealtime);
+  ASSERT_TRUE(node_->RunOnce());  // sets the first tick at now + 100 ms
+  now_ += milliseconds(100);
+  SendControl(1, plant_control_t::SHUTDOWN);
+  SendCommand(2, kAllOpen);
+  ASSERT_TRUE(node_->RunOnce());
+  EXPECT_TRUE(node_->shutdown_requested());
+  Drain();
+  ASSERT_EQ(states_.size(), 1u);
+  EXPECT_EQ(states_[0].command_seq, 1);
+  EXPECT_EQ(plant_.operating_steps(), 0);
+}
+
 TEST_F(PlantNodeTest, RealtimeRetryIsCountedButNotAnswered) {
   StartNode(RunMode::kRealtime);
   SendCommand(1, kAllOpen);

@@ -120,10 +120,19 @@ bool PlantNode::RunOnce() {
       // was descheduled (a busy machine), the commands waiting in its socket
       // are the controller's latest, and the watchdog must not trip on a
       // silence that was the node's own.
+      episode_opened_ = false;
       for (int k = 0; k < kMaxBacklogPerTick; ++k) {
         const int handled = lcm_->handleTimeout(0);
         if (handled < 0) return false;
-        if (handled == 0) break;
+        if (handled == 0 || shutdown_ || episode_opened_) break;
+      }
+      if (shutdown_) return true;  // its answer was the last state
+      if (episode_opened_) {
+        // The waiting message opened an episode and its first state went out
+        // just now: the controller gets a whole period to answer it, as when
+        // the message comes between two ticks.
+        next_tick_ = now + period_;
+        return true;
       }
       Tick(now);
       *next_tick_ += period_;
@@ -287,6 +296,9 @@ void PlantNode::HandleControl(const plant_control_t& msg, const std::string& cha
                         std::to_string(static_cast<int>(msg.command)));
       return;
   }
+  episode_opened_ = msg.command == plant_control_t::RESET ||
+                    msg.command == plant_control_t::EVALUATE ||
+                    msg.command == plant_control_t::START;
   answered_seq_ = msg.seq;
   answered_valves_.reset();  // the seq of a control message
   fresh_command_ = false;  // a new episode: its first step needs a command answering it

@@ -87,9 +87,11 @@ class PlantNode final {
   void Tick(Clock::time_point now);
 
   // One pass of the serve loop: in real-time mode a tick if one is due (the
-  // messages already waiting dispatched first, at most 64), otherwise waits for at most one message (until the next tick, or 100 ms
-  // in lockstep mode so a stop request is seen) and dispatches it. Returns
-  // false if LCM's receive failed (a signal interrupting the wait also does).
+  // messages already waiting dispatched first, at most 64; no tick if one of
+  // them opened an episode or asked for a shutdown), otherwise waits for at
+  // most one message (until the next tick, or 100 ms in lockstep mode so a
+  // stop request is seen) and dispatches it. Returns false if LCM's receive
+  // failed (a signal interrupting the wait also does).
   bool RunOnce();
 
   // Calls RunOnce until `stop()` or a SHUTDOWN message. Returns false on an
@@ -131,6 +133,7 @@ class PlantNode final {
   std::optional<Clock::time_point> last_valid_command_time_;
   std::optional<Clock::time_point> next_tick_;  // set by the first RunOnce
   bool watchdog_tripped_;
+  bool episode_opened_ = false;  // the last control message handled reset the plant
   bool fresh_command_ = false;  // a valid command arrived since the last published state
   std::int64_t missed_ticks_ = 0;
   std::int64_t watchdog_trips_ = 0;

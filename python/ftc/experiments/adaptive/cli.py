@@ -423,7 +423,8 @@ def parser() -> argparse.ArgumentParser:
                                 "planner on the true physics with --hold, --horizon and "
                                 "--extra-holds, told the stuck valves --teacher-stuck says: all, "
                                 "or seen, those its own commands showed; no checkpoint needed; "
-                                "3 and 10 are oracle-mpc's) or the balance rule")
+                                "--hold 3 --horizon 10 --extra-holds with no value is "
+                                "oracle-mpc's) or the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
