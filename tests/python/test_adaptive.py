@@ -199,7 +199,8 @@ def test_members_train_one_after_another_and_fly_as_their_ensemble(one_torch_thr
     from ftc.learning.history_policy import HistoryPolicy, ensemble
 
     tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
-                          hidden=(8,), head="joint", hold=2, horizon=3, members=1)
+                          hidden=(8,), head="joint", hold=2, horizon=3, extra_holds=(),
+                          members=1)
     dist = distribution.load()
     record = dagger.train(dist, dataclasses.replace(tiny, members=2), log=lambda _: None)
     second = dagger.train(dist, dataclasses.replace(tiny, seed=1), log=lambda _: None)
@@ -480,7 +481,8 @@ def test_the_privileged_head_learns_a_stuck_valve_from_the_window(one_torch_thre
 
 def test_the_privileged_head_stays_out_of_the_checkpoint(one_torch_thread):
     tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
-                          hidden=(8,), head="joint", hold=2, horizon=3, members=1)
+                          hidden=(8,), head="joint", hold=2, horizon=3, extra_holds=(),
+                          members=1)
     dist = distribution.load()
     plain = dagger.train(dist, tiny, log=lambda _: None)
     with_head = dagger.train(dist, dataclasses.replace(tiny, privileged=1.0),
