@@ -12,7 +12,7 @@ import torch
 from ftc import _core
 from ftc.control.planning.physics.evaluators import OracleEvaluator
 from ftc.control.planning.physics.teacher import PoolTeacher
-from ftc.control.planning.planners import HoldPlanner
+from ftc.control.planning.planners import HoldPlanner, two_stage_candidates
 from ftc.experiments.adaptive import dagger, distribution
 from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, StudentConfig,
                                          TrainingConfig, rates_map)
@@ -99,6 +99,38 @@ def test_a_teacher_with_more_holds_values_each_setting_by_its_best_plan():
         assert totals.max() >= oracle(light_left[k], HoldPlanner(2, 6).candidates(6)).max()
     # the extra holds change the values: the single-hold teacher's regrets differ
     assert not np.allclose(regrets, regrets_one, atol=1e-5)
+
+
+def test_a_teacher_with_a_second_stage_values_its_best_settings_by_their_two_stage_plans():
+    # against its definition, computed here from the planners' own plans: each
+    # setting's best plan holding 2, 1 or 3 steps then closed; the 4 settings valued
+    # best that way (code order) also by their 64 plans holding 2 steps, then any
+    # setting to the horizon. Plants light on the left, late in a worn life, where a
+    # second stage pays (the assertion below shows some totals rise).
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    rng = np.random.default_rng(0)
+    levels = rng.uniform(0.05, 1.0, (6, 6))
+    levels[:, :3] *= 0.3
+    step = 4600
+    teacher = PoolTeacher(2, 6, extra_holds=(1, 3), second_stage=4)
+    u, regrets = teacher.label_with_regrets([0] * 6, [scenario], np.full(6, step), levels)
+    oracle = OracleEvaluator(scenario, closed_form=True)
+    oracle.set_step(step)
+    raised = 0
+    for k in range(len(levels)):
+        holds = np.max([oracle(levels[k], HoldPlanner(h, 6).candidates(6)) for h in (2, 1, 3)],
+                       axis=0)
+        top = np.sort(np.argsort(-holds, kind="stable")[:4])
+        staged = oracle(levels[k], two_stage_candidates(2, 6)[top].reshape(-1, 6, 6))
+        totals = holds.copy()
+        totals[top] = np.maximum(holds[top], staged.reshape(4, -1).max(axis=1))
+        raised += int((totals > holds).any())
+        best = int(np.argmax(totals))
+        assert u[k].tolist() == HoldPlanner(2, 6).candidates(6)[best, 0].tolist()
+        np.testing.assert_allclose(regrets[k], totals.max() - totals, atol=1e-5)  # float32
+    assert raised > 0  # the second stage is not idle on these states
+    with pytest.raises(ValueError, match="second_stage"):
+        PoolTeacher(2, 6, second_stage=65)
 
 
 @pytest.mark.parametrize("regret", [0.0, 1.0])

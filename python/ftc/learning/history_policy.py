@@ -109,7 +109,9 @@ class TrainingConfig:
     entropy (the valves head has none); hold, horizon: the teacher's planner
     (oracle-mpc's H and L); extra_holds: more hold lengths the teacher's
     plans try, each setting valued by the best of its plans (() for hold
-    alone); seed: draws,
+    alone); second_stage: how many of the best settings the teacher also
+    values by their two-stage plans (held ``hold`` steps, then any setting to
+    the horizon), 0 for none; seed: draws,
     pool plants, initial weights and minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
     network whose logits are their mean (:func:`ensemble`); privileged: weight
@@ -138,6 +140,7 @@ class TrainingConfig:
     hold: int = 2
     horizon: int = 6
     extra_holds: tuple[int, ...] = (1, 3, 6)
+    second_stage: int = 0
     seed: int = 0
     members: int = 3
     privileged: float = 0.0
@@ -152,6 +155,9 @@ class TrainingConfig:
             raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
         if not self.privileged >= 0:
             raise ValueError(f"TrainingConfig: privileged must be >= 0, got {self.privileged}")
+        if not 0 <= self.second_stage <= 64:
+            raise ValueError(f"TrainingConfig: second_stage must be in [0, 64], "
+                             f"got {self.second_stage}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
         if self.teacher_stuck not in TEACHER_STUCK:

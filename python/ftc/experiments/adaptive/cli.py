@@ -58,6 +58,8 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "horizon": "the teacher's planning horizon, steps",
     "extra_holds": "more hold lengths the teacher's plans try, each setting valued by the "
                    "best of its plans (the flag with no value: none, --hold alone)",
+    "second_stage": "the teacher also values its K best settings by their two-stage plans: "
+                    "held --hold steps, then any setting held to the horizon (0: none)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -158,9 +160,11 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     record: dict[str, Any] = {}
     if a.policy == "teacher":  # the planner alone: no checkpoint
         config_of(a)  # refuses a hold, horizon or extra hold below 1
-        policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds)
+        policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds,
+                                  second_stage=a.second_stage)
         holds = " or ".join(str(p.hold) for p in policy.planners)
-        what = (f"teacher (the planner holding {holds} over {a.horizon}, told "
+        staged = (f", its {a.second_stage} best then any setting" if a.second_stage else "")
+        what = (f"teacher (the planner holding {holds} over {a.horizon}{staged}, told "
                 + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"
                    else "every stuck valve)"))
     elif a.policy == "balance":

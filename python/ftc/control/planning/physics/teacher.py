@@ -7,7 +7,10 @@ teacher returns the valves ``oracle-mpc`` would apply there: the best of the
 64 "hold H steps, then all closed" plans over a horizon of L steps, the
 horizon cut at the interval's end (oracle-mpc's defaults: H = 3, L = 10).
 With more hold lengths (``extra_holds``), each setting is valued by the best
-of its plans: held H steps or any of those, then all closed.
+of its plans: held H steps or any of those, then all closed. With a second
+stage (``second_stage`` K > 0), the K settings valued best that way are also
+valued by their 64 two-stage plans: held H steps, then any one setting held
+to the horizon, a continuation other than closing every valve.
 It is used for training only: the student never sees it at run time.
 """
 
@@ -19,7 +22,7 @@ import numpy as np
 
 from ftc.common.constants import NUM_TANKS
 from ftc.control.planning.physics.evaluators import OracleEvaluator
-from ftc.control.planning.planners import HoldPlanner
+from ftc.control.planning.planners import HoldPlanner, two_stage_candidates
 
 
 class PoolTeacher:
@@ -27,16 +30,22 @@ class PoolTeacher:
 
     hold, horizon: the planner's H and L; extra_holds: more hold lengths, a
     setting valued by the best of its plans (its first step is what they
-    share); closed_form: the rollouts step the conduit in closed form
-    (``_core.BatchRollout``'s exact_active_conduit, several times faster than
-    CVODE, within its tolerances)."""
+    share); second_stage: how many of the best settings are also valued by
+    their two-stage plans (held ``hold`` steps, then any setting to the
+    horizon; 0: none); closed_form: the rollouts step the conduit in closed
+    form (``_core.BatchRollout``'s exact_active_conduit, several times faster
+    than CVODE, within its tolerances)."""
 
     def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True,
-                 extra_holds: Sequence[int] = ()) -> None:
+                 extra_holds: Sequence[int] = (), second_stage: int = 0) -> None:
+        if not 0 <= second_stage <= 2 ** NUM_TANKS:
+            raise ValueError(f"PoolTeacher: second_stage must be in [0, 64], got {second_stage}")
         self.planners = [HoldPlanner(h, horizon)
                          for h in dict.fromkeys((hold, *extra_holds))]  # in order, once each
         self.planner = self.planners[0]
         self._plans: dict[int, np.ndarray] = {}  # horizon -> every planner's plans, stacked
+        self.second_stage = second_stage
+        self._two_stage: dict[int, np.ndarray] = {}  # horizon -> (64, 64, horizon, 6)
         self.horizon = horizon
         self.closed_form = closed_form
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
@@ -103,7 +112,17 @@ class PoolTeacher:
         if horizon not in self._plans:
             self._plans[horizon] = np.concatenate([p.candidates(horizon) for p in self.planners])
         totals = np.asarray(evaluator(x0, self._plans[horizon]), np.float64)
-        return totals.reshape(len(self.planners), -1).max(axis=0)
+        totals = totals.reshape(len(self.planners), -1).max(axis=0)
+        first = self.planner.hold
+        if self.second_stage and horizon > first:  # else no step is left for a second stage
+            if horizon not in self._two_stage:
+                self._two_stage[horizon] = two_stage_candidates(first, horizon)
+            # the best settings, in code order (first maximum: ties as unpruned)
+            best = np.sort(np.argsort(-totals, kind="stable")[:self.second_stage])
+            plans = self._two_stage[horizon][best].reshape(-1, horizon, NUM_TANKS)
+            staged = np.asarray(evaluator(x0, plans), np.float64).reshape(len(best), -1)
+            totals[best] = np.maximum(totals[best], staged.max(axis=1))
+        return totals
 
 
 def regrets_of(totals: np.ndarray) -> np.ndarray:
