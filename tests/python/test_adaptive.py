@@ -359,7 +359,7 @@ def test_bad_input_to_the_commands_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 4 and all(line.startswith("adaptive: error: ") for line in err)
     assert "--iterations must be >= 1" in err[0] and "train`" in err[1] and "none.toml" in err[2]
-    assert "second_stage must be in [0, 64], got 65" in err[3]
+    assert "--second-stage must be in [0, 64] (settings), got 65" in err[3]
     assert not list(tmp_path.iterdir())  # nothing written
 
 

@@ -101,36 +101,56 @@ def test_a_teacher_with_more_holds_values_each_setting_by_its_best_plan():
     assert not np.allclose(regrets, regrets_one, atol=1e-5)
 
 
-def test_a_teacher_with_a_second_stage_values_its_best_settings_by_their_two_stage_plans():
-    # against its definition, computed here from the planners' own plans: each
-    # setting's best plan holding 2, 1 or 3 steps then closed; the 4 settings valued
-    # best that way (code order) also by their 64 plans holding 2 steps, then any
-    # setting to the horizon. Plants light on the left, late in a worn life, where a
-    # second stage pays (the assertion below shows some totals rise).
+def _second_stage_totals(oracle, x, horizon, keep):
+    """(64,) each setting's value by the definition, from every plan: its best plan
+    holding 2, 1 or 3 steps then closed ("holds"); for the ``keep`` settings valued
+    best that way (ties at the cut to the lower code), also its 64 plans holding 2
+    steps then any setting to the horizon (none when the horizon is 2 or less)."""
+    holds = np.max([oracle(x, HoldPlanner(h, horizon).candidates(horizon)) for h in (2, 1, 3)],
+                   axis=0)
+    if horizon <= 2:
+        return holds, holds.copy()
+    every = oracle(x, two_stage_candidates(2, horizon).reshape(-1, horizon, 6))  # 4,096 plans
+    staged = every.reshape(64, 64).max(axis=1)
+    totals = holds.copy()
+    top = np.argsort(-holds, kind="stable")[:keep]
+    totals[top] = np.maximum(holds[top], staged[top])
+    return holds, totals
+
+
+@pytest.mark.parametrize("keep", [4, 64])
+def test_a_teacher_with_a_second_stage_values_its_best_settings_by_their_two_stage_plans(keep):
+    # against its definition, every two-stage plan rolled out here (with keep = 64 no
+    # pruning is left: a brute force over all 4,096), on plants light on the left late
+    # in a worn life, where a second stage pays; at steps with 6, 3 and 2 steps left in
+    # the interval (the horizon cut to 3: a one-step second stage; to 2: none)
     scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
     rng = np.random.default_rng(0)
     levels = rng.uniform(0.05, 1.0, (6, 6))
     levels[:, :3] *= 0.3
-    step = 4600
-    teacher = PoolTeacher(2, 6, extra_holds=(1, 3), second_stage=4)
-    u, regrets = teacher.label_with_regrets([0] * 6, [scenario], np.full(6, step), levels)
-    oracle = OracleEvaluator(scenario, closed_form=True)
-    oracle.set_step(step)
-    raised = 0
-    for k in range(len(levels)):
-        holds = np.max([oracle(levels[k], HoldPlanner(h, 6).candidates(6)) for h in (2, 1, 3)],
-                       axis=0)
-        top = np.sort(np.argsort(-holds, kind="stable")[:4])
-        staged = oracle(levels[k], two_stage_candidates(2, 6)[top].reshape(-1, 6, 6))
-        totals = holds.copy()
-        totals[top] = np.maximum(holds[top], staged.reshape(4, -1).max(axis=1))
-        raised += int((totals > holds).any())
-        best = int(np.argmax(totals))
-        assert u[k].tolist() == HoldPlanner(2, 6).candidates(6)[best, 0].tolist()
-        np.testing.assert_allclose(regrets[k], totals.max() - totals, atol=1e-5)  # float32
-    assert raised > 0  # the second stage is not idle on these states
-    with pytest.raises(ValueError, match="second_stage"):
+    teacher = PoolTeacher(2, 6, extra_holds=(1, 3), second_stage=keep)
+    raised = relabelled = 0
+    for step, horizon in ((4600, 6), (4605, 3), (4606, 2)):  # 4606 % 512 = 510: 2 left
+        u, regrets = teacher.label_with_regrets([0] * 6, [scenario], np.full(6, step), levels)
+        oracle = OracleEvaluator(scenario, closed_form=True)
+        oracle.set_step(step)
+        for k in range(len(levels)):
+            holds, totals = _second_stage_totals(oracle, levels[k], horizon, keep)
+            raised += int((totals > holds).any())
+            best = int(np.argmax(totals))
+            relabelled += int(best != int(np.argmax(holds)))
+            assert u[k].tolist() == HoldPlanner(2, 6).candidates(6)[best, 0].tolist()
+            np.testing.assert_allclose(regrets[k], totals.max() - totals, atol=1e-5)  # float32
+            if horizon <= 2:
+                assert (totals == holds).all()  # no step left for a second stage
+    assert raised > 0 and relabelled > 0  # the second stage changes values and labels here
+
+
+def test_a_teachers_second_stage_is_bounded_by_the_settings():
+    with pytest.raises(ValueError, match=r"second_stage must be in \[0, 64\], got 65"):
         PoolTeacher(2, 6, second_stage=65)
+    with pytest.raises(ValueError, match=r"second_stage must be in \[0, 64\], got -1"):
+        TrainingConfig(second_stage=-1)
 
 
 @pytest.mark.parametrize("regret", [0.0, 1.0])

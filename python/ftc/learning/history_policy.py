@@ -155,8 +155,8 @@ class TrainingConfig:
             raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
         if not self.privileged >= 0:
             raise ValueError(f"TrainingConfig: privileged must be >= 0, got {self.privileged}")
-        if not 0 <= self.second_stage <= 64:
-            raise ValueError(f"TrainingConfig: second_stage must be in [0, 64], "
+        if not 0 <= self.second_stage <= 2 ** NUM_TANKS:
+            raise ValueError(f"TrainingConfig: second_stage must be in [0, {2 ** NUM_TANKS}], "
                              f"got {self.second_stage}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")

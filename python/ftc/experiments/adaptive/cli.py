@@ -29,6 +29,7 @@ import numpy as np
 
 from ftc.common.atomic import atomic_torch_save, atomic_write_text
 from ftc.common.build_info import git_revision
+from ftc.common.constants import NUM_TANKS
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE
 from ftc.control.agents.balance import balance_valves
 from ftc.control.planning.physics.teacher import PoolTeacher
@@ -58,8 +59,10 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "horizon": "the teacher's planning horizon, steps",
     "extra_holds": "more hold lengths the teacher's plans try, each setting valued by the "
                    "best of its plans (the flag with no value: none, --hold alone)",
-    "second_stage": "the teacher also values its K best settings by their two-stage plans: "
-                    "held --hold steps, then any setting held to the horizon (0: none)",
+    "second_stage": "the teacher also values this many of its best settings by their "
+                    "two-stage plans: held --hold steps, then any one setting held to the "
+                    "horizon (0: none; nothing where --hold >= --horizon; 4 costs about twice "
+                    "the teacher's CPU)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -91,6 +94,7 @@ def _config_options(p: argparse.ArgumentParser) -> None:
                                 f"{' '.join(map(str, value)) or 'none'})")
         else:
             p.add_argument(flag, type=type(value), default=value,
+                           metavar="K" if f.name == "second_stage" else None,
                            help=f"{OPTION_HELP[f.name]} (default {value})")
 
 
@@ -102,6 +106,9 @@ def config_of(a: argparse.Namespace) -> TrainingConfig:
                  "window", "hold", "horizon"):
         if values[name] < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {values[name]}")
+    if not 0 <= values["second_stage"] <= 2 ** NUM_TANKS:
+        raise ValueError(f"--second-stage must be in [0, {2 ** NUM_TANKS}] (settings), "
+                         f"got {values['second_stage']}")
     if any(h < 1 for h in values["extra_holds"]):
         raise ValueError(f"--extra-holds must be >= 1 each, got {list(values['extra_holds'])}")
     if not 0.0 <= values["label_fraction"] <= 1.0 or not values["lr"] > 0:
@@ -163,7 +170,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds,
                                   second_stage=a.second_stage)
         holds = " or ".join(str(p.hold) for p in policy.planners)
-        staged = (f", its {a.second_stage} best then any setting" if a.second_stage else "")
+        staged = (f", its {a.second_stage} best settings also held {a.hold} steps, then any "
+                  "setting" if a.second_stage else "")
         what = (f"teacher (the planner holding {holds} over {a.horizon}{staged}, told "
                 + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"
                    else "every stuck valve)"))
@@ -424,8 +432,8 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
                            help="what to score: the checkpoint's student, the teacher (the "
-                                "planner on the true physics with --hold, --horizon and "
-                                "--extra-holds, told the stuck valves --teacher-stuck says: all, "
+                                "planner on the true physics with --hold, --horizon, "
+                                "--extra-holds and --second-stage, told the stuck valves --teacher-stuck says: all, "
                                 "or seen, those its own commands showed; no checkpoint needed; "
                                 "--hold 3 --horizon 10 --extra-holds with no value is "
                                 "oracle-mpc's) or the balance rule")

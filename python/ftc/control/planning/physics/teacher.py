@@ -10,7 +10,7 @@ With more hold lengths (``extra_holds``), each setting is valued by the best
 of its plans: held H steps or any of those, then all closed. With a second
 stage (``second_stage`` K > 0), the K settings valued best that way are also
 valued by their 64 two-stage plans: held H steps, then any one setting held
-to the horizon, a continuation other than closing every valve.
+to the horizon (all closed among them), so the continuation is chosen too.
 It is used for training only: the student never sees it at run time.
 """
 
@@ -39,7 +39,8 @@ class PoolTeacher:
     def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True,
                  extra_holds: Sequence[int] = (), second_stage: int = 0) -> None:
         if not 0 <= second_stage <= 2 ** NUM_TANKS:
-            raise ValueError(f"PoolTeacher: second_stage must be in [0, 64], got {second_stage}")
+            raise ValueError(f"PoolTeacher: second_stage must be in [0, {2 ** NUM_TANKS}], "
+                             f"got {second_stage}")
         self.planners = [HoldPlanner(h, horizon)
                          for h in dict.fromkeys((hold, *extra_holds))]  # in order, once each
         self.planner = self.planners[0]
@@ -117,7 +118,7 @@ class PoolTeacher:
         if self.second_stage and horizon > first:  # else no step is left for a second stage
             if horizon not in self._two_stage:
                 self._two_stage[horizon] = two_stage_candidates(first, horizon)
-            # the best settings, in code order (first maximum: ties as unpruned)
+            # the best settings (ties at the cut to the lower code), in code order
             best = np.sort(np.argsort(-totals, kind="stable")[:self.second_stage])
             plans = self._two_stage[horizon][best].reshape(-1, horizon, NUM_TANKS)
             staged = np.asarray(evaluator(x0, plans), np.float64).reshape(len(best), -1)
