@@ -146,6 +146,14 @@ def test_a_teacher_with_a_second_stage_values_its_best_settings_by_their_two_sta
     assert raised > 0 and relabelled > 0  # the second stage changes values and labels here
 
 
+def test_the_teacher_a_training_distils_is_the_one_its_config_names():
+    # dagger.train and evaluate --policy teacher build their teacher this way
+    teacher = PoolTeacher.from_config(TrainingConfig(hold=3, horizon=7, extra_holds=(1, 5),
+                                                     second_stage=3))
+    assert [p.hold for p in teacher.planners] == [3, 1, 5]
+    assert teacher.horizon == 7 and teacher.second_stage == 3
+
+
 def test_a_teachers_second_stage_is_bounded_by_the_settings():
     with pytest.raises(ValueError, match=r"second_stage must be in \[0, 64\], got 65"):
         PoolTeacher(2, 6, second_stage=65)

@@ -166,9 +166,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         raise ValueError(f"--curve is the student's learning curve: not with --policy {a.policy}")
     record: dict[str, Any] = {}
     if a.policy == "teacher":  # the planner alone: no checkpoint
-        config_of(a)  # refuses a hold, horizon or extra hold below 1
-        policy: Any = PoolTeacher(a.hold, a.horizon, extra_holds=a.extra_holds,
-                                  second_stage=a.second_stage)
+        # the teacher a training with these options distils (refused: a hold, horizon or
+        # extra hold below 1, a second stage out of range)
+        policy: Any = PoolTeacher.from_config(config_of(a))
         holds = " or ".join(str(p.hold) for p in policy.planners)
         staged = (f", its {a.second_stage} best settings also held {a.hold} steps, then any "
                   "setting" if a.second_stage else "")
@@ -433,8 +433,9 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
                            help="what to score: the checkpoint's student, the teacher (the "
                                 "planner on the true physics with --hold, --horizon, "
-                                "--extra-holds and --second-stage, told the stuck valves --teacher-stuck says: all, "
-                                "or seen, those its own commands showed; no checkpoint needed; "
+                                "--extra-holds and --second-stage, told the stuck valves "
+                                "--teacher-stuck says: all, or seen, those its own commands "
+                                "showed; no checkpoint needed; "
                                 "--hold 3 --horizon 10 --extra-holds with no value is "
                                 "oracle-mpc's) or the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")

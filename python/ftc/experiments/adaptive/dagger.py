@@ -246,8 +246,7 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
             else None)
     params = [*policy.parameters(), *(head.parameters() if head is not None else ())]
     optimizer = torch.optim.Adam(params, lr=config.lr)
-    teacher = PoolTeacher(config.hold, config.horizon, extra_holds=config.extra_holds,
-                          second_stage=config.second_stage)
+    teacher = PoolTeacher.from_config(config)
     data = Dataset(config.max_samples)
     start, steps = time.monotonic(), 0
     curve, snapshots = [], []

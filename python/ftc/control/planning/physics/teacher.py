@@ -52,6 +52,13 @@ class PoolTeacher:
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
         self.labels = 0
 
+    @classmethod
+    def from_config(cls, config: Any) -> "PoolTeacher":
+        """The teacher a training configuration names (its hold, horizon,
+        extra_holds and second_stage: a ``TrainingConfig``)."""
+        return cls(config.hold, config.horizon, extra_holds=config.extra_holds,
+                   second_stage=config.second_stage)
+
     def forget(self) -> None:
         """Drop the per-env evaluators (the pool was reseeded with new plants)."""
         self._evaluators.clear()
