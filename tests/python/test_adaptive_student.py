@@ -146,19 +146,93 @@ def test_a_teacher_with_a_second_stage_values_its_best_settings_by_their_two_sta
     assert raised > 0 and relabelled > 0  # the second stage changes values and labels here
 
 
+def _recheck_values(oracle, x, horizon, longer, keep):
+    """(short (64,), label, regrets (64,)) by the definition of the recheck: each
+    setting's best plan holding 2, 1 or 3 steps then closed over ``horizon``; the
+    ``keep`` best (ties at the cut to the lower code) valued again by their best
+    such plan over ``longer`` steps, the label the best of those; their regrets
+    against it, every other setting's the larger of its own and theirs."""
+    def best_of_holds(length):
+        return np.max([oracle(x, HoldPlanner(h, length).candidates(length)) for h in (2, 1, 3)],
+                      axis=0)
+    short = best_of_holds(horizon)
+    top = np.sort(np.argsort(-short, kind="stable")[:keep])
+    long = best_of_holds(longer)[top]  # every setting rolled out: the K picked from them
+    label = int(top[np.argmax(long)])
+    regrets = np.maximum(short.max() - short, (long.max() - long).max())
+    regrets[top] = long.max() - long
+    return short, label, regrets
+
+
+@pytest.mark.parametrize("keep", [2, 4])
+def test_a_teacher_with_a_recheck_labels_the_best_of_its_best_settings_over_a_longer_horizon(
+        keep):
+    # against its definition on plants light on the left late in a worn life, at steps
+    # with 12 left in the interval (the long horizon 10), 8 left (cut to 8) and 6 left
+    # (no step beyond the short horizon: no recheck)
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    rng = np.random.default_rng(1)
+    levels = rng.uniform(0.05, 1.0, (8, 6))
+    levels[:, :3] *= 0.3
+    teacher = PoolTeacher(2, 6, extra_holds=(1, 3), recheck=keep, recheck_horizon=10)
+    plain = PoolTeacher(2, 6, extra_holds=(1, 3))
+    relabelled = 0
+    for step, longer in ((4596, 10), (4600, 8), (4602, 6)):  # 4596 % 512 = 500: 12 left
+        u, regrets = teacher.label_with_regrets([0] * 8, [scenario], np.full(8, step), levels)
+        u0, regrets0 = plain.label_with_regrets([0] * 8, [scenario], np.full(8, step), levels)
+        oracle = OracleEvaluator(scenario, closed_form=True)
+        oracle.set_step(step)
+        for k in range(len(levels)):
+            if longer <= 6:  # the interval ends within the short horizon
+                assert u[k].tolist() == u0[k].tolist() and (regrets[k] == regrets0[k]).all()
+                continue
+            short, label, want = _recheck_values(oracle, levels[k], 6, longer, keep)
+            relabelled += int(label != int(np.argmax(short)))
+            assert u[k].tolist() == HoldPlanner(2, 6).candidates(6)[label, 0].tolist()
+            np.testing.assert_allclose(regrets[k], want, atol=1e-5)  # float32 of sums ~10
+            top = np.sort(np.argsort(-short, kind="stable")[:keep])
+            assert (np.delete(regrets[k], top) > 0).all()  # the label is a rechecked one
+    assert relabelled > 0  # the longer look changes labels here
+
+
+def test_a_recheck_of_every_setting_is_the_teacher_of_the_longer_horizon():
+    # with all 64 settings rechecked no pruning is left: the labels and regrets are
+    # those of the teacher whose horizon is the long one
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    levels = np.random.default_rng(2).uniform(0.05, 1.0, (5, 6))
+    steps = np.full(5, 4596)
+    u, regrets = PoolTeacher(2, 6, extra_holds=(1, 3), recheck=64,
+                             recheck_horizon=10).label_with_regrets([0] * 5, [scenario],
+                                                                    steps, levels)
+    u10, regrets10 = PoolTeacher(2, 10, extra_holds=(1, 3)).label_with_regrets(
+        [0] * 5, [scenario], steps, levels)
+    assert u.tolist() == u10.tolist()
+    np.testing.assert_allclose(regrets, regrets10, atol=1e-5)
+
+
 def test_the_teacher_a_training_distils_is_the_one_its_config_names():
     # dagger.train and evaluate --policy teacher build their teacher this way
     teacher = PoolTeacher.from_config(TrainingConfig(hold=3, horizon=7, extra_holds=(1, 5),
-                                                     second_stage=3))
+                                                     second_stage=3, recheck=5,
+                                                     recheck_horizon=11))
     assert [p.hold for p in teacher.planners] == [3, 1, 5]
     assert teacher.horizon == 7 and teacher.second_stage == 3
+    assert teacher.recheck == 5 and teacher.recheck_horizon == 11
 
 
-def test_a_teachers_second_stage_is_bounded_by_the_settings():
+def test_a_teachers_second_stage_and_recheck_are_bounded():
     with pytest.raises(ValueError, match=r"second_stage must be in \[0, 64\], got 65"):
         PoolTeacher(2, 6, second_stage=65)
     with pytest.raises(ValueError, match=r"second_stage must be in \[0, 64\], got -1"):
         TrainingConfig(second_stage=-1)
+    with pytest.raises(ValueError, match=r"recheck must be in \[0, 64\], got 65"):
+        PoolTeacher(2, 6, recheck=65)
+    with pytest.raises(ValueError, match=r"recheck must be in \[0, 64\], got -1"):
+        TrainingConfig(recheck=-1)
+    with pytest.raises(ValueError, match=r"recheck_horizon must be >= 1, got 0"):
+        PoolTeacher(2, 6, recheck_horizon=0)
+    with pytest.raises(ValueError, match=r"recheck_horizon must be >= 1, got 0"):
+        TrainingConfig(recheck_horizon=0)
 
 
 @pytest.mark.parametrize("regret", [0.0, 1.0])

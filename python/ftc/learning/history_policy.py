@@ -111,7 +111,10 @@ class TrainingConfig:
     plans try, each setting valued by the best of its plans (() for hold
     alone); second_stage: how many of the best settings the teacher also
     values by their two-stage plans (held ``hold`` steps, then any setting to
-    the horizon), 0 for none; seed: draws,
+    the horizon), 0 for none; recheck: how many of the best settings the
+    teacher values again over recheck_horizon steps (their plans held each
+    hold length, then all closed; the label the best of them), 0 for none;
+    seed: draws,
     pool plants, initial weights and minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
     network whose logits are their mean (:func:`ensemble`); privileged: weight
@@ -141,6 +144,8 @@ class TrainingConfig:
     horizon: int = 6
     extra_holds: tuple[int, ...] = (1, 3, 6)
     second_stage: int = 0
+    recheck: int = 0
+    recheck_horizon: int = 10
     seed: int = 0
     members: int = 3
     privileged: float = 0.0
@@ -158,6 +163,12 @@ class TrainingConfig:
         if not 0 <= self.second_stage <= 2 ** NUM_TANKS:
             raise ValueError(f"TrainingConfig: second_stage must be in [0, {2 ** NUM_TANKS}], "
                              f"got {self.second_stage}")
+        if not 0 <= self.recheck <= 2 ** NUM_TANKS:
+            raise ValueError(f"TrainingConfig: recheck must be in [0, {2 ** NUM_TANKS}], "
+                             f"got {self.recheck}")
+        if self.recheck_horizon < 1:
+            raise ValueError(f"TrainingConfig: recheck_horizon must be >= 1, "
+                             f"got {self.recheck_horizon}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
         if self.teacher_stuck not in TEACHER_STUCK:

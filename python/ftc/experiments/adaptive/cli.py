@@ -63,6 +63,12 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
                     "two-stage plans: held --hold steps, then any one setting held to the "
                     "horizon (0: none; nothing where --hold >= --horizon; 4 costs about twice "
                     "the teacher's CPU)",
+    "recheck": "the teacher values this many of its best settings again over "
+               "--recheck-horizon steps (each held every hold length, then all closed) and "
+               "labels the best of them: an action whose gain outlasts --horizon is told "
+               "apart (0: none)",
+    "recheck_horizon": "the horizon of --recheck, cut at the interval's end (nothing where "
+                       "it is not longer than --horizon)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -94,7 +100,7 @@ def _config_options(p: argparse.ArgumentParser) -> None:
                                 f"{' '.join(map(str, value)) or 'none'})")
         else:
             p.add_argument(flag, type=type(value), default=value,
-                           metavar="K" if f.name == "second_stage" else None,
+                           metavar="K" if f.name in ("second_stage", "recheck") else None,
                            help=f"{OPTION_HELP[f.name]} (default {value})")
 
 
@@ -103,12 +109,13 @@ def config_of(a: argparse.Namespace) -> TrainingConfig:
     values["hidden"] = tuple(values["hidden"])
     values["extra_holds"] = tuple(values["extra_holds"])
     for name in ("iterations", "envs", "life_intervals", "epochs", "batch", "max_samples",
-                 "window", "hold", "horizon"):
+                 "window", "hold", "horizon", "recheck_horizon"):
         if values[name] < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {values[name]}")
-    if not 0 <= values["second_stage"] <= 2 ** NUM_TANKS:
-        raise ValueError(f"--second-stage must be in [0, {2 ** NUM_TANKS}] (settings), "
-                         f"got {values['second_stage']}")
+    for name in ("second_stage", "recheck"):
+        if not 0 <= values[name] <= 2 ** NUM_TANKS:
+            raise ValueError(f"--{name.replace('_', '-')} must be in [0, {2 ** NUM_TANKS}] "
+                             f"(settings), got {values[name]}")
     if any(h < 1 for h in values["extra_holds"]):
         raise ValueError(f"--extra-holds must be >= 1 each, got {list(values['extra_holds'])}")
     if not 0.0 <= values["label_fraction"] <= 1.0 or not values["lr"] > 0:
@@ -167,11 +174,13 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     record: dict[str, Any] = {}
     if a.policy == "teacher":  # the planner alone: no checkpoint
         # the teacher a training with these options distils (refused: a hold, horizon or
-        # extra hold below 1, a second stage out of range)
+        # extra hold below 1, a second stage or recheck out of range)
         policy: Any = PoolTeacher.from_config(config_of(a))
         holds = " or ".join(str(p.hold) for p in policy.planners)
         staged = (f", its {a.second_stage} best settings also held {a.hold} steps, then any "
                   "setting" if a.second_stage else "")
+        if a.recheck:
+            staged += f", its {a.recheck} best valued again over {a.recheck_horizon}"
         what = (f"teacher (the planner holding {holds} over {a.horizon}{staged}, told "
                 + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"
                    else "every stuck valve)"))
@@ -433,7 +442,8 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
                            help="what to score: the checkpoint's student, the teacher (the "
                                 "planner on the true physics with --hold, --horizon, "
-                                "--extra-holds and --second-stage, told the stuck valves "
+                                "--extra-holds, --second-stage and --recheck, told the "
+                                "stuck valves "
                                 "--teacher-stuck says: all, or seen, those its own commands "
                                 "showed; no checkpoint needed; "
                                 "--hold 3 --horizon 10 --extra-holds with no value is "

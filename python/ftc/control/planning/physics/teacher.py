@@ -11,6 +11,12 @@ of its plans: held H steps or any of those, then all closed. With a second
 stage (``second_stage`` K > 0), the K settings valued best that way are also
 valued by their 64 two-stage plans: held H steps, then any one setting held
 to the horizon (all closed among them), so the continuation is chosen too.
+With a recheck (``recheck`` K > 0), the K settings valued best are valued
+again over a longer horizon (``recheck_horizon``, cut at the interval's
+end too) by the best of their plans holding each hold length, then all
+closed, and the label is the best of those K: a setting whose benefit
+outlasts the short horizon is then told from one that only looks as good
+over it.
 It is used for training only: the student never sees it at run time.
 """
 
@@ -32,21 +38,29 @@ class PoolTeacher:
     setting valued by the best of its plans (its first step is what they
     share); second_stage: how many of the best settings are also valued by
     their two-stage plans (held ``hold`` steps, then any setting to the
-    horizon; 0: none); closed_form: the rollouts step the conduit in closed
+    horizon; 0: none); recheck: how many of the best settings are valued
+    again over ``recheck_horizon`` steps (0: none; the label is then the best
+    of them); closed_form: the rollouts step the conduit in closed
     form (``_core.BatchRollout``'s exact_active_conduit, several times faster
     than CVODE, within its tolerances)."""
 
     def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True,
-                 extra_holds: Sequence[int] = (), second_stage: int = 0) -> None:
-        if not 0 <= second_stage <= 2 ** NUM_TANKS:
-            raise ValueError(f"PoolTeacher: second_stage must be in [0, {2 ** NUM_TANKS}], "
-                             f"got {second_stage}")
+                 extra_holds: Sequence[int] = (), second_stage: int = 0, recheck: int = 0,
+                 recheck_horizon: int = 10) -> None:
+        for name, value in (("second_stage", second_stage), ("recheck", recheck)):
+            if not 0 <= value <= 2 ** NUM_TANKS:
+                raise ValueError(f"PoolTeacher: {name} must be in [0, {2 ** NUM_TANKS}], "
+                                 f"got {value}")
+        if recheck_horizon < 1:
+            raise ValueError(f"PoolTeacher: recheck_horizon must be >= 1, got {recheck_horizon}")
         self.planners = [HoldPlanner(h, horizon)
                          for h in dict.fromkeys((hold, *extra_holds))]  # in order, once each
         self.planner = self.planners[0]
         self._plans: dict[int, np.ndarray] = {}  # horizon -> every planner's plans, stacked
         self.second_stage = second_stage
         self._two_stage: dict[int, np.ndarray] = {}  # horizon -> (64, 64, horizon, 6)
+        self.recheck, self.recheck_horizon = recheck, recheck_horizon
+        self._long: dict[int, np.ndarray] = {}  # long horizon -> (holds, 64, horizon, 6)
         self.horizon = horizon
         self.closed_form = closed_form
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
@@ -55,9 +69,11 @@ class PoolTeacher:
     @classmethod
     def from_config(cls, config: Any) -> "PoolTeacher":
         """The teacher a training configuration names (its hold, horizon,
-        extra_holds and second_stage: a ``TrainingConfig``)."""
+        extra_holds, second_stage, recheck and recheck_horizon: a
+        ``TrainingConfig``)."""
         return cls(config.hold, config.horizon, extra_holds=config.extra_holds,
-                   second_stage=config.second_stage)
+                   second_stage=config.second_stage, recheck=config.recheck,
+                   recheck_horizon=config.recheck_horizon)
 
     def forget(self) -> None:
         """Drop the per-env evaluators (the pool was reseeded with new plants)."""
@@ -105,8 +121,11 @@ class PoolTeacher:
                 evaluator.stuck = (mask, opened.astype(np.int64)) if mask.any() else None
             steps_left = scenario.steps_per_interval - step % scenario.steps_per_interval
             horizon = max(1, min(self.horizon, steps_left))
-            totals = self._setting_totals(evaluator, np.asarray(levels[k], np.float64),
-                                          horizon)
+            x0 = np.asarray(levels[k], np.float64)
+            totals = self._setting_totals(evaluator, x0, horizon)
+            longer = min(self.recheck_horizon, steps_left)
+            if self.recheck and longer > horizon:
+                totals = self._rechecked(evaluator, x0, totals, longer)
             best = int(np.argmax(totals))  # the planner's rule: first maximum
             out[k] = self.planner.candidates(horizon)[best, 0]
             regrets[k] = regrets_of(totals)
@@ -131,6 +150,31 @@ class PoolTeacher:
             staged = np.asarray(evaluator(x0, plans), np.float64).reshape(len(best), -1)
             totals[best] = np.maximum(totals[best], staged.max(axis=1))
         return totals
+
+    def _rechecked(self, evaluator: OracleEvaluator, x0: np.ndarray, totals: np.ndarray,
+                   horizon: int) -> np.ndarray:
+        """(64,) values of the settings after the recheck, read as totals are
+        (the largest is the label; a setting's regret is the largest minus its
+        own): the ``recheck`` settings of the largest ``totals`` (ties at the
+        cut to the lower code) valued by their best plan over ``horizon``
+        steps, held each hold length then all closed, less the best of those
+        (so 0 for the label); every other setting at minus the larger of its
+        own regret in ``totals`` and the largest regret among the rechecked,
+        and below 0, so that the label is always a rechecked setting."""
+        if horizon not in self._long:
+            self._long[horizon] = np.stack([HoldPlanner(p.hold, horizon).candidates(horizon)
+                                            for p in self.planners])
+        best = np.sort(np.argsort(-totals, kind="stable")[:self.recheck])
+        plans = self._long[horizon][:, best].reshape(-1, horizon, NUM_TANKS)
+        long = np.asarray(evaluator(x0, plans), np.float64).reshape(len(self.planners), -1)
+        long = long.max(axis=0)
+        if not np.isfinite(long).any():  # every long plan refused: the short values stand
+            return totals
+        rechecked = long - long.max()  # a refused long plan stays -inf
+        floor = max(float(-rechecked[np.isfinite(rechecked)].min()), np.finfo(float).tiny)
+        out = np.minimum(-regrets_of(totals), -floor)  # a refused short plan's: finite
+        out[best] = rechecked
+        return out
 
 
 def regrets_of(totals: np.ndarray) -> np.ndarray:
