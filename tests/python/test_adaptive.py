@@ -357,11 +357,13 @@ def test_bad_input_to_the_commands_is_one_line_and_exit_2(tmp_path, capsys):
     assert main(["train", "--distribution", str(tmp_path / "none.toml")]) == 2
     assert main(["evaluate", "--policy", "teacher", "--second-stage", "65"]) == 2
     assert main(["evaluate", "--policy", "teacher", "--recheck", "-1"]) == 2
+    assert main(["evaluate", "--policy", "teacher", "--recheck", "4", "--horizon", "10"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 5 and all(line.startswith("adaptive: error: ") for line in err)
+    assert len(err) == 6 and all(line.startswith("adaptive: error: ") for line in err)
     assert "--iterations must be >= 1" in err[0] and "train`" in err[1] and "none.toml" in err[2]
     assert "--second-stage must be in [0, 64] (settings), got 65" in err[3]
     assert "--recheck must be in [0, 64] (settings), got -1" in err[4]
+    assert "--recheck-horizon (10) must be longer than --horizon (10)" in err[5]
     assert not list(tmp_path.iterdir())  # nothing written
 
 

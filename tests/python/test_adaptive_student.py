@@ -11,7 +11,7 @@ import torch
 
 from ftc import _core
 from ftc.control.planning.physics.evaluators import OracleEvaluator
-from ftc.control.planning.physics.teacher import PoolTeacher
+from ftc.control.planning.physics.teacher import PoolTeacher, regrets_of
 from ftc.control.planning.planners import HoldPlanner, two_stage_candidates
 from ftc.experiments.adaptive import dagger, distribution
 from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, StudentConfig,
@@ -195,6 +195,29 @@ def test_a_teacher_with_a_recheck_labels_the_best_of_its_best_settings_over_a_lo
     assert relabelled > 0  # the longer look changes labels here
 
 
+def test_a_recheck_of_one_setting_changes_nothing_but_ties():
+    # K = 1 rechecks the short horizon's choice alone: labels and regrets are the
+    # teacher's without a recheck (a valve seen stuck closed, as in training)
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    levels = np.random.default_rng(3).uniform(0.05, 1.0, (6, 6))
+    seen = np.zeros((6, 12))
+    seen[:, 0] = 1
+    steps = np.full(6, 4596)
+    u, regrets = PoolTeacher(2, 6, extra_holds=(1, 3), recheck=1).label_with_regrets(
+        [0] * 6, [scenario], steps, levels, seen)
+    u0, regrets0 = PoolTeacher(2, 6, extra_holds=(1, 3)).label_with_regrets(
+        [0] * 6, [scenario], steps, levels, seen)
+    assert u.tolist() == u0.tolist()
+    np.testing.assert_array_equal(regrets, regrets0)
+    # where every setting ties, over both horizons, the ones not rechecked stay above
+    # the label in float32, so a student's loss still tells the label from them
+    teacher = PoolTeacher(2, 6, recheck=2)
+    tied = teacher._rechecked(lambda x0, plans: np.zeros(len(plans)), levels[0],
+                              np.zeros(64), 10)
+    out = regrets_of(tied).astype(np.float32)
+    assert int(np.argmax(tied)) == 0 and out[0] == out[1] == 0 and (out[2:] > 0).all()
+
+
 def test_a_recheck_of_every_setting_is_the_teacher_of_the_longer_horizon():
     # with all 64 settings rechecked no pruning is left: the labels and regrets are
     # those of the teacher whose horizon is the long one
@@ -233,6 +256,10 @@ def test_a_teachers_second_stage_and_recheck_are_bounded():
         PoolTeacher(2, 6, recheck_horizon=0)
     with pytest.raises(ValueError, match=r"recheck_horizon must be >= 1, got 0"):
         TrainingConfig(recheck_horizon=0)
+    with pytest.raises(ValueError, match=r"recheck_horizon \(6\) must be longer"):
+        PoolTeacher(2, 6, recheck=4, recheck_horizon=6)
+    with pytest.raises(ValueError, match=r"recheck_horizon \(6\) must be longer"):
+        TrainingConfig(recheck=4, recheck_horizon=6)
 
 
 @pytest.mark.parametrize("regret", [0.0, 1.0])

@@ -169,6 +169,9 @@ class TrainingConfig:
         if self.recheck_horizon < 1:
             raise ValueError(f"TrainingConfig: recheck_horizon must be >= 1, "
                              f"got {self.recheck_horizon}")
+        if self.recheck and self.recheck_horizon <= self.horizon:
+            raise ValueError(f"TrainingConfig: recheck_horizon ({self.recheck_horizon}) must be "
+                             f"longer than the horizon ({self.horizon}) with a recheck")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
         if self.teacher_stuck not in TEACHER_STUCK:

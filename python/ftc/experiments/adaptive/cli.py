@@ -64,11 +64,12 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
                     "horizon (0: none; nothing where --hold >= --horizon; 4 costs about twice "
                     "the teacher's CPU)",
     "recheck": "the teacher values this many of its best settings again over "
-               "--recheck-horizon steps (each held every hold length, then all closed) and "
-               "labels the best of them: an action whose gain outlasts --horizon is told "
-               "apart (0: none)",
-    "recheck_horizon": "the horizon of --recheck, cut at the interval's end (nothing where "
-                       "it is not longer than --horizon)",
+               "--recheck-horizon steps, each by its best plan held --hold or any "
+               "--extra-holds steps, then all closed, and labels the best of them, so that "
+               "a choice whose gain outlasts --horizon is settled by it (0: none)",
+    "recheck_horizon": "the horizon of --recheck, longer than --horizon, cut at the "
+                       "interval's end (nothing is rechecked where the cut leaves it no "
+                       "longer than --horizon)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -116,6 +117,9 @@ def config_of(a: argparse.Namespace) -> TrainingConfig:
         if not 0 <= values[name] <= 2 ** NUM_TANKS:
             raise ValueError(f"--{name.replace('_', '-')} must be in [0, {2 ** NUM_TANKS}] "
                              f"(settings), got {values[name]}")
+    if values["recheck"] and values["recheck_horizon"] <= values["horizon"]:
+        raise ValueError(f"--recheck-horizon ({values['recheck_horizon']}) must be longer than "
+                         f"--horizon ({values['horizon']}) with --recheck")
     if any(h < 1 for h in values["extra_holds"]):
         raise ValueError(f"--extra-holds must be >= 1 each, got {list(values['extra_holds'])}")
     if not 0.0 <= values["label_fraction"] <= 1.0 or not values["lr"] > 0:

@@ -53,6 +53,9 @@ class PoolTeacher:
                                  f"got {value}")
         if recheck_horizon < 1:
             raise ValueError(f"PoolTeacher: recheck_horizon must be >= 1, got {recheck_horizon}")
+        if recheck and recheck_horizon <= horizon:
+            raise ValueError(f"PoolTeacher: recheck_horizon ({recheck_horizon}) must be longer "
+                             f"than the horizon ({horizon}), or nothing is rechecked")
         self.planners = [HoldPlanner(h, horizon)
                          for h in dict.fromkeys((hold, *extra_holds))]  # in order, once each
         self.planner = self.planners[0]
@@ -101,7 +104,8 @@ class PoolTeacher:
         decision of :meth:`label` and, for each of the 64 settings a (valve i
         open iff bit i of a), the summed reward its plan loses against the
         best plan over the horizon (0 for the decision and its exact ties;
-        a refused plan's: :func:`regrets_of`).
+        a refused plan's: :func:`regrets_of`; with a recheck, where it runs:
+        :meth:`_rechecked`'s, every setting not rechecked above 0).
 
         seen_stuck: (len(envs), 12), valves seen stuck closed then seen stuck
         open (> 0: seen; a student's stuck memory): the teacher then plans with
@@ -160,7 +164,9 @@ class PoolTeacher:
         steps, held each hold length then all closed, less the best of those
         (so 0 for the label); every other setting at minus the larger of its
         own regret in ``totals`` and the largest regret among the rechecked,
-        and below 0, so that the label is always a rechecked setting."""
+        and below 0, so that the label is always a rechecked setting. The
+        recheck values hold plans only: with a second stage, its values choose
+        which settings are rechecked, not the label among them."""
         if horizon not in self._long:
             self._long[horizon] = np.stack([HoldPlanner(p.hold, horizon).candidates(horizon)
                                             for p in self.planners])
@@ -171,7 +177,9 @@ class PoolTeacher:
         if not np.isfinite(long).any():  # every long plan refused: the short values stand
             return totals
         rechecked = long - long.max()  # a refused long plan stays -inf
-        floor = max(float(-rechecked[np.isfinite(rechecked)].min()), np.finfo(float).tiny)
+        # above 0 in the float32 regrets too (K = 1, or the K tie over the long horizon)
+        floor = max(float(-rechecked[np.isfinite(rechecked)].min()),
+                    float(np.finfo(np.float32).tiny))
         out = np.minimum(-regrets_of(totals), -floor)  # a refused short plan's: finite
         out[best] = rechecked
         return out
