@@ -160,12 +160,10 @@ class TrainingConfig:
             raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
         if not self.privileged >= 0:
             raise ValueError(f"TrainingConfig: privileged must be >= 0, got {self.privileged}")
-        if not 0 <= self.second_stage <= 2 ** NUM_TANKS:
-            raise ValueError(f"TrainingConfig: second_stage must be in [0, {2 ** NUM_TANKS}], "
-                             f"got {self.second_stage}")
-        if not 0 <= self.recheck <= 2 ** NUM_TANKS:
-            raise ValueError(f"TrainingConfig: recheck must be in [0, {2 ** NUM_TANKS}], "
-                             f"got {self.recheck}")
+        for name in ("second_stage", "recheck"):  # settings: 0 to all of them
+            if not 0 <= getattr(self, name) <= 2 ** NUM_TANKS:
+                raise ValueError(f"TrainingConfig: {name} must be in [0, {2 ** NUM_TANKS}], "
+                                 f"got {getattr(self, name)}")
         if self.recheck_horizon < 1:
             raise ValueError(f"TrainingConfig: recheck_horizon must be >= 1, "
                              f"got {self.recheck_horizon}")

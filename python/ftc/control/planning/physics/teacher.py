@@ -63,7 +63,6 @@ class PoolTeacher:
         self.second_stage = second_stage
         self._two_stage: dict[int, np.ndarray] = {}  # horizon -> (64, 64, horizon, 6)
         self.recheck, self.recheck_horizon = recheck, recheck_horizon
-        self._long: dict[int, np.ndarray] = {}  # long horizon -> (holds, 64, horizon, 6)
         self.horizon = horizon
         self.closed_form = closed_form
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
@@ -140,16 +139,13 @@ class PoolTeacher:
                         ) -> np.ndarray:
         """(64,) summed reward of each setting's best plan over ``horizon`` steps
         (row a: setting a, as every hold planner numbers them)."""
-        if horizon not in self._plans:
-            self._plans[horizon] = np.concatenate([p.candidates(horizon) for p in self.planners])
-        totals = np.asarray(evaluator(x0, self._plans[horizon]), np.float64)
+        totals = np.asarray(evaluator(x0, self._hold_plans(horizon)), np.float64)
         totals = totals.reshape(len(self.planners), -1).max(axis=0)
         first = self.planner.hold
         if self.second_stage and horizon > first:  # else no step is left for a second stage
             if horizon not in self._two_stage:
                 self._two_stage[horizon] = two_stage_candidates(first, horizon)
-            # the best settings (ties at the cut to the lower code), in code order
-            best = np.sort(np.argsort(-totals, kind="stable")[:self.second_stage])
+            best = best_settings(totals, self.second_stage)
             plans = self._two_stage[horizon][best].reshape(-1, horizon, NUM_TANKS)
             staged = np.asarray(evaluator(x0, plans), np.float64).reshape(len(best), -1)
             totals[best] = np.maximum(totals[best], staged.max(axis=1))
@@ -167,11 +163,9 @@ class PoolTeacher:
         and below 0, so that the label is always a rechecked setting. The
         recheck values hold plans only: with a second stage, its values choose
         which settings are rechecked, not the label among them."""
-        if horizon not in self._long:
-            self._long[horizon] = np.stack([HoldPlanner(p.hold, horizon).candidates(horizon)
-                                            for p in self.planners])
-        best = np.sort(np.argsort(-totals, kind="stable")[:self.recheck])
-        plans = self._long[horizon][:, best].reshape(-1, horizon, NUM_TANKS)
+        best = best_settings(totals, self.recheck)
+        plans = self._hold_plans(horizon).reshape(len(self.planners), -1, horizon, NUM_TANKS)
+        plans = plans[:, best].reshape(-1, horizon, NUM_TANKS)
         long = np.asarray(evaluator(x0, plans), np.float64).reshape(len(self.planners), -1)
         long = long.max(axis=0)
         if not np.isfinite(long).any():  # every long plan refused: the short values stand
@@ -183,6 +177,19 @@ class PoolTeacher:
         out = np.minimum(-regrets_of(totals), -floor)  # a refused short plan's: finite
         out[best] = rechecked
         return out
+
+    def _hold_plans(self, horizon: int) -> np.ndarray:
+        """Every hold planner's 64 plans over ``horizon`` steps, stacked in
+        planner order ((planners * 64, horizon, 6)), built once per horizon."""
+        if horizon not in self._plans:
+            self._plans[horizon] = np.concatenate([p.candidates(horizon) for p in self.planners])
+        return self._plans[horizon]
+
+
+def best_settings(totals: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` settings of the largest ``totals`` (ties at the cut to the
+    lower code), in code order."""
+    return np.sort(np.argsort(-totals, kind="stable")[:k])
 
 
 def regrets_of(totals: np.ndarray) -> np.ndarray:
