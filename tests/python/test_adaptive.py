@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -637,3 +642,63 @@ def test_a_teacher_told_the_seen_stuck_valves_finds_them_and_never_commands_one(
     assert held["seen"] > 0.5 and held["seen"] > 2 * held["all"]
     with pytest.raises(ValueError, match="needs the stuck memory"):
         TrainingConfig(stuck_memory=False, teacher_stuck="seen")
+
+
+
+def _alive(pid: int) -> bool:
+    """``pid`` runs (it exists and is not a zombie)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _workers(pid: int) -> list[int]:
+    """The live pool workers (multiprocessing's spawned processes) whose parent is ``pid``."""
+    found = []
+    for d in Path("/proc").iterdir():
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (d / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):  # not a process, or it ended while read
+            continue
+        if ppid == pid and b"spawn_main" in cmdline and _alive(int(d.name)):
+            found.append(int(d.name))
+    return found
+
+
+def test_members_training_at_once_die_with_a_killed_parent(tmp_path):
+    # SIGKILL runs no clean-up in the parent: without the workers tied to its
+    # life (PR_SET_PDEATHSIG), each would go on training its member alone.
+    script = tmp_path / "train.py"
+    script.write_text(
+        "from ftc.experiments.adaptive import dagger, distribution\n"
+        "from ftc.learning.history_policy import TrainingConfig\n"
+        "config = TrainingConfig(iterations=1000, envs=2, life_intervals=1, epochs=1, window=2,\n"
+        "                        hidden=(8,), head='joint', hold=2, horizon=3, extra_holds=(),\n"
+        "                        members=2)\n"
+        "if __name__ == '__main__':  # the spawned workers import this file too\n"
+        "    dagger.train(distribution.load(), config, log=lambda s: print(s, flush=True), jobs=2)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        members: set[str] = set()  # wait until both members have logged an iteration
+        for line in parent.stdout:
+            if "iteration" in line:
+                members.add(line.split(":")[1])
+            if len(members) == 2:
+                break
+        assert len(members) == 2, "the training ended before both members logged"
+        workers = _workers(parent.pid)
+        assert len(workers) == 2, workers
+        parent.kill()
+        parent.wait(timeout=10)
+        # PR_SET_PDEATHSIG sends SIGKILL as the parent dies; 10 s covers a loaded machine
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and any(_alive(w) for w in workers):
+            time.sleep(0.1)
+        assert not [w for w in workers if _alive(w)], "workers outlived their killed parent"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()

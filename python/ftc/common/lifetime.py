@@ -34,6 +34,17 @@ def die_with_parent(then: Callable[[], None] | None = None) -> Callable[[], None
     return preexec
 
 
+def tie_to(parent: int) -> None:
+    """A pool worker's ``initializer`` (``initargs=(os.getpid(),)``): the
+    worker gets SIGKILL when the thread that started it ends, as
+    :func:`die_with_parent` does for a child it starts, so a pool's workers do
+    not go on computing for a parent killed by SIGTERM or SIGKILL; it exits at
+    once if ``parent`` is already gone."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:
+        os._exit(1)
+
+
 class Stopped(BaseException):
     """A stop signal (SIGINT, SIGTERM, SIGHUP) raised in the main thread, so every
     ``finally`` runs: the plant is shut down, an atomic write cut short removes

@@ -36,6 +36,7 @@ ensemble. Torch runs on one thread.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -44,6 +45,7 @@ import numpy as np
 import torch
 
 from ftc.common.constants import NUM_TANKS
+from ftc.common.lifetime import tie_to
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive.distribution import TrainingDistribution, draw, draw_seed
 from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, TrainingConfig, ensemble,
@@ -305,8 +307,11 @@ def _train_members(dist: TrainingDistribution, config: TrainingConfig,
 
         log(f"adaptive: {config.members} members, {min(jobs, config.members)} at a time "
             f"(seeds {config.seed} to {config.seed + config.members - 1})")
+        # The workers die with this process, whatever kills it (SIGTERM,
+        # SIGKILL): a member left training alone would hold a core for its life.
         with ProcessPoolExecutor(min(jobs, config.members),
-                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+                                 mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=tie_to, initargs=(os.getpid(),)) as pool:
             futures = [pool.submit(_member, dist, config, m, _MemberLog(m))
                        for m in range(config.members)]
             try:
