@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -681,6 +682,7 @@ def test_members_training_at_once_die_with_a_killed_parent(tmp_path):
         "    dagger.train(distribution.load(), config, log=lambda s: print(s, flush=True), jobs=2)\n")
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.DEVNULL,
                               env={**os.environ, "OMP_NUM_THREADS": "1"})
+    workers: list[int] = []
     try:
         # kill it once both workers run. Untied, a worker killed while still
         # starting may end on its own (its parent's pipe closes), so this can
@@ -702,3 +704,6 @@ def test_members_training_at_once_die_with_a_killed_parent(tmp_path):
         if parent.poll() is None:
             parent.kill()
             parent.wait()
+        for w in workers:  # a failed run leaves them: they must not outlive the test
+            if _alive(w):
+                os.kill(w, signal.SIGKILL)
