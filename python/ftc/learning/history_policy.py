@@ -120,7 +120,10 @@ class TrainingConfig:
     network whose logits are their mean (:func:`ensemble`); privileged: weight
     of the privileged head's loss (a second head on the last hidden layer that
     learns which valves are stuck, in training only: see
-    ftc.experiments.adaptive.dagger), 0 for none; stuck_memory: the student
+    ftc.experiments.adaptive.dagger), 0 for none; privileged_params: weight of
+    the parameter head's loss (another head, in training only, that regresses
+    the true degraded parameters in force: the pumps' capacity, the tanks'
+    conductance and the engines' demand), 0 for none; stuck_memory: the student
     also reads which valves it has seen stuck (:class:`HistoryWindow`);
     teacher_stuck: which stuck valves the teacher plans with, "all" (every
     one, from its event on) or "seen" (those in the student's stuck memory
@@ -149,6 +152,7 @@ class TrainingConfig:
     seed: int = 0
     members: int = 3
     privileged: float = 0.0
+    privileged_params: float = 0.0
     stuck_memory: bool = True
     teacher_stuck: str = "seen"
 
@@ -158,8 +162,10 @@ class TrainingConfig:
                              f"got {self.inputs!r}")
         if not self.regret >= 0:
             raise ValueError(f"TrainingConfig: regret must be >= 0, got {self.regret}")
-        if not self.privileged >= 0:
-            raise ValueError(f"TrainingConfig: privileged must be >= 0, got {self.privileged}")
+        for name in ("privileged", "privileged_params"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"TrainingConfig: {name} must be >= 0, "
+                                 f"got {getattr(self, name)}")
         for name in ("second_stage", "recheck"):  # settings: 0 to all of them
             if not 0 <= getattr(self, name) <= 2 ** NUM_TANKS:
                 raise ValueError(f"TrainingConfig: {name} must be in [0, {2 ** NUM_TANKS}], "

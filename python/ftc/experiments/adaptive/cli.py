@@ -76,6 +76,10 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "privileged": "weight of the privileged head's loss: a second head, in training only, "
                   "learns from the student's last hidden layer which valves are stuck "
                   "(0: none)",
+    "privileged_params": "weight of the parameter head's loss: another head, in training only, "
+                         "regresses from the student's last hidden layer the true degraded "
+                         "parameters in force (each pump's capacity, each tank's conductance, "
+                         "each engine's demand, as fractions of the healthy ones) (0: none)",
     "stuck_memory": "the student also reads which valves it has seen stuck: applied by the "
                     "plant otherwise than it commanded them (what the state message "
                     "publishes), remembered for the plant's life",

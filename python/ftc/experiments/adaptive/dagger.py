@@ -24,8 +24,13 @@ Iteration k (of ``iterations``):
    its binary cross-entropy weighted by ``privileged`` and added: the hidden
    layer must then carry the evidence of a stuck valve in the window (Rapid
    Motor Adaptation's student regresses the true parameters' latent the same
-   way). The head is used in training only; the checkpoint's network is the
-   policy alone.
+   way). With ``privileged_params`` > 0, another head regresses the true
+   degraded parameters in force at that step (:func:`true_parameters`: each
+   pump's capacity, each tank's outflow conductance and each engine's demand,
+   as fractions of their healthy values), its squared error (summed over the
+   14) weighted by ``privileged_params`` and added: Rapid Motor Adaptation's latent of the
+   parameters, here the parameters themselves. The heads are used in
+   training only; the checkpoint's network is the policy alone.
 
 Every iteration's student is kept (the learning curve evaluates them); the
 last one is the checkpoint. With ``members`` > 1 the students of seeds seed,
@@ -44,7 +49,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from ftc.common.constants import NUM_TANKS
+from ftc.common.constants import NUM_ENGINES, NUM_TANKS
 from ftc.common.lifetime import tie_to
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive.distribution import TrainingDistribution, draw, draw_seed
@@ -54,6 +59,9 @@ from ftc.plant.vector import FuelTransferVectorEnv
 
 
 STUCK_TARGETS = 2 * NUM_TANKS  # per valve: stuck closed, then per valve: stuck open
+# per tank: pump capacity, then per tank: outflow conductance, then per engine: demand
+PARAM_TARGETS = 2 * NUM_TANKS + NUM_ENGINES
+_HEALTHY: dict[str, np.ndarray] = {}  # the healthy plant's parameters, read once
 
 
 def stuck_valves(events: list[dict], operating_step: int) -> np.ndarray:
@@ -71,35 +79,55 @@ def stuck_valves(events: list[dict], operating_step: int) -> np.ndarray:
     return out
 
 
+def true_parameters(scenario: Any, operating_step: int) -> np.ndarray:
+    """The parameter head's targets for a plant of ``scenario`` at
+    ``operating_step`` of its life: (14,) float32, the parameters in force at
+    that step (its age and the events applied, as the teacher plans with) as
+    fractions of the healthy plant's, each in [0, 1] with 1 healthy: the
+    pumps' capacity (pump rate over the healthy one; 0 for a dead pump), then
+    the tanks' outflow conductance (healthy resistance over the resistance),
+    then the engines' healthy demand over their demand (falling as an engine
+    burns more)."""
+    from ftc import _core  # native: the C++ degradation, as the plant applies it
+
+    if not _HEALTHY:
+        _HEALTHY.update(_core.params_at_step(_core.Scenario(), 0))
+    p = _core.params_at_step(scenario, int(operating_step))
+    out = np.concatenate([np.asarray(p["pump"]) / _HEALTHY["pump"],
+                          _HEALTHY["resistance"] / np.asarray(p["resistance"]),
+                          _HEALTHY["demand"] / np.asarray(p["demand"])])
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
 @dataclass
 class Dataset:
     """Labelled samples, the newest ``capacity`` kept: features (M, F) float32,
     valves (M, 6) int8, the teacher's regrets (M, 64) float32 (empty (M, 0)
-    when they are not kept) and the privileged head's targets (M, 12) float32
-    (:func:`stuck_valves`; empty (M, 0) when they are not kept)."""
+    when they are not kept), the privileged head's targets (M, 12) float32
+    (:func:`stuck_valves`) and the parameter head's (M, 14) float32
+    (:func:`true_parameters`), each empty (M, 0) when they are not kept."""
 
     capacity: int
     features: list[np.ndarray] = field(default_factory=list)
     valves: list[np.ndarray] = field(default_factory=list)
     regrets: list[np.ndarray] = field(default_factory=list)
     stuck: list[np.ndarray] = field(default_factory=list)
+    params: list[np.ndarray] = field(default_factory=list)
 
     def add(self, x: np.ndarray, y: np.ndarray, regrets: np.ndarray | None = None,
-            stuck: np.ndarray | None = None) -> None:
-        self.features.append(x)
-        self.valves.append(y)
-        self.regrets.append(np.zeros((len(x), 0), np.float32) if regrets is None else regrets)
-        self.stuck.append(np.zeros((len(x), 0), np.float32) if stuck is None else stuck)
+            stuck: np.ndarray | None = None, params: np.ndarray | None = None) -> None:
+        none = np.zeros((len(x), 0), np.float32)
+        for kept, a in ((self.features, x), (self.valves, y), (self.regrets, regrets),
+                        (self.stuck, stuck), (self.params, params)):
+            kept.append(none if a is None else a)
         while sum(len(a) for a in self.features) - len(self.features[0]) >= self.capacity:
-            self.features.pop(0)
-            self.valves.pop(0)
-            self.regrets.pop(0)
-            self.stuck.pop(0)
+            for kept in (self.features, self.valves, self.regrets, self.stuck, self.params):
+                kept.pop(0)
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        x, y, g, z = (np.concatenate(a) for a in (self.features, self.valves, self.regrets,
-                                                   self.stuck))
-        return x[-self.capacity:], y[-self.capacity:], g[-self.capacity:], z[-self.capacity:]
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """(features, valves, regrets, stuck, params), the newest ``capacity``."""
+        return tuple(np.concatenate(a)[-self.capacity:] for a in (
+            self.features, self.valves, self.regrets, self.stuck, self.params))
 
 
 def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribution,
@@ -115,7 +143,7 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
     window = HistoryWindow(config.envs, config.window, config.stuck_memory)
     window.start(obs)
     driven = np.arange(config.envs) < round(beta * config.envs)  # by the teacher
-    xs, ys, gs, zs, reward, student_reward = [], [], [], [], 0.0, []
+    xs, ys, gs, zs, ps, reward, student_reward = [], [], [], [], [], 0.0, []
     keep_regrets = config.head == "joint"
     events = [s.events for s in scenarios]  # a property that copies: read once
     steps = config.life_intervals * dist.steps_per_interval
@@ -134,6 +162,9 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
                 gs.append(regrets)
             if config.privileged > 0:
                 zs.append(np.stack([stuck_valves(events[i], op) for i, op in zip(envs, ops)]))
+            if config.privileged_params > 0:
+                ps.append(np.stack([true_parameters(scenarios[i], op)
+                                    for i, op in zip(envs, ops)]))
             u[driven] = labels[driven[envs]]
         obs, r, terminated, truncated, info = env.step(u)
         reward += float(r.mean())
@@ -143,7 +174,8 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
     env.close()
     return {"x": np.concatenate(xs), "y": np.concatenate(ys),
             "regrets": np.concatenate(gs) if keep_regrets else None,
-            "stuck": np.concatenate(zs) if zs else None, "steps": steps * config.envs,
+            "stuck": np.concatenate(zs) if zs else None,
+            "params": np.concatenate(ps) if ps else None, "steps": steps * config.envs,
             "reward_per_step": reward / steps,
             "student_reward_per_step": float(np.mean(student_reward)) if student_reward else None}
 
@@ -155,13 +187,18 @@ def settings_of(valves: np.ndarray) -> np.ndarray:
 
 def loss_of(policy: HistoryPolicy, x: torch.Tensor, y: torch.Tensor, a: torch.Tensor,
             g: torch.Tensor, config: TrainingConfig, regret_scale: float,
-            head: torch.nn.Module | None = None, z: torch.Tensor | None = None
-            ) -> tuple[torch.Tensor, torch.Tensor | None]:
+            head: torch.nn.Module | None = None, z: torch.Tensor | None = None,
+            param_head: torch.nn.Module | None = None, theta: torch.Tensor | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """The student's loss on a minibatch: BCE per valve (valves head), or the
     cross entropy of the teacher's setting plus ``config.regret`` times the
     expected regret per unit of ``regret_scale`` (joint head); with the
     privileged ``head`` and its targets ``z``, plus ``config.privileged``
-    times that head's BCE. Returns the loss and the privileged BCE (or None)."""
+    times that head's BCE; with the ``param_head`` and its targets ``theta``,
+    plus ``config.privileged_params`` times its squared error (summed over
+    the parameters, mean over the samples). Returns the loss, the privileged
+    BCE and the parameters' error (each None where its head is not
+    trained)."""
     hidden = policy.trunk(x)
     logits = policy.net[-1](hidden)
     if config.head == "valves":
@@ -171,46 +208,60 @@ def loss_of(policy: HistoryPolicy, x: torch.Tensor, y: torch.Tensor, a: torch.Te
         if config.regret > 0:
             p = torch.softmax(logits, dim=1)
             loss = loss + config.regret * (p * g).sum(dim=1).mean() / regret_scale
-    if head is None or z is None:
-        return loss, None
-    stuck = torch.nn.functional.binary_cross_entropy_with_logits(head(hidden), z)
-    return loss + config.privileged * stuck, stuck
+    stuck = mse = None
+    if head is not None and z is not None:
+        stuck = torch.nn.functional.binary_cross_entropy_with_logits(head(hidden), z)
+        loss = loss + config.privileged * stuck
+    if param_head is not None and theta is not None:
+        # summed over the 14 parameters, so that one worn part weighs as much
+        # however many stay healthy; mean over the samples
+        mse = ((param_head(hidden) - theta) ** 2).sum(dim=1).mean()
+        loss = loss + config.privileged_params * mse
+    return loss, stuck, mse
 
 
 def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, y: np.ndarray,
         config: TrainingConfig, rng: np.random.Generator, regrets: np.ndarray | None = None,
-        head: torch.nn.Module | None = None, stuck: np.ndarray | None = None
+        head: torch.nn.Module | None = None, stuck: np.ndarray | None = None,
+        param_head: torch.nn.Module | None = None, params: np.ndarray | None = None
         ) -> dict[str, float]:
     """``epochs`` epochs of minibatches on (x, y, regrets (M, 64) or None), with
-    the privileged ``head`` on its targets ``stuck`` (M, 12) if given
-    (:func:`loss_of`; ``optimizer`` must hold the head's parameters too); the
-    last epoch's loss, the fraction of samples where the student's valves are
-    the teacher's (all six), its mean regret where the regrets are given, and
-    the privileged head's last-epoch BCE where it is trained."""
+    the privileged ``head`` on its targets ``stuck`` (M, 12) and the
+    ``param_head`` on its targets ``params`` (M, 14) if given (:func:`loss_of`;
+    ``optimizer`` must hold the heads' parameters too); the last epoch's
+    loss, the fraction of samples where the student's valves are the
+    teacher's (all six), its mean regret where the regrets are given, and
+    each head's last-epoch loss where it is trained."""
     if regrets is None:
         regrets = np.zeros((len(x), 0), np.float32)
     xt, yt = torch.as_tensor(x), torch.as_tensor(y, dtype=torch.float32)
     at = torch.as_tensor(settings_of(y))
     gt = torch.as_tensor(regrets)
     zt = torch.as_tensor(stuck) if head is not None and stuck is not None else None
+    pt = (torch.as_tensor(params) if param_head is not None and params is not None
+          else None)
     scale = float(regrets.mean()) if regrets.size and regrets.mean() > 0 else 1.0
     policy.train()
     losses: list[float] = []
     stuck_losses: list[float] = []
+    param_losses: list[float] = []
     for _ in range(config.epochs):
-        losses, stuck_losses = [], []
+        losses, stuck_losses, param_losses = [], [], []
         order = torch.as_tensor(rng.permutation(len(x)))
         for start in range(0, len(x), config.batch):
             idx = order[start:start + config.batch]
-            loss, stuck_loss = loss_of(policy, xt[idx], yt[idx], at[idx],
-                                       gt[idx] if regrets.size else gt, config, scale, head,
-                                       zt[idx] if zt is not None else None)
+            loss, stuck_loss, param_loss = loss_of(
+                policy, xt[idx], yt[idx], at[idx], gt[idx] if regrets.size else gt, config,
+                scale, head, zt[idx] if zt is not None else None, param_head,
+                pt[idx] if pt is not None else None)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
             losses.append(loss.item())
             if stuck_loss is not None:
                 stuck_losses.append(stuck_loss.item())
+            if param_loss is not None:
+                param_losses.append(param_loss.item())
     policy.eval()
     u = policy.act(x)
     out = {"loss": float(np.mean(losses)),
@@ -219,6 +270,8 @@ def fit(policy: HistoryPolicy, optimizer: torch.optim.Optimizer, x: np.ndarray, 
         out["mean_regret"] = float(regrets[np.arange(len(x)), settings_of(u)].mean())
     if stuck_losses:
         out["stuck_bce"] = float(np.mean(stuck_losses))
+    if param_losses:
+        out["params_mse"] = float(np.mean(param_losses))
     return out
 
 
@@ -246,8 +299,13 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
     # the privileged head (training only: not in the checkpoint), drawn after the policy
     head = (torch.nn.Linear(config.hidden[-1], STUCK_TARGETS) if config.privileged > 0
             else None)
-    params = [*policy.parameters(), *(head.parameters() if head is not None else ())]
-    optimizer = torch.optim.Adam(params, lr=config.lr)
+    # the parameter head (training only), drawn after them: a student without
+    # it starts from the same weights as before it existed
+    param_head = (torch.nn.Linear(config.hidden[-1], PARAM_TARGETS)
+                  if config.privileged_params > 0 else None)
+    weights = [*policy.parameters()] + [w for h in (head, param_head) if h is not None
+                                        for w in h.parameters()]
+    optimizer = torch.optim.Adam(weights, lr=config.lr)
     teacher = PoolTeacher.from_config(config)
     data = Dataset(config.max_samples)
     start, steps = time.monotonic(), 0
@@ -256,11 +314,12 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
         beta = 1.0 if not config.dagger else 0.5 ** k
         rollouts = collect(policy, teacher, dist, config, k, beta)
         steps += rollouts["steps"]
-        data.add(rollouts["x"], rollouts["y"], rollouts["regrets"], rollouts["stuck"])
-        x, y, g, z = data.arrays()
+        data.add(rollouts["x"], rollouts["y"], rollouts["regrets"], rollouts["stuck"],
+                 rollouts["params"])
+        x, y, g, z, p = data.arrays()
         if config.inputs == "rates" and policy.input_map is None:
             policy.set_input_map(*rates_map(config.window, x))  # fixed from iteration 0's data
-        stats = fit(policy, optimizer, x, y, config, rng, g, head, z)
+        stats = fit(policy, optimizer, x, y, config, rng, g, head, z, param_head, p)
         row = {"iteration": k, "beta": beta, "env_steps": steps, "teacher_labels": teacher.labels,
                "samples": len(x), "seconds": round(time.monotonic() - start, 1),
                "reward_per_step": rollouts["reward_per_step"],
@@ -270,7 +329,8 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
         log(f"adaptive: iteration {k}  beta {beta:.3f}  steps {steps}  labels {teacher.labels}  "
             f"{row['seconds']:.0f} s  loss {stats['loss']:.4f}  agreement "
             f"{stats['action_agreement']:.3f}  reward/step {rollouts['reward_per_step']:.3f}"
-            + (f"  stuck BCE {stats['stuck_bce']:.4f}" if "stuck_bce" in stats else ""))
+            + (f"  stuck BCE {stats['stuck_bce']:.4f}" if "stuck_bce" in stats else "")
+            + (f"  parameters error {stats['params_mse']:.4f}" if "params_mse" in stats else ""))
     return {"policy": policy.record(), "snapshots": snapshots, "curve": curve,
             "config": config.to_json(), "distribution": dist.text}
 
