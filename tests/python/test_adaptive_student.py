@@ -11,11 +11,13 @@ import torch
 
 from ftc import _core
 from ftc.control.planning.physics.evaluators import OracleEvaluator
-from ftc.control.planning.physics.teacher import PoolTeacher, regrets_of
+from ftc.control.agents.balance import balance_valves
+from ftc.control.planning.physics.teacher import RECHECK_RULES as TEACHER_RECHECK_RULES
+from ftc.control.planning.physics.teacher import PoolTeacher, hold_then_rule, regrets_of
 from ftc.control.planning.planners import HoldPlanner, two_stage_candidates
 from ftc.experiments.adaptive import dagger, distribution
-from ftc.learning.history_policy import (HistoryPolicy, HistoryWindow, StudentConfig,
-                                         TrainingConfig, rates_map)
+from ftc.learning.history_policy import (RECHECK_RULES, HistoryPolicy, HistoryWindow,
+                                         StudentConfig, TrainingConfig, rates_map)
 
 
 def test_the_joint_head_opens_the_bits_of_its_largest_logit():
@@ -231,6 +233,81 @@ def test_a_recheck_of_every_setting_is_the_teacher_of_the_longer_horizon():
         [0] * 5, [scenario], steps, levels)
     assert u.tolist() == u10.tolist()
     np.testing.assert_allclose(regrets, regrets10, atol=1e-5)
+
+
+def _closed_loop_replay(oracle, x0, setting, hold, horizon):
+    """A setting held ``hold`` steps, then the balance rule, one step at a time
+    on the C++ rollout (its own reward and episode rule), charging the commanded
+    valves where the evaluator's stuck valves override them: (summed reward,
+    episodes ended)."""
+    mask, state = oracle.stuck if oracle.stuck is not None else (np.zeros(6, bool), 0)
+    x, total, resets = np.asarray(x0, float), 0.0, 0
+    bits = np.array([(setting >> i) & 1 for i in range(6)])
+    for t in range(horizon):
+        u = bits if t < hold else balance_valves(x).astype(np.int64)
+        applied = np.where(mask, state, u)
+        d = oracle.rollout.run(x, applied[None, None], oracle.params, details=True)
+        total += d["total"][0] + applied.mean() - u.mean()
+        x = np.full(6, 1.0) if d["terminal"][0][0] else np.asarray(d["levels"][0][0])
+        resets += int(d["terminal"][0][0])
+    return total, resets
+
+
+def test_a_hold_then_the_balance_rule_is_that_policy_rolled_out_in_closed_loop():
+    # blind-00 late in life: valves 1 and 4 stuck closed, tank 1 worn, engine 1
+    # burning more. From unbalanced levels and from low ones, low enough that the
+    # episode ends within the horizon (a reset to full tanks), each setting held, then the
+    # rule: equal to the same policy stepped one step at a time on the rollout
+    # (its reward and episode rule, not the teacher's), within the integrator's
+    # tolerance: the rule's steps run as one batch over the plans, so CVODE starts
+    # each from another plan's state than the replay does (rtol 1e-6; measured up
+    # to 1.2e-7 on a sum of 20 rewards near 2)
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "heldout" / "blind" /
+                                       "blind-00.toml"))
+    oracle = OracleEvaluator(scenario, closed_form=True)
+    oracle.set_step(4200)
+    assert oracle.stuck is not None and oracle.stuck[0].sum() == 2
+    settings = np.array([0, 5, 18, 63])
+    resets = []
+    for x0 in (np.array([0.9, 0.2, 0.6, 0.8, 0.5, 0.1]), np.full(6, 0.12)):
+        got = hold_then_rule(oracle, x0, settings, [2, 6], 20)
+        for j, hold in enumerate((2, 6)):
+            for k, a in enumerate(settings):
+                want, ended = _closed_loop_replay(oracle, x0, int(a), hold, 20)
+                assert got[j, k] == pytest.approx(want, abs=1e-6)
+                resets.append(ended)
+    assert max(resets) >= 1  # the episode rule was crossed (0.2 m3 drawn a step)
+    # with a rule that closes every valve, the hold plans the recheck values anyway
+    closed = hold_then_rule(oracle, np.full(6, 0.7), settings, [2, 3], 10,
+                            rule=lambda x: np.zeros(x.shape, np.int64))
+    for j, hold in enumerate((2, 3)):
+        plans = HoldPlanner(hold, 10).candidates(10)[settings]
+        np.testing.assert_allclose(closed[j], oracle(np.full(6, 0.7), plans), atol=1e-9)
+
+
+def test_a_recheck_with_the_balance_rule_labels_the_best_of_its_closed_loop_values():
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    levels = np.random.default_rng(4).uniform(0.05, 1.0, (4, 6))
+    steps = np.full(4, 4596)  # 12 steps left in the interval
+    teacher = PoolTeacher(2, 6, extra_holds=(1, 3), recheck=4, recheck_horizon=12,
+                          recheck_rule="balance")
+    short = PoolTeacher(2, 6, extra_holds=(1, 3))
+    u, regrets = teacher.label_with_regrets([0] * 4, [scenario], steps, levels)
+    oracle = OracleEvaluator(scenario, closed_form=True)
+    oracle.set_step(4596)
+    for k in range(4):
+        totals = short._setting_totals(oracle, levels[k], 6)
+        top = np.sort(np.argsort(-totals, kind="stable")[:4])
+        values = hold_then_rule(oracle, levels[k], top, [2, 1, 3], 12).max(axis=0)
+        label = int(top[np.argmax(values)])
+        assert u[k].tolist() == [(label >> i) & 1 for i in range(6)]
+        np.testing.assert_allclose(regrets[k][top], values.max() - values, atol=1e-5)
+        assert (np.delete(regrets[k], top) > 0).all()
+    with pytest.raises(ValueError, match="recheck_rule must be one of"):
+        PoolTeacher(2, 6, recheck_rule="hold")
+    with pytest.raises(ValueError, match="recheck_rule must be one of"):
+        TrainingConfig(recheck_rule="hold")
+    assert RECHECK_RULES == TEACHER_RECHECK_RULES  # the config's and the teacher's
 
 
 def test_the_teacher_a_training_distils_is_the_one_its_config_names():

@@ -42,6 +42,7 @@ CACHE_VERSION = 1  # bump when the checkpoint record's layout changes
 HEADS = {"valves": NUM_TANKS, "joint": 2 ** NUM_TANKS}  # outputs of each head
 INPUTS = ("window", "rates")  # the training-time input parametrizations (TrainingConfig.inputs)
 TEACHER_STUCK = ("all", "seen")  # which stuck valves the teacher plans with (TrainingConfig)
+RECHECK_RULES = ("closed", "balance")  # after a rechecked hold (TrainingConfig; the teacher's own)
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,8 @@ class TrainingConfig:
     the horizon), 0 for none; recheck: how many of the best settings the
     teacher values again over recheck_horizon steps (their plans held each
     hold length, then all closed; the label the best of them), 0 for none;
+    recheck_rule: what a rechecked plan does after its hold, "closed" or
+    "balance" (the balance rule in closed loop);
     seed: draws,
     pool plants, initial weights and minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
@@ -149,6 +152,7 @@ class TrainingConfig:
     second_stage: int = 0
     recheck: int = 0
     recheck_horizon: int = 10
+    recheck_rule: str = "closed"
     seed: int = 0
     members: int = 3
     privileged: float = 0.0
@@ -176,6 +180,9 @@ class TrainingConfig:
         if self.recheck and self.recheck_horizon <= self.horizon:
             raise ValueError(f"TrainingConfig: recheck_horizon ({self.recheck_horizon}) must be "
                              f"longer than the horizon ({self.horizon}) with a recheck")
+        if self.recheck_rule not in RECHECK_RULES:
+            raise ValueError(f"TrainingConfig: recheck_rule must be one of "
+                             f"{list(RECHECK_RULES)}, got {self.recheck_rule!r}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
         if self.teacher_stuck not in TEACHER_STUCK:

@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 
-from ftc.common.constants import NUM_TANKS
 from ftc.common.cli import between
 from ftc.control.run.agent import Agent, StepContext
 from ftc.control.run.config import RunConfig
@@ -50,17 +49,28 @@ class BalanceAgent(Agent):
         return balance_valves(obs.level, self.band)
 
 
+def balance_valves_batch(levels: np.ndarray, band: float = 0.1) -> np.ndarray:
+    """The rule's valves (N, 6) int8 for N rows of tank levels (N, 6) m, each
+    row as :func:`balance_valves` (on ties, the first fullest tank of the
+    heavy wing and the first emptiest of the light one)."""
+    levels = np.asarray(levels, np.float64)
+    mass = AREAS * np.maximum(levels, 0.0)
+    total = mass.sum(axis=1)
+    u = np.zeros(levels.shape, np.int8)
+    rows = np.flatnonzero(total > 0)
+    # elementwise, then summed per row: a row's cg does not depend on the others
+    cg = (mass[rows] * MOMENT_ARMS).sum(axis=1) / total[rows]
+    rows, cg = rows[np.abs(cg) > band], cg[np.abs(cg) > band]
+    right = cg > 0  # the right wing is heavy: from it to the left
+    x = levels[rows]
+    source = np.where(right, 3 + np.argmax(x[:, RIGHT], axis=1), np.argmax(x[:, LEFT], axis=1))
+    sink = np.where(right, np.argmin(x[:, LEFT], axis=1), 3 + np.argmin(x[:, RIGHT], axis=1))
+    u[rows, source] = 1
+    u[rows, sink] = 1
+    return u
+
+
 def balance_valves(level: np.ndarray, band: float = 0.1) -> np.ndarray:
     """The rule's valves (6,) int8 for tank levels (6,) m: the fullest tank of the
     heavy wing and the emptiest of the light one open where |cg| > band."""
-    mass = AREAS * np.maximum(level, 0.0)
-    u = np.zeros(NUM_TANKS, np.int8)
-    if mass.sum() <= 0:
-        return u
-    cg = float(mass @ MOMENT_ARMS / mass.sum())
-    if abs(cg) <= band:
-        return u
-    heavy, light = (RIGHT, LEFT) if cg > 0 else (LEFT, RIGHT)
-    u[heavy[np.argmax(level[heavy])]] = 1
-    u[light[np.argmin(level[light])]] = 1
-    return u
+    return balance_valves_batch(np.asarray(level, np.float64)[None], band)[0]

@@ -70,6 +70,10 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "recheck_horizon": "the horizon of --recheck, longer than --horizon, cut at the "
                        "interval's end (nothing is rechecked where the cut leaves it no "
                        "longer than --horizon)",
+    "recheck_rule": "what a rechecked plan does after its hold: closed (every valve) or "
+                    "balance (the balance rule in closed loop to --recheck-horizon, a "
+                    "continuation that keeps balancing; a Python loop, several times the "
+                    "recheck's cost)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -189,6 +193,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                   "setting" if a.second_stage else "")
         if a.recheck:
             staged += f", its {a.recheck} best valued again over {a.recheck_horizon}"
+            if a.recheck_rule != "closed":
+                staged += f" (then the {a.recheck_rule} rule)"
         what = (f"teacher (the planner holding {holds} over {a.horizon}{staged}, told "
                 + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"
                    else "every stuck valve)"))

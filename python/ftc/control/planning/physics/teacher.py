@@ -16,19 +16,26 @@ again over a longer horizon (``recheck_horizon``, cut at the interval's
 end too) by the best of their plans holding each hold length, then all
 closed, and the label is the best of those K: a setting whose benefit
 outlasts the short horizon is then told from one that only looks as good
-over it.
+over it. With ``recheck_rule`` "balance", the rechecked plans are held, then
+the balance rule's (:func:`ftc.control.agents.balance.balance_valves`) in
+closed loop to the longer horizon instead of all closed: a continuation
+that keeps balancing, as a policy would, rather than doing nothing.
 It is used for training only: the student never sees it at run time.
 """
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ftc.common.constants import NUM_TANKS
+from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE
+from ftc.control.agents.balance import balance_valves_batch
 from ftc.control.planning.physics.evaluators import OracleEvaluator
 from ftc.control.planning.planners import HoldPlanner, two_stage_candidates
+from ftc.plant.reward import reward
+
+RECHECK_RULES = ("closed", "balance")  # what a rechecked plan does after its hold
 
 
 class PoolTeacher:
@@ -40,19 +47,24 @@ class PoolTeacher:
     their two-stage plans (held ``hold`` steps, then any setting to the
     horizon; 0: none); recheck: how many of the best settings are valued
     again over ``recheck_horizon`` steps (0: none; the label is then the best
-    of them); closed_form: the rollouts step the conduit in closed
+    of them); recheck_rule: what a rechecked plan does after its hold, "closed"
+    (every valve) or "balance" (the balance rule in closed loop:
+    :func:`hold_then_rule`); closed_form: the rollouts step the conduit in closed
     form (``_core.BatchRollout``'s exact_active_conduit, several times faster
     than CVODE, within its tolerances)."""
 
     def __init__(self, hold: int = 3, horizon: int = 10, closed_form: bool = True,
                  extra_holds: Sequence[int] = (), second_stage: int = 0, recheck: int = 0,
-                 recheck_horizon: int = 10) -> None:
+                 recheck_horizon: int = 10, recheck_rule: str = "closed") -> None:
         for name, value in (("second_stage", second_stage), ("recheck", recheck)):
             if not 0 <= value <= 2 ** NUM_TANKS:
                 raise ValueError(f"PoolTeacher: {name} must be in [0, {2 ** NUM_TANKS}], "
                                  f"got {value}")
         if recheck_horizon < 1:
             raise ValueError(f"PoolTeacher: recheck_horizon must be >= 1, got {recheck_horizon}")
+        if recheck_rule not in RECHECK_RULES:
+            raise ValueError(f"PoolTeacher: recheck_rule must be one of {list(RECHECK_RULES)}, "
+                             f"got {recheck_rule!r}")
         if recheck and recheck_horizon <= horizon:
             raise ValueError(f"PoolTeacher: recheck_horizon ({recheck_horizon}) must be longer "
                              f"than the horizon ({horizon}), or nothing is rechecked")
@@ -63,6 +75,7 @@ class PoolTeacher:
         self.second_stage = second_stage
         self._two_stage: dict[int, np.ndarray] = {}  # horizon -> (64, 64, horizon, 6)
         self.recheck, self.recheck_horizon = recheck, recheck_horizon
+        self.recheck_rule = recheck_rule
         self.horizon = horizon
         self.closed_form = closed_form
         self._evaluators: dict[int, tuple[Any, OracleEvaluator]] = {}
@@ -71,11 +84,11 @@ class PoolTeacher:
     @classmethod
     def from_config(cls, config: Any) -> "PoolTeacher":
         """The teacher a training configuration names (its hold, horizon,
-        extra_holds, second_stage, recheck and recheck_horizon: a
-        ``TrainingConfig``)."""
+        extra_holds, second_stage, recheck, recheck_horizon and recheck_rule:
+        a ``TrainingConfig``)."""
         return cls(config.hold, config.horizon, extra_holds=config.extra_holds,
                    second_stage=config.second_stage, recheck=config.recheck,
-                   recheck_horizon=config.recheck_horizon)
+                   recheck_horizon=config.recheck_horizon, recheck_rule=config.recheck_rule)
 
     def forget(self) -> None:
         """Drop the per-env evaluators (the pool was reseeded with new plants)."""
@@ -157,17 +170,23 @@ class PoolTeacher:
         (the largest is the label; a setting's regret is the largest minus its
         own): the ``recheck`` settings of the largest ``totals`` (ties at the
         cut to the lower code) valued by their best plan over ``horizon``
-        steps, held each hold length then all closed, less the best of those
+        steps, held each hold length then all closed (with ``recheck_rule``
+        "balance": then the balance rule in closed loop), less the best of those
         (so 0 for the label); every other setting at minus the larger of its
         own regret in ``totals`` and the largest regret among the rechecked,
         and below 0, so that the label is always a rechecked setting. The
         recheck values hold plans only: with a second stage, its values choose
         which settings are rechecked, not the label among them."""
         best = best_settings(totals, self.recheck)
-        plans = self._hold_plans(horizon).reshape(len(self.planners), -1, horizon, NUM_TANKS)
-        plans = plans[:, best].reshape(-1, horizon, NUM_TANKS)
-        long = np.asarray(evaluator(x0, plans), np.float64).reshape(len(self.planners), -1)
-        long = long.max(axis=0)
+        if self.recheck_rule == "balance":
+            long = hold_then_rule(evaluator, x0, best, [p.hold for p in self.planners],
+                                  horizon).max(axis=0)
+        else:
+            plans = self._hold_plans(horizon).reshape(len(self.planners), -1, horizon,
+                                                      NUM_TANKS)
+            plans = plans[:, best].reshape(-1, horizon, NUM_TANKS)
+            long = np.asarray(evaluator(x0, plans), np.float64).reshape(len(self.planners), -1)
+            long = long.max(axis=0)
         if not np.isfinite(long).any():  # every long plan refused: the short values stand
             return totals
         rechecked = long - long.max()  # a refused long plan stays -inf
@@ -184,6 +203,77 @@ class PoolTeacher:
         if horizon not in self._plans:
             self._plans[horizon] = np.concatenate([p.candidates(horizon) for p in self.planners])
         return self._plans[horizon]
+
+
+def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndarray,
+                   holds: Sequence[int], horizon: int,
+                   rule: Callable[[np.ndarray], np.ndarray] = balance_valves_batch
+                   ) -> np.ndarray:
+    """Summed rewards (len(holds), len(settings)) over ``horizon`` steps from
+    levels x0 on ``evaluator``'s physics: setting a (valve i open iff bit i of
+    a) held h steps (h of ``holds``, at most the horizon), then ``rule``
+    (levels (N, 6) -> valves (N, 6)) in closed loop, each step's valves from
+    the levels the step before left. As the evaluator's rollouts: its stuck
+    valves applied in place of the commands and the activity term charged for
+    the commanded ones, a step after which the plant is terminal followed by
+    full tanks, and a plan the integrator refuses -inf.
+
+    The hold runs as one batch rollout, the rule's steps as one ``step_each``
+    per step over the plans, rewarded here (the plant's reward and episode
+    rule, :mod:`ftc.plant.reward`): a Python loop, several times the cost of
+    the hold plans' rollouts."""
+    p = evaluator.params
+    height, area = np.asarray(p["height"], np.float64), np.asarray(p["area"], np.float64)
+    ends = float(np.sum(p["demand"])) + TERMINAL_TOLERANCE  # the plant's rule, dt = 1 s
+    if evaluator.stuck is None:
+        mask, state = np.zeros(NUM_TANKS, bool), np.zeros(NUM_TANKS, np.int64)
+    else:
+        mask, state = evaluator.stuck
+    x0 = np.asarray(x0, np.float64)
+    codes = (np.asarray(settings, np.int64)[:, None] >> np.arange(NUM_TANKS)) & 1
+    out = np.empty((len(holds), len(codes)))
+    for j, hold in enumerate(holds):
+        hold = min(int(hold), horizon)
+        commanded = np.repeat(codes[:, None, :], hold, axis=1)
+        applied = np.where(mask, state, commanded)
+        total, x = _held(evaluator, x0, applied, height)
+        total = total + (applied.mean(-1) - commanded.mean(-1)).sum(-1)  # charge the commands
+        for _ in range(horizon - hold):
+            u = np.asarray(rule(x), np.int64)
+            after = np.asarray(evaluator.rollout.step_each(x, np.where(mask, state, u), p))
+            refused = ~np.isfinite(after).all(axis=1)  # the integrator's NaN row
+            after[refused] = height
+            total = total + np.where(refused, -np.inf, reward(after, u))
+            after[after @ area < ends] = height  # terminal: the next episode starts full
+            x = after
+        out[j] = total
+    return out
+
+
+def _held(evaluator: OracleEvaluator, x0: np.ndarray, applied: np.ndarray,
+          height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(summed rewards (K,), levels after (K, 6)) of the valve sequences
+    ``applied`` (K, L, 6) from x0 on the evaluator's physics, full tanks where
+    the last step ended the episode; the batch at once, or where the
+    integrator refuses it each plan alone, a refused one at -inf (counted in
+    ``evaluator.refused``)."""
+    p = evaluator.params
+    try:
+        runs = [(np.arange(len(applied)), evaluator.rollout.run(x0, applied, p, details=True))]
+    except RuntimeError:
+        runs = []
+        for k in range(len(applied)):
+            try:
+                runs.append((np.array([k]), evaluator.rollout.run(x0, applied[k:k + 1], p,
+                                                                  details=True)))
+            except RuntimeError:
+                evaluator.refused += 1
+    total, x = np.full(len(applied), -np.inf), np.tile(height, (len(applied), 1))
+    for rows, d in runs:
+        total[rows] = d["total"]
+        ended = np.asarray(d["terminal"], bool)[:, -1]
+        x[rows] = np.where(ended[:, None], height, np.asarray(d["levels"])[:, -1])
+    return total, x
 
 
 def best_settings(totals: np.ndarray, k: int) -> np.ndarray:

@@ -1,0 +1,33 @@
+"""The balance rule (ftc.control.agents.balance) on cases with known answers,
+one row at a time and in batches (the teacher's closed-loop continuation rolls
+it out over many plans at once)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ftc.control.agents.balance import balance_valves, balance_valves_batch
+
+
+def test_the_rule_opens_the_fullest_heavy_tank_and_the_emptiest_light_one():
+    # left heavy (cg -1.2 arm units): from tank 1 (the first of the fullest) to tank 6
+    assert balance_valves(np.array([1.0, 1.0, 1.0, 0.2, 0.3, 0.1])).tolist() == [1, 0, 0, 0, 0, 1]
+    # right heavy: from tank 5 to tank 2
+    assert balance_valves(np.array([0.5, 0.1, 0.5, 0.6, 0.9, 0.8])).tolist() == [0, 1, 0, 0, 1, 0]
+    # balanced (cg 0), inside the band (cg 0.05 < 0.1) and empty tanks: nothing opens
+    assert not balance_valves(np.full(6, 0.7)).any()
+    assert not balance_valves(np.array([0.5, 0.5, 0.5, 0.5, 0.5, 0.55])).any()
+    assert not balance_valves(np.zeros(6)).any()
+
+
+def test_a_batch_is_each_row_alone_whatever_rows_it_holds():
+    rng = np.random.default_rng(0)
+    levels = rng.uniform(-0.05, 1.0, (3000, 6))
+    levels[:300] = np.round(levels[:300], 1)  # ties, and cg on the band's edge
+    levels[300:320] = 0.0
+    alone = np.stack([balance_valves(x) for x in levels])
+    assert (balance_valves_batch(levels) == alone).all()
+    assert (balance_valves_batch(levels[::-1]) == alone[::-1]).all()
+    odd = np.concatenate([balance_valves_batch(levels[i:i + 7]) for i in range(0, 3000, 7)])
+    assert (odd == alone).all()
+    assert alone.any(axis=1).mean() > 0.5  # most rows move fuel: the case is not empty
