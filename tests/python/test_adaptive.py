@@ -491,23 +491,25 @@ def test_the_privileged_head_learns_a_stuck_valve_from_the_window(one_torch_thre
     assert (said == stuck).mean() > 0.97 and stats["stuck_bce"] < 0.1
 
 
-def test_the_privileged_head_stays_out_of_the_checkpoint(one_torch_thread):
+@pytest.mark.parametrize("weight,loss", [("privileged", "stuck_bce"),
+                                         ("privileged_params", "params_mse")])
+def test_a_training_head_stays_out_of_the_checkpoint(one_torch_thread, weight, loss):
     tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
                           hidden=(8,), head="joint", hold=2, horizon=3, extra_holds=(),
                           members=1)
     dist = distribution.load()
     plain = dagger.train(dist, tiny, log=lambda _: None)
-    with_head = dagger.train(dist, dataclasses.replace(tiny, privileged=1.0),
+    with_head = dagger.train(dist, dataclasses.replace(tiny, **{weight: 1.0}),
                              log=lambda _: None)
     shapes = {k: tuple(v.shape) for k, v in plain["policy"]["state"].items()}
     assert {k: tuple(v.shape) for k, v in with_head["policy"]["state"].items()} == shapes
-    assert "stuck_bce" in with_head["curve"][-1] and "stuck_bce" not in plain["curve"][-1]
+    assert loss in with_head["curve"][-1] and loss not in plain["curve"][-1]
     # the head is drawn after the policy: the same initial weights, and the
     # head's loss then moved them (the students differ)
     assert not torch.equal(plain["policy"]["state"]["net.0.weight"],
                            with_head["policy"]["state"]["net.0.weight"])
-    with pytest.raises(ValueError, match="privileged must be >= 0"):
-        TrainingConfig(privileged=-1.0)
+    with pytest.raises(ValueError, match=f"{weight} must be >= 0"):
+        TrainingConfig(**{weight: -1.0})
 
 
 def test_the_parameter_targets_are_the_degraded_parameters_as_fractions_of_healthy():
@@ -564,24 +566,6 @@ def test_the_parameter_head_learns_a_pump_rate_from_the_window(one_torch_thread)
     # 0.29 root mean square; measured 0.009-0.022 (seeds 0-3, the error summed
     # over the 14 targets 8e-5 to 5e-4)
     assert np.sqrt(np.mean((said - rate) ** 2)) < 0.06 and stats["params_mse"] < 0.005
-
-
-def test_the_parameter_head_stays_out_of_the_checkpoint(one_torch_thread):
-    tiny = TrainingConfig(iterations=2, envs=2, life_intervals=1, epochs=1, window=2,
-                          hidden=(8,), head="joint", hold=2, horizon=3, extra_holds=(),
-                          members=1)
-    dist = distribution.load()
-    plain = dagger.train(dist, tiny, log=lambda _: None)
-    with_head = dagger.train(dist, dataclasses.replace(tiny, privileged_params=1.0),
-                             log=lambda _: None)
-    shapes = {k: tuple(v.shape) for k, v in plain["policy"]["state"].items()}
-    assert {k: tuple(v.shape) for k, v in with_head["policy"]["state"].items()} == shapes
-    assert "params_mse" in with_head["curve"][-1] and "params_mse" not in plain["curve"][-1]
-    # drawn after the policy: the same initial weights, then its loss moved them
-    assert not torch.equal(plain["policy"]["state"]["net.0.weight"],
-                           with_head["policy"]["state"]["net.0.weight"])
-    with pytest.raises(ValueError, match="privileged_params must be >= 0"):
-        TrainingConfig(privileged_params=-1.0)
 
 
 def _draw_heldout():
