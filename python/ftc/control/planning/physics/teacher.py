@@ -218,10 +218,11 @@ def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndar
     the commanded ones, a step after which the plant is terminal followed by
     full tanks, and a plan the integrator refuses -inf.
 
-    The hold runs as one batch rollout, the rule's steps as one ``step_each``
-    per step over the plans, rewarded here (the plant's reward and episode
-    rule, :mod:`ftc.plant.reward`): a Python loop, several times the cost of
-    the hold plans' rollouts."""
+    Each hold length's plans run as one batch rollout, then the rule's steps
+    as one ``step_each`` per step over every plan still going, rewarded here
+    (the plant's reward and episode rule, :mod:`ftc.plant.reward`): a Python
+    loop of ``horizon`` - min(holds) steps, several times the cost of the
+    hold plans' rollouts."""
     p = evaluator.params
     height, area = np.asarray(p["height"], np.float64), np.asarray(p["area"], np.float64)
     ends = float(np.sum(p["demand"])) + TERMINAL_TOLERANCE  # the plant's rule, dt = 1 s
@@ -231,23 +232,27 @@ def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndar
         mask, state = evaluator.stuck
     x0 = np.asarray(x0, np.float64)
     codes = (np.asarray(settings, np.int64)[:, None] >> np.arange(NUM_TANKS)) & 1
-    out = np.empty((len(holds), len(codes)))
-    for j, hold in enumerate(holds):
-        hold = min(int(hold), horizon)
+    holds = [min(int(h), horizon) for h in holds]
+    totals, states = [], []
+    for hold in holds:  # each hold length's plans in one batch rollout
         commanded = np.repeat(codes[:, None, :], hold, axis=1)
         applied = np.where(mask, state, commanded)
         total, x = _held(evaluator, x0, applied, height)
-        total = total + (applied.mean(-1) - commanded.mean(-1)).sum(-1)  # charge the commands
-        for _ in range(horizon - hold):
-            u = np.asarray(rule(x), np.int64)
-            after = np.asarray(evaluator.rollout.step_each(x, np.where(mask, state, u), p))
-            refused = ~np.isfinite(after).all(axis=1)  # the integrator's NaN row
-            after[refused] = height
-            total = total + np.where(refused, -np.inf, reward(after, u))
-            after[after @ area < ends] = height  # terminal: the next episode starts full
-            x = after
-        out[j] = total
-    return out
+        totals.append(total + (applied.mean(-1) - commanded.mean(-1)).sum(-1))  # charged
+        states.append(x)
+    # then the rule, every plan at once: row r has horizon - hold_r steps left
+    total, x = np.concatenate(totals), np.concatenate(states)
+    left = horizon - np.repeat(np.array(holds), len(codes))
+    for t in range(int(left.max(initial=0))):
+        rows = np.flatnonzero(left > t)
+        u = np.asarray(rule(x[rows]), np.int64)
+        after = np.asarray(evaluator.rollout.step_each(x[rows], np.where(mask, state, u), p))
+        refused = ~np.isfinite(after).all(axis=1)  # the integrator's NaN row
+        after[refused] = height
+        total[rows] += np.where(refused, -np.inf, reward(after, u))
+        after[after @ area < ends] = height  # terminal: the next episode starts full
+        x[rows] = after
+    return total.reshape(len(holds), len(codes))
 
 
 def _held(evaluator: OracleEvaluator, x0: np.ndarray, applied: np.ndarray,
