@@ -28,9 +28,9 @@ Iteration k (of ``iterations``):
    degraded parameters in force at that step (:func:`true_parameters`: each
    pump's capacity, each tank's outflow conductance and each engine's demand,
    as fractions of their healthy values), its squared error (summed over the
-   14) weighted by ``privileged_params`` and added: Rapid Motor Adaptation's latent of the
-   parameters, here the parameters themselves. The heads are used in
-   training only; the checkpoint's network is the policy alone.
+   14) weighted by ``privileged_params`` and added: Rapid Motor Adaptation's
+   latent of the parameters, here the parameters themselves. The heads are
+   used in training only; the checkpoint's network is the policy alone.
 
 Every iteration's student is kept (the learning curve evaluates them); the
 last one is the checkpoint. With ``members`` > 1 the students of seeds seed,
