@@ -256,7 +256,8 @@ def _closed_loop_replay(oracle, x0, setting, hold, horizon):
 def test_a_hold_then_the_balance_rule_is_that_policy_rolled_out_in_closed_loop():
     # blind-00 late in life: valves 1 and 4 stuck closed, tank 1 worn, engine 1
     # burning more. From unbalanced levels and from low ones, low enough that the
-    # episode ends within the horizon (a reset to full tanks), each setting held, then the
+    # episode ends within the horizon, once on a hold's last step (a reset to full
+    # tanks), each setting held, then the
     # rule: equal to the same policy stepped one step at a time on the rollout
     # (its reward and episode rule, not the teacher's), within the integrator's
     # tolerance: the rule's steps run as one batch over the plans, so CVODE starts
@@ -269,14 +270,19 @@ def test_a_hold_then_the_balance_rule_is_that_policy_rolled_out_in_closed_loop()
     assert oracle.stuck is not None and oracle.stuck[0].sum() == 2
     settings = np.array([0, 5, 18, 63])
     resets = []
-    for x0 in (np.array([0.9, 0.2, 0.6, 0.8, 0.5, 0.1]), np.full(6, 0.12)):
-        got = hold_then_rule(oracle, x0, settings, [2, 6], 20)
-        for j, hold in enumerate((2, 6)):
+    for x0 in (np.array([0.9, 0.2, 0.6, 0.8, 0.5, 0.1]), np.full(6, 0.1)):
+        got = hold_then_rule(oracle, x0, settings, [2, 4, 6], 20)
+        for j, hold in enumerate((2, 4, 6)):
             for k, a in enumerate(settings):
                 want, ended = _closed_loop_replay(oracle, x0, int(a), hold, 20)
                 assert got[j, k] == pytest.approx(want, abs=1e-6)
                 resets.append(ended)
     assert max(resets) >= 1  # the episode rule was crossed (0.2 m3 drawn a step)
+    # from 0.1 m in each tank the fourth step leaves less than a step's demand
+    # (0.2 m3): all closed held 4 steps ends the episode on the hold's last step
+    d = oracle.rollout.run(np.full(6, 0.1), np.zeros((1, 4, 6), np.int64), oracle.params,
+                           details=True)
+    assert d["terminal"][0].tolist() == [False, False, False, True]
     # with a rule that closes every valve, the hold plans the recheck values anyway
     closed = hold_then_rule(oracle, np.full(6, 0.7), settings, [2, 3], 10,
                             rule=lambda x: np.zeros(x.shape, np.int64))
@@ -307,6 +313,12 @@ def test_a_recheck_with_the_balance_rule_labels_the_best_of_its_closed_loop_valu
         PoolTeacher(2, 6, recheck_rule="hold")
     with pytest.raises(ValueError, match="recheck_rule must be one of"):
         TrainingConfig(recheck_rule="hold")
+    with pytest.raises(ValueError, match="needs a recheck"):
+        TrainingConfig(recheck_rule="balance")
+    with pytest.raises(ValueError, match="holds must be >= 1"):
+        PoolTeacher(2, 6, extra_holds=(0,), recheck=4, recheck_horizon=12)
+    with pytest.raises(ValueError, match="holds must be >= 1"):
+        TrainingConfig(hold=0)
     assert RECHECK_RULES == TEACHER_RECHECK_RULES  # the config's and the teacher's
 
 

@@ -7,6 +7,23 @@ from __future__ import annotations
 import numpy as np
 
 from ftc.control.agents.balance import balance_valves, balance_valves_batch
+from ftc.plant.reward import MOMENT_ARMS
+
+
+def _one_row(level: np.ndarray, band: float = 0.1) -> np.ndarray:
+    """The rule written for one row, independently: the reference the batch is
+    checked against."""
+    mass = np.maximum(level, 0.0)  # areas of 1 m2
+    u = np.zeros(6, np.int8)
+    if mass.sum() <= 0:
+        return u
+    cg = float(mass @ MOMENT_ARMS / mass.sum())
+    if abs(cg) <= band:
+        return u
+    heavy, light = (np.arange(3, 6), np.arange(3)) if cg > 0 else (np.arange(3), np.arange(3, 6))
+    u[heavy[np.argmax(level[heavy])]] = 1
+    u[light[np.argmin(level[light])]] = 1
+    return u
 
 
 def test_the_rule_opens_the_fullest_heavy_tank_and_the_emptiest_light_one():
@@ -27,6 +44,10 @@ def test_a_batch_is_each_row_alone_whatever_rows_it_holds():
     levels[300:320] = 0.0
     alone = np.stack([balance_valves(x) for x in levels])
     assert (balance_valves_batch(levels) == alone).all()
+    # and the rule as written for one row, where no row sits on the band's edge
+    # (there the two sums of the cg may round apart)
+    reference = np.stack([_one_row(x) for x in levels[320:]])
+    assert (alone[320:] == reference).all()
     assert (balance_valves_batch(levels[::-1]) == alone[::-1]).all()
     odd = np.concatenate([balance_valves_batch(levels[i:i + 7]) for i in range(0, 3000, 7)])
     assert (odd == alone).all()

@@ -183,6 +183,12 @@ class TrainingConfig:
         if self.recheck_rule not in RECHECK_RULES:
             raise ValueError(f"TrainingConfig: recheck_rule must be one of "
                              f"{list(RECHECK_RULES)}, got {self.recheck_rule!r}")
+        if self.recheck_rule != "closed" and not self.recheck:
+            raise ValueError(f"TrainingConfig: recheck_rule {self.recheck_rule!r} needs a "
+                             "recheck (recheck >= 1): without one it would change nothing")
+        if min((self.hold, *self.extra_holds)) < 1:
+            raise ValueError(f"TrainingConfig: holds must be >= 1 step, "
+                             f"got {[self.hold, *self.extra_holds]}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
         if self.teacher_stuck not in TEACHER_STUCK:

@@ -65,6 +65,8 @@ class PoolTeacher:
         if recheck_rule not in RECHECK_RULES:
             raise ValueError(f"PoolTeacher: recheck_rule must be one of {list(RECHECK_RULES)}, "
                              f"got {recheck_rule!r}")
+        if min((hold, *extra_holds)) < 1:
+            raise ValueError(f"PoolTeacher: holds must be >= 1 step, got {[hold, *extra_holds]}")
         if recheck and recheck_horizon <= horizon:
             raise ValueError(f"PoolTeacher: recheck_horizon ({recheck_horizon}) must be longer "
                              f"than the horizon ({horizon}), or nothing is rechecked")
@@ -248,6 +250,7 @@ def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndar
         u = np.asarray(rule(x[rows]), np.int64)
         after = np.asarray(evaluator.rollout.step_each(x[rows], np.where(mask, state, u), p))
         refused = ~np.isfinite(after).all(axis=1)  # the integrator's NaN row
+        evaluator.refused += int(refused.sum())
         after[refused] = height
         total[rows] += np.where(refused, -np.inf, reward(after, u))
         after[after @ area < ends] = height  # terminal: the next episode starts full
