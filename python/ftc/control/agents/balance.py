@@ -60,7 +60,8 @@ def balance_valves_batch(levels: np.ndarray, band: float = 0.1) -> np.ndarray:
     rows = np.flatnonzero(total > 0)
     # elementwise, then summed per row: a row's cg does not depend on the others
     cg = (mass[rows] * MOMENT_ARMS).sum(axis=1) / total[rows]
-    rows, cg = rows[np.abs(cg) > band], cg[np.abs(cg) > band]
+    outside = np.abs(cg) > band
+    rows, cg = rows[outside], cg[outside]
     right = cg > 0  # the right wing is heavy: from it to the left
     x = levels[rows]
     source = np.where(right, 3 + np.argmax(x[:, RIGHT], axis=1), np.argmax(x[:, LEFT], axis=1))

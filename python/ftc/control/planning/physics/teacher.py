@@ -32,7 +32,8 @@ import numpy as np
 from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE
 from ftc.control.agents.balance import balance_valves_batch
 from ftc.control.planning.physics.evaluators import OracleEvaluator
-from ftc.control.planning.planners import HoldPlanner, two_stage_candidates
+from ftc.control.planning.planners import HoldPlanner, two_stage_candidates, valve_settings
+from ftc.learning.stuck import charge_commanded
 from ftc.plant.reward import reward
 
 RECHECK_RULES = ("closed", "balance")  # what a rechecked plan does after its hold
@@ -233,14 +234,14 @@ def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndar
     else:
         mask, state = evaluator.stuck
     x0 = np.asarray(x0, np.float64)
-    codes = (np.asarray(settings, np.int64)[:, None] >> np.arange(NUM_TANKS)) & 1
+    codes = valve_settings()[np.asarray(settings, np.int64)]
     holds = [min(int(h), horizon) for h in holds]
     totals, states = [], []
     for hold in holds:  # each hold length's plans in one batch rollout
         commanded = np.repeat(codes[:, None, :], hold, axis=1)
         applied = np.where(mask, state, commanded)
         total, x = _held(evaluator, x0, applied, height)
-        totals.append(total + (applied.mean(-1) - commanded.mean(-1)).sum(-1))  # charged
+        totals.append(charge_commanded(total, commanded, applied))
         states.append(x)
     # then the rule, every plan at once: row r has horizon - hold_r steps left
     total, x = np.concatenate(totals), np.concatenate(states)
