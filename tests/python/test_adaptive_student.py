@@ -260,9 +260,9 @@ def test_a_hold_then_the_balance_rule_is_that_policy_rolled_out_in_closed_loop()
     # tanks), each setting held, then the
     # rule: equal to the same policy stepped one step at a time on the rollout
     # (its reward and episode rule, not the teacher's), within the integrator's
-    # tolerance: the rule's steps run as one batch over the plans, so CVODE starts
-    # each from another plan's state than the replay does (rtol 1e-6; measured up
-    # to 1.2e-7 on a sum of 20 rewards near 2)
+    # tolerance: the replay restarts CVODE at every step where the C++
+    # continuation continues it warm (rtol 1e-6; measured 7e-15 on sums of 20
+    # rewards near 2, as these steps run mostly in closed form)
     scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "heldout" / "blind" /
                                        "blind-00.toml"))
     oracle = OracleEvaluator(scenario, closed_form=True)
@@ -283,12 +283,30 @@ def test_a_hold_then_the_balance_rule_is_that_policy_rolled_out_in_closed_loop()
     d = oracle.rollout.run(np.full(6, 0.1), np.zeros((1, 4, 6), np.int64), oracle.params,
                            details=True)
     assert d["terminal"][0].tolist() == [False, False, False, True]
-    # with a rule that closes every valve, the hold plans the recheck values anyway
-    closed = hold_then_rule(oracle, np.full(6, 0.7), settings, [2, 3], 10,
-                            rule=lambda x: np.zeros(x.shape, np.int64))
+    # with a band no cg reaches (|cg| <= 3), the rule closes every valve: the
+    # values are the hold plans' (held, then all closed)
+    closed = hold_then_rule(oracle, np.full(6, 0.7), settings, [2, 3], 10, band=3.0)
     for j, hold in enumerate((2, 3)):
         plans = HoldPlanner(hold, 10).candidates(10)[settings]
         np.testing.assert_allclose(closed[j], oracle(np.full(6, 0.7), plans), atol=1e-9)
+
+
+def test_the_cpp_rule_continuation_refuses_malformed_input_and_sums_nothing_for_no_steps():
+    rollout = _core.BatchRollout()
+    x = np.full((3, 6), 0.5)
+    with pytest.raises(ValueError, match="one count per row"):
+        rollout.run_balance_rule(x, np.array([1, 2]), {})
+    with pytest.raises(ValueError, match="negative number of steps"):
+        rollout.run_balance_rule(x, np.array([1, -1, 2]), {})
+    with pytest.raises(ValueError, match=r"shape \(N, 6\)"):
+        rollout.run_balance_rule(np.zeros((3, 5)), np.array([1, 1, 1]), {})
+    with pytest.raises(ValueError, match="0 or 1"):
+        rollout.run_balance_rule(x, np.array([1, 1, 1]), {}, np.array([2, 0, 0, 0, 0, 0]))
+    # no steps: nothing summed; balanced full tanks, one step: the reward of
+    # a balanced plant with every valve closed, as run() gives it
+    got = rollout.run_balance_rule(np.ones((2, 6)), np.array([0, 1]), {})
+    want = rollout.run(np.ones(6), np.zeros((1, 1, 6), np.int64), {})[0]
+    assert got.tolist() == [0.0, want]
 
 
 def test_a_recheck_with_the_balance_rule_labels_the_best_of_its_closed_loop_values():

@@ -52,3 +52,28 @@ def test_a_batch_is_each_row_alone_whatever_rows_it_holds():
     odd = np.concatenate([balance_valves_batch(levels[i:i + 7]) for i in range(0, 3000, 7)])
     assert (odd == alone).all()
     assert alone.any(axis=1).mean() > 0.5  # most rows move fuel: the case is not empty
+
+
+def test_the_rule_the_cpp_rollouts_step_is_this_rule():
+    # BatchRollout.run_balance_rule steps the rule written again in C++
+    # (rollout.cpp, BalanceValves): the same valves on every row, ties and
+    # empty tanks included, except where the cg sits on the band's edge, where
+    # the two languages' sums may round to either side (within 1e-12 of it)
+    from ftc import _core
+
+    rng = np.random.default_rng(1)
+    levels = rng.uniform(-0.05, 1.0, (3000, 6))
+    levels[:300] = np.round(levels[:300], 1)
+    levels[300:320] = 0.0
+    params = {}  # nominal: areas of 1 m2, as the Python rule takes
+    for band in (0.1, 0.4):
+        want = balance_valves_batch(levels, band)
+        got = _core.balance_valves(levels, params, band)
+        assert got.dtype == np.int8 and got.shape == want.shape
+        apart = np.flatnonzero((got != want).any(axis=1))
+        mass = np.maximum(levels[apart], 0.0)
+        cg = mass @ MOMENT_ARMS / mass.sum(axis=1)
+        assert np.abs(np.abs(cg) - band).max(initial=0.0) < 1e-12
+        assert len(apart) < 10 and want.any(axis=1).mean() > 0.4
+    # a band no cg reaches (|cg| <= 3): the rule never opens a valve
+    assert not _core.balance_valves(levels, params, 3.0).any()

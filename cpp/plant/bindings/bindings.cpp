@@ -6,7 +6,9 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <algorithm>
 #include <cctype>
+#include <cstdint>
 #include <cmath>
 #include <sstream>
 #include <string>
@@ -208,23 +210,31 @@ py::object RunRollout(ftc::BatchRollout* rollout, const py::object& x0,
   return RolloutToPython(r, k, l, details);
 }
 
+// (N, 6) float rows -> N Vec6 (levels); `what` names the argument in the error.
+std::vector<ftc::Vec6> ToStates(const py::object& obj, const char* what) {
+  const auto a = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(obj);
+  if (!a || a.ndim() != 2 || a.shape(1) != kTanks)
+    throw py::value_error(std::string(what) + " must be an array of shape (N, 6)");
+  std::vector<ftc::Vec6> out(static_cast<std::size_t>(a.shape(0)));
+  const double* d = a.data();
+  for (std::size_t n = 0; n < out.size(); ++n)
+    for (int i = 0; i < kTanks; ++i) out[n][i] = d[n * kTanks + i];
+  return out;
+}
+
 // (T, 6) states and (T, 6) 0/1 valves, one step each -> (T, 6) next levels (NaN: refused).
 py::array_t<double> StepEach(ftc::BatchRollout* rollout, const py::object& x,
                              const py::object& valves, const py::dict& params, double dt) {
-  const auto xa = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(x);
+  const std::vector<ftc::Vec6> states = ToStates(x, "x");
   const auto ua = py::array_t<long long, py::array::c_style | py::array::forcecast>::ensure(valves);
-  if (!xa || xa.ndim() != 2 || xa.shape(1) != kTanks)
-    throw py::value_error("x must be an array of shape (T, 6)");
-  if (!ua || ua.ndim() != 2 || ua.shape(1) != kTanks || ua.shape(0) != xa.shape(0))
+  if (!ua || ua.ndim() != 2 || ua.shape(1) != kTanks ||
+      static_cast<std::size_t>(ua.shape(0)) != states.size())
     throw py::value_error("valves must be an array of shape (T, 6), as x");
-  const std::size_t rows = static_cast<std::size_t>(xa.shape(0));
-  std::vector<ftc::Vec6> states(rows);
+  const std::size_t rows = states.size();
   std::vector<ftc::Valves> settings(rows);
-  const double* xd = xa.data();
   const long long* ud = ua.data();
   for (std::size_t n = 0; n < rows; ++n) {
     for (int i = 0; i < kTanks; ++i) {
-      states[n][i] = xd[n * kTanks + i];
       const long long v = ud[n * kTanks + i];
       if (v != 0 && v != 1) throw py::value_error("valves must be 0 or 1");
       settings[n][i] = static_cast<int>(v);
@@ -240,6 +250,30 @@ py::array_t<double> StepEach(ftc::BatchRollout* rollout, const py::object& x,
   double* od = out.mutable_data();
   for (std::size_t n = 0; n < rows; ++n)
     for (int i = 0; i < kTanks; ++i) od[n * kTanks + i] = next[n][i];
+  return out;
+}
+
+// (N, 6) levels, (N,) step counts -> (N,) summed rewards of the balance rule (-inf: refused).
+py::array_t<double> RunBalanceRule(ftc::BatchRollout* rollout, const py::object& x,
+                                   const py::object& steps, const py::dict& params,
+                                   const py::object& stuck_mask, const py::object& stuck_state,
+                                   double band, double dt) {
+  const std::vector<ftc::Vec6> states = ToStates(x, "x");
+  const auto sa = py::array_t<long long, py::array::c_style | py::array::forcecast>::ensure(steps);
+  if (!sa || sa.ndim() != 1 || static_cast<std::size_t>(sa.shape(0)) != states.size())
+    throw py::value_error("steps must be an array of shape (N,), one count per row of x");
+  const std::vector<int> counts(sa.data(), sa.data() + sa.shape(0));
+  ftc::StuckValves stuck;
+  if (!stuck_mask.is_none()) stuck.mask = ToValves(stuck_mask);
+  if (!stuck_state.is_none()) stuck.state = ToValves(stuck_state);
+  const ftc::PlantParams p = ParamsFromDict(params);
+  std::vector<double> total;
+  {
+    py::gil_scoped_release release;
+    total = rollout->RunBalanceRule(states, counts, p, stuck, band, dt);
+  }
+  py::array_t<double> out(static_cast<py::ssize_t>(total.size()));
+  std::copy(total.begin(), total.end(), out.mutable_data());
   return out;
 }
 
@@ -525,7 +559,16 @@ PYBIND11_MODULE(_core, m) {
            "Levels (T, 6) m after one step of dt s from each row of x (T, 6) with the row's "
            "valves (T, 6) of 0/1, under params (one dict); no episode rule. A row the "
            "integrator refuses (chattering) is NaN; rows run in order, as T one-step run() "
-           "calls would (bit-identical).");
+           "calls would (bit-identical).")
+      .def("run_balance_rule", &RunBalanceRule, py::arg("x"), py::arg("steps"),
+           py::arg("params"), py::arg("stuck_mask") = py::none(),
+           py::arg("stuck_state") = py::none(), py::arg("band") = 0.1, py::arg("dt") = 1.0,
+           "Summed rewards (N,) of the balance rule in closed loop, row n from levels x[n] "
+           "(N, 6) m for steps[n] steps of dt s under params (one dict): each step's valves "
+           "from the levels the step before left (the fullest tank of the heavy wing and the "
+           "emptiest of the light one open where |cg| > band). Valves of stuck_mask (6,) 0/1 "
+           "stay at stuck_state (6,) and the reward charges the commanded ones; a terminal "
+           "step resets to full tanks, as run() does. A row the integrator refuses is -inf.");
   m.def(
       "batch_rollout",
       [](const py::object& x0, const py::object& sequences, const py::object& params, double dt,
@@ -535,6 +578,23 @@ PYBIND11_MODULE(_core, m) {
       },
       py::arg("x0"), py::arg("sequences"), py::arg("params"), py::arg("dt") = 1.0,
       py::arg("details") = false, rollout_doc);
+  m.def(
+      "balance_valves",
+      [](const py::object& levels, const py::dict& params, double band) {
+        const std::vector<ftc::Vec6> rows = ToStates(levels, "levels");
+        const ftc::PlantParams p = ParamsFromDict(params);
+        py::array_t<std::int8_t> out({static_cast<py::ssize_t>(rows.size()),
+                                      static_cast<py::ssize_t>(kTanks)});
+        std::int8_t* od = out.mutable_data();
+        for (std::size_t n = 0; n < rows.size(); ++n) {
+          const ftc::Valves u = ftc::BalanceValves(rows[n], p, band);
+          for (int i = 0; i < kTanks; ++i) od[n * kTanks + i] = static_cast<std::int8_t>(u[i]);
+        }
+        return out;
+      },
+      py::arg("levels"), py::arg("params"), py::arg("band") = 0.1,
+      "The balance rule's valves (N, 6) int8 for levels (N, 6) m (the C++ rule that "
+      "BatchRollout.run_balance_rule steps; ftc.control.agents.balance is its reference).");
   m.def(
       "age_at",
       [](const ftc::FaultScenario& s, std::int64_t operating_steps) {

@@ -14,6 +14,7 @@
 #include "plant/core/rollout.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <numeric>
@@ -71,6 +72,25 @@ StepResult IdleConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p
   }
   r.x = x.cwiseMax(0.0);
   return r;
+}
+
+Valves BalanceValves(const Vec6& x, const PlantParams& p, double band) {
+  Valves u = Valves::Zero();
+  const Vec6 mass = p.area.cwiseProduct(x.cwiseMax(0.0));
+  const double total = mass.sum();
+  if (!(total > 0)) return u;  // no fuel (or NaN levels): nothing to balance
+  const double cg = mass.dot(MomentArms()) / total;
+  if (!(std::abs(cg) > band)) return u;
+  // tanks 0-2 are the left wing, 3-5 the right; cg > 0: the right wing is heavy
+  const int heavy = cg > 0 ? 3 : 0, light = cg > 0 ? 0 : 3;
+  int source = heavy, sink = light;
+  for (int i = 1; i < 3; ++i) {
+    if (x[heavy + i] > x[source]) source = heavy + i;
+    if (x[light + i] < x[sink]) sink = light + i;
+  }
+  u[source] = 1;
+  u[sink] = 1;
+  return u;
 }
 
 BatchRollout::BatchRollout(const IntegratorOptions& integrator, const RolloutOptions& options)
@@ -192,6 +212,38 @@ std::vector<Vec6> BatchRollout::StepEach(const std::vector<Vec6>& x, const std::
     }
   }
   return out;
+}
+
+std::vector<double> BatchRollout::RunBalanceRule(const std::vector<Vec6>& x,
+                                                 const std::vector<int>& steps,
+                                                 const PlantParams& params,
+                                                 const StuckValves& stuck, double band,
+                                                 double dt, long* refused) {
+  if (x.size() != steps.size())
+    throw std::invalid_argument("BatchRollout::RunBalanceRule: " + std::to_string(x.size()) +
+                                " states for " + std::to_string(steps.size()) + " step counts");
+  if (std::any_of(steps.begin(), steps.end(), [](int s) { return s < 0; }))
+    throw std::invalid_argument("BatchRollout::RunBalanceRule: negative number of steps");
+  std::vector<double> total(x.size(), 0.0);
+  RolloutResult counts;  // StepOnce's step counters; not reported here
+  for (std::size_t n = 0; n < x.size(); ++n) {
+    Vec6 level = x[n];
+    for (int t = 0; t < steps[n]; ++t) {
+      const Valves commanded = BalanceValves(level, params, band);
+      const Valves applied = stuck.Apply(commanded);
+      StepResult r;
+      try {
+        r = StepOnce(level, applied, params, dt, &counts);
+      } catch (const std::runtime_error&) {
+        total[n] = -std::numeric_limits<double>::infinity();
+        if (refused != nullptr) ++*refused;
+        break;
+      }
+      total[n] += ComputeReward(r.x, commanded, params).reward;
+      level = Plant::IsTerminal(r.x, params, dt) ? Vec6(params.height) : r.x;
+    }
+  }
+  return total;
 }
 
 }  // namespace ftc

@@ -6,6 +6,7 @@
 
 #include <vector>
 
+#include "plant/core/degradation.h"
 #include "plant/core/integrator.h"
 #include "plant/core/linear_step.h"
 
@@ -40,6 +41,14 @@ struct RolloutResult {
 // Throws std::invalid_argument if two or more valves are open.
 StepResult IdleConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p, double dt);
 
+// The balance rule (python/ftc/control/agents/balance.py is the reference;
+// tests/python/test_adaptive_student.py checks that both agree): where the
+// levels' centre of gravity (arm units, fuel area * max(level, 0)) is further
+// than band from the axis, the fullest tank of the heavy wing and the
+// emptiest of the light one open (the first of each on ties); otherwise, or
+// with no fuel, every valve is closed.
+Valves BalanceValves(const Vec6& x, const PlantParams& p, double band);
+
 class BatchRollout final {
  public:
   explicit BatchRollout(const IntegratorOptions& integrator = {},
@@ -64,6 +73,18 @@ class BatchRollout final {
   // continue CVODE warm exactly as separate Run calls of one step would.
   std::vector<Vec6> StepEach(const std::vector<Vec6>& x, const std::vector<Valves>& u,
                              const PlantParams& params, double dt = 1.0, long* refused = nullptr);
+
+  // Summed rewards of the balance rule (BalanceValves) in closed loop: row n
+  // from levels x[n] for steps[n] steps of dt seconds under params, each
+  // step's valves from the levels the step before left. Stuck valves are
+  // applied in place of the commands and the reward charges the commanded
+  // ones, as the plant's runner does; a step after which Plant::IsTerminal
+  // holds is followed by full tanks, as in Run. A row the integrator refuses
+  // (chattering) sums to -infinity and is counted in *refused (when given).
+  // Each row's steps run in turn, so held valves continue CVODE warm.
+  std::vector<double> RunBalanceRule(const std::vector<Vec6>& x, const std::vector<int>& steps,
+                                     const PlantParams& params, const StuckValves& stuck,
+                                     double band, double dt = 1.0, long* refused = nullptr);
 
  private:
   StepResult StepOnce(const Vec6& x, const Valves& u, const PlantParams& p, double dt,

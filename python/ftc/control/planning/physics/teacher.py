@@ -25,16 +25,14 @@ It is used for training only: the student never sees it at run time.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
-from ftc.common.constants import NUM_TANKS, TERMINAL_TOLERANCE
-from ftc.control.agents.balance import balance_valves_batch
+from ftc.common.constants import NUM_TANKS
 from ftc.control.planning.physics.evaluators import OracleEvaluator
 from ftc.control.planning.planners import HoldPlanner, two_stage_candidates, valve_settings
 from ftc.learning.stuck import charge_commanded
-from ftc.plant.reward import reward
 
 RECHECK_RULES = ("closed", "balance")  # what a rechecked plan does after its hold
 
@@ -209,28 +207,24 @@ class PoolTeacher:
 
 
 def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndarray,
-                   holds: Sequence[int], horizon: int,
-                   rule: Callable[[np.ndarray], np.ndarray] = balance_valves_batch
-                   ) -> np.ndarray:
+                   holds: Sequence[int], horizon: int, band: float = 0.1) -> np.ndarray:
     """Summed rewards (len(holds), len(settings)) over ``horizon`` steps from
     levels x0 on ``evaluator``'s physics: setting a (valve i open iff bit i of
-    a) held h steps (h of ``holds``, at most the horizon), then ``rule``
-    (levels (N, 6) -> valves (N, 6)) in closed loop, each step's valves from
-    the levels the step before left. As the evaluator's rollouts: its stuck
-    valves applied in place of the commands and the activity term charged for
-    the commanded ones, a step after which the plant is terminal followed by
-    full tanks, and a plan the integrator refuses -inf.
+    a) held h steps (h of ``holds``, at most the horizon), then the balance
+    rule (:mod:`ftc.control.agents.balance`, with its ``band``) in closed loop,
+    each step's valves from the levels the step before left. As the
+    evaluator's rollouts: its stuck valves applied in place of the commands
+    and the activity term charged for the commanded ones, a step after which
+    the plant is terminal followed by full tanks, and a plan the integrator
+    refuses -inf.
 
-    Each hold length's plans run as one batch rollout, then the rule's steps
-    as one ``step_each`` per step over every plan still going, rewarded here
-    (the plant's reward and episode rule, :mod:`ftc.plant.reward`): a Python
-    loop of ``horizon`` - min(holds) steps, several times the cost of the
-    hold plans' rollouts."""
+    Each hold length's plans run as one batch rollout; the rule's steps run
+    in C++ (``BatchRollout.run_balance_rule``, every plan's continuation in
+    one call)."""
     p = evaluator.params
-    height, area = np.asarray(p["height"], np.float64), np.asarray(p["area"], np.float64)
-    ends = float(np.sum(p["demand"])) + TERMINAL_TOLERANCE  # the plant's rule, dt = 1 s
+    height = np.asarray(p["height"], np.float64)
     if evaluator.stuck is None:
-        mask, state = np.zeros(NUM_TANKS, bool), np.zeros(NUM_TANKS, np.int64)
+        mask, state = np.zeros(NUM_TANKS, np.int64), np.zeros(NUM_TANKS, np.int64)
     else:
         mask, state = evaluator.stuck
     x0 = np.asarray(x0, np.float64)
@@ -245,18 +239,11 @@ def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndar
         states.append(x)
     # then the rule, every plan at once: row r has horizon - hold_r steps left
     total, x = np.concatenate(totals), np.concatenate(states)
-    left = horizon - np.repeat(np.array(holds), len(codes))
-    for t in range(int(left.max(initial=0))):
-        rows = np.flatnonzero(left > t)
-        u = np.asarray(rule(x[rows]), np.int64)
-        after = np.asarray(evaluator.rollout.step_each(x[rows], np.where(mask, state, u), p))
-        refused = ~np.isfinite(after).all(axis=1)  # the integrator's NaN row
-        evaluator.refused += int(refused.sum())
-        after[refused] = height
-        total[rows] += np.where(refused, -np.inf, reward(after, u))
-        after[after @ area < ends] = height  # terminal: the next episode starts full
-        x[rows] = after
-    return total.reshape(len(holds), len(codes))
+    left = np.where(np.isfinite(total), horizon - np.repeat(np.array(holds), len(codes)), 0)
+    after = np.asarray(evaluator.rollout.run_balance_rule(
+        x, left, p, np.asarray(mask, np.int64), np.asarray(state, np.int64), band))
+    evaluator.refused += int(np.isneginf(after).sum())
+    return (total + after).reshape(len(holds), len(codes))
 
 
 def _held(evaluator: OracleEvaluator, x0: np.ndarray, applied: np.ndarray,
@@ -277,7 +264,7 @@ def _held(evaluator: OracleEvaluator, x0: np.ndarray, applied: np.ndarray,
                                                                   details=True)))
             except RuntimeError:
                 evaluator.refused += 1
-    total, x = np.full(len(applied), -np.inf), np.tile(height, (len(applied), 1))
+    total, x = np.full(len(applied), -np.inf), np.repeat(height[None], len(applied), axis=0)
     for rows, d in runs:
         total[rows] = d["total"]
         ended = np.asarray(d["terminal"], bool)[:, -1]
