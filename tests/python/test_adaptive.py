@@ -765,3 +765,37 @@ def test_members_training_at_once_die_with_a_killed_parent(tmp_path):
         for w in workers:  # a failed run leaves them: they must not outlive the test
             if _alive(w):
                 os.kill(w, signal.SIGKILL)
+
+
+def test_merge_students_flies_several_checkpoints_as_the_mean_of_their_logits(tmp_path):
+    import importlib.util
+
+    from ftc.learning.history_policy import HistoryPolicy, StudentConfig, ensemble
+
+    spec = importlib.util.spec_from_file_location(
+        "merge_students", Path(__file__).resolve().parents[2] / "scripts" / "merge_students.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    torch.manual_seed(5)
+    config = StudentConfig(window=4, hidden=(16, 8), head="joint")
+    two = ensemble([HistoryPolicy(config), HistoryPolicy(config)])  # a checkpoint of 2 members
+    one = HistoryPolicy(config)
+    paths = [tmp_path / "a.pt", tmp_path / "b.pt"]
+    for path, policy in zip(paths, (two, one)):
+        torch.save({"policy": policy.record(), "config": {}, "curve": [], "snapshots": []}, path)
+    out = tmp_path / "merged.pt"
+    assert script.main([str(paths[0]), str(paths[1]), "--out", str(out)]) == 0
+    merged = HistoryPolicy.from_record(torch.load(out, weights_only=True)["policy"])
+    assert merged.config.hidden == (48, 24)
+    x = torch.rand(100, 48) * 2 - 1
+    with torch.no_grad():  # each checkpoint weighs alike; float32 sums in another order
+        assert torch.allclose(merged(x), (two(x) + one(x)) / 2, atol=1e-5)
+    # a corrupt input: a clear error, a non-zero exit and nothing written
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(SystemExit, match="cannot read .*bad.pt"):
+        script.main([str(tmp_path / "bad.pt"), str(paths[1]), "--out", str(tmp_path / "m2.pt")])
+    wide = HistoryPolicy(StudentConfig(window=3, hidden=(16, 8), head="joint"))
+    torch.save({"policy": wide.record()}, tmp_path / "w.pt")
+    with pytest.raises(SystemExit, match="cannot be merged"):
+        script.main([str(tmp_path / "w.pt"), str(paths[1]), "--out", str(tmp_path / "m2.pt")])
+    assert not (tmp_path / "m2.pt").exists()

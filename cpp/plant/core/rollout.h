@@ -42,7 +42,7 @@ struct RolloutResult {
 StepResult IdleConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p, double dt);
 
 // The balance rule (python/ftc/control/agents/balance.py is the reference;
-// tests/python/test_adaptive_student.py checks that both agree): where the
+// tests/python/test_balance_rule.py checks that both agree): where the
 // levels' centre of gravity (arm units, fuel area * max(level, 0)) is further
 // than band from the axis, the fullest tank of the heavy wing and the
 // emptiest of the light one open (the first of each on ties); otherwise, or

@@ -1,0 +1,63 @@
+"""Fly the students of several adaptive-policy checkpoints as one network
+(docs/adaptive.md, "Variants"): the logits of the merged student are the
+mean of the checkpoints' students' logits (each checkpoint weighs alike,
+whatever its number of members), in one forward pass
+(``ftc.learning.history_policy.ensemble``). The checkpoints must
+share the window, head, stuck memory and depth; the first one's training
+record (config, curve) is kept, with the merged student as its policy and
+the sources listed under ``merged_from``.
+
+    python scripts/merge_students.py A.pt B.pt [C.pt ...] --out MERGED.pt
+    python -m ftc.experiments.adaptive evaluate --checkpoint MERGED.pt ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ftc.common.atomic import atomic_torch_save
+from ftc.learning.history_policy import HistoryPolicy, ensemble
+
+
+def _load(path: Path) -> dict:
+    import torch
+
+    try:
+        record = torch.load(path, weights_only=True)
+    except Exception as e:  # torch.load raises many kinds on a corrupt file
+        raise SystemExit(f"merge_students: error: cannot read {path}: "
+                         f"{type(e).__name__}: {e}") from None
+    if not isinstance(record, dict) or "policy" not in record:
+        raise SystemExit(f"merge_students: error: {path} is not an adaptive-policy checkpoint "
+                         "(no 'policy' record)")
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("checkpoints", nargs="+", type=Path,
+                   help="adaptive-policy checkpoints (train's cache files), two or more")
+    p.add_argument("--out", required=True, type=Path, help="the merged checkpoint")
+    a = p.parse_args(argv)
+    if len(a.checkpoints) < 2:
+        p.error("give two or more checkpoints")
+    if a.out.resolve() in {c.resolve() for c in a.checkpoints}:
+        p.error(f"--out {a.out} is one of the inputs")
+    records = [_load(c) for c in a.checkpoints]
+    try:
+        merged = ensemble([HistoryPolicy.from_record(r["policy"]) for r in records])
+    except (KeyError, ValueError, RuntimeError) as e:
+        raise SystemExit(f"merge_students: error: the students cannot be merged: "
+                         f"{type(e).__name__}: {e}") from None
+    out = dict(records[0], policy=merged.record(), snapshots=[], curve=[],
+               merged_from=[str(c) for c in a.checkpoints])
+    atomic_torch_save(a.out, out)
+    print(f"merge_students: {len(records)} checkpoints, hidden {merged.config.hidden}, "
+          f"written to {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
