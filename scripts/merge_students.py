@@ -2,10 +2,11 @@
 (docs/adaptive.md, "Variants"): the logits of the merged student are the
 mean of the checkpoints' students' logits (each checkpoint weighs alike,
 whatever its number of members), in one forward pass
-(``ftc.learning.history_policy.ensemble``). The checkpoints must
-share the window, head, stuck memory and depth; the first one's training
-record (config, curve) is kept, with the merged student as its policy and
-the sources listed under ``merged_from``.
+(``ftc.learning.history_policy.ensemble``). The checkpoints must be
+distinct, trained on the same distribution, and share the window, head,
+stuck memory and depth. The merged file holds the merged student as its
+policy, the distribution, and under ``merged_from`` each input's path and
+training config; no curve, snapshots or training time (it was not trained).
 
     python scripts/merge_students.py A.pt B.pt [C.pt ...] --out MERGED.pt
     python -m ftc.experiments.adaptive evaluate --checkpoint MERGED.pt ...
@@ -45,14 +46,22 @@ def main(argv: list[str] | None = None) -> int:
         p.error("give two or more checkpoints")
     if a.out.resolve() in {c.resolve() for c in a.checkpoints}:
         p.error(f"--out {a.out} is one of the inputs")
+    if len({c.resolve() for c in a.checkpoints}) < len(a.checkpoints):
+        p.error("a checkpoint is given twice (it would weigh double)")
     records = [_load(c) for c in a.checkpoints]
+    distributions = {r.get("distribution") for r in records}
+    if len(distributions) > 1:
+        raise SystemExit("merge_students: error: the checkpoints were trained on different "
+                         "distributions")
     try:
         merged = ensemble([HistoryPolicy.from_record(r["policy"]) for r in records])
     except (KeyError, ValueError, RuntimeError) as e:
         raise SystemExit(f"merge_students: error: the students cannot be merged: "
                          f"{type(e).__name__}: {e}") from None
-    out = dict(records[0], policy=merged.record(), snapshots=[], curve=[],
-               merged_from=[str(c) for c in a.checkpoints])
+    out = {"policy": merged.record(), "distribution": records[0].get("distribution"),
+           "merged_from": [{"path": str(c), "config": r.get("config")}
+                           for c, r in zip(a.checkpoints, records)],
+           "snapshots": [], "curve": []}
     atomic_torch_save(a.out, out)
     print(f"merge_students: {len(records)} checkpoints, hidden {merged.config.hidden}, "
           f"written to {a.out}")

@@ -10,6 +10,7 @@
 #include <cctype>
 #include <cstdint>
 #include <cmath>
+#include <limits>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -259,10 +260,22 @@ py::array_t<double> RunBalanceRule(ftc::BatchRollout* rollout, const py::object&
                                    const py::object& stuck_mask, const py::object& stuck_state,
                                    double band, double dt) {
   const std::vector<ftc::Vec6> states = ToStates(x, "x");
+  const py::array steps_array = py::array::ensure(steps);
+  const char kind = steps_array ? steps_array.dtype().kind() : '?';
+  if (!steps_array || (steps_array.size() > 0 && kind != 'i' && kind != 'u'))
+    throw py::value_error("steps must be an array of integers");
   const auto sa = py::array_t<long long, py::array::c_style | py::array::forcecast>::ensure(steps);
   if (!sa || sa.ndim() != 1 || static_cast<std::size_t>(sa.shape(0)) != states.size())
     throw py::value_error("steps must be an array of shape (N,), one count per row of x");
-  const std::vector<int> counts(sa.data(), sa.data() + sa.shape(0));
+  std::vector<int> counts(states.size());
+  for (std::size_t n = 0; n < counts.size(); ++n) {
+    const long long s = sa.data()[n];
+    if (s < 0 || s > std::numeric_limits<int>::max())
+      throw py::value_error("steps must be in [0, " +
+                            std::to_string(std::numeric_limits<int>::max()) + "], got " +
+                            std::to_string(s));
+    counts[n] = static_cast<int>(s);
+  }
   ftc::StuckValves stuck;
   if (!stuck_mask.is_none()) stuck.mask = ToValves(stuck_mask);
   if (!stuck_state.is_none()) stuck.state = ToValves(stuck_state);

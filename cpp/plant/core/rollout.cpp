@@ -224,6 +224,8 @@ std::vector<double> BatchRollout::RunBalanceRule(const std::vector<Vec6>& x,
                                 " states for " + std::to_string(steps.size()) + " step counts");
   if (std::any_of(steps.begin(), steps.end(), [](int s) { return s < 0; }))
     throw std::invalid_argument("BatchRollout::RunBalanceRule: negative number of steps");
+  if (!(dt > 0) || !(band >= 0))
+    throw std::invalid_argument("BatchRollout::RunBalanceRule: dt must be > 0 and band >= 0");
   std::vector<double> total(x.size(), 0.0);
   RolloutResult counts;  // StepOnce's step counters; not reported here
   for (std::size_t n = 0; n < x.size(); ++n) {
@@ -232,9 +234,13 @@ std::vector<double> BatchRollout::RunBalanceRule(const std::vector<Vec6>& x,
       const Valves commanded = BalanceValves(level, params, band);
       const Valves applied = stuck.Apply(commanded);
       StepResult r;
+      bool stepped = true;
       try {
         r = StepOnce(level, applied, params, dt, &counts);
       } catch (const std::runtime_error&) {
+        stepped = false;
+      }
+      if (!stepped || !r.x.allFinite()) {  // refused, or no levels to go on from
         total[n] = -std::numeric_limits<double>::infinity();
         if (refused != nullptr) ++*refused;
         break;

@@ -43,8 +43,9 @@ StepResult IdleConduitStep(const Vec6& x0, const Valves& u, const PlantParams& p
 
 // The balance rule (python/ftc/control/agents/balance.py is the reference;
 // tests/python/test_balance_rule.py checks that both agree): where the
-// levels' centre of gravity (arm units, fuel area * max(level, 0)) is further
-// than band from the axis, the fullest tank of the heavy wing and the
+// levels' centre of gravity (arm units, weights p.area * max(level, 0); the
+// Python rule takes the nominal areas, which no degradation changes) is
+// further than band from the axis, the fullest tank of the heavy wing and the
 // emptiest of the light one open (the first of each on ties); otherwise, or
 // with no fuel, every valve is closed.
 Valves BalanceValves(const Vec6& x, const PlantParams& p, double band);
@@ -80,8 +81,10 @@ class BatchRollout final {
   // applied in place of the commands and the reward charges the commanded
   // ones, as the plant's runner does; a step after which Plant::IsTerminal
   // holds is followed by full tanks, as in Run. A row the integrator refuses
-  // (chattering) sums to -infinity and is counted in *refused (when given).
-  // Each row's steps run in turn, so held valves continue CVODE warm.
+  // (chattering), or whose levels are not finite, sums to -infinity from its
+  // first such step on and is counted once in *refused (when given). Each
+  // row's steps run in turn, so held valves continue CVODE warm. Throws
+  // std::invalid_argument for a negative step count, dt <= 0 or band < 0.
   std::vector<double> RunBalanceRule(const std::vector<Vec6>& x, const std::vector<int>& steps,
                                      const PlantParams& params, const StuckValves& stuck,
                                      double band, double dt = 1.0, long* refused = nullptr);

@@ -202,6 +202,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         policy, what = balance_rule, "balance (the rule)"
     else:
         record, path = load_record(a)
+        if a.curve and not record.get("curve"):
+            raise ValueError(f"--curve: {path} holds no learning curve (a checkpoint of "
+                             "scripts/merge_students.py was not trained)")
         policy, what = HistoryPolicy.from_record(record["policy"]), f"student ({path.name})"
     rows = []
     for which in a.sets:

@@ -216,7 +216,8 @@ def hold_then_rule(evaluator: OracleEvaluator, x0: np.ndarray, settings: np.ndar
     evaluator's rollouts: its stuck valves applied in place of the commands
     and the activity term charged for the commanded ones, a step after which
     the plant is terminal followed by full tanks, and a plan the integrator
-    refuses -inf.
+    refuses -inf (counted once in ``evaluator.refused``; a plan refused in its
+    hold is not continued).
 
     Each hold length's plans run as one batch rollout; the rule's steps run
     in C++ (``BatchRollout.run_balance_rule``, every plan's continuation in
