@@ -798,4 +798,12 @@ def test_merge_students_flies_several_checkpoints_as_the_mean_of_their_logits(tm
     torch.save({"policy": wide.record()}, tmp_path / "w.pt")
     with pytest.raises(SystemExit, match="cannot be merged"):
         script.main([str(tmp_path / "w.pt"), str(paths[1]), "--out", str(tmp_path / "m2.pt")])
+    with pytest.raises(SystemExit):  # the same checkpoint twice would weigh double
+        script.main([str(paths[0]), str(paths[0]), "--out", str(tmp_path / "m2.pt")])
+    torch.save({"policy": one.record(), "distribution": "another"}, tmp_path / "d.pt")
+    with pytest.raises(SystemExit, match="different distributions"):
+        script.main([str(tmp_path / "d.pt"), str(paths[0]), "--out", str(tmp_path / "m2.pt")])
     assert not (tmp_path / "m2.pt").exists()
+    record = torch.load(out, weights_only=True)  # it names its inputs, and claims no training
+    assert [m["path"] for m in record["merged_from"]] == [str(p) for p in paths]
+    assert "train_seconds" not in record and record["curve"] == []
