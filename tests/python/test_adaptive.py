@@ -807,3 +807,9 @@ def test_merge_students_flies_several_checkpoints_as_the_mean_of_their_logits(tm
     record = torch.load(out, weights_only=True)  # it names its inputs, and claims no training
     assert [m["path"] for m in record["merged_from"]] == [str(p) for p in paths]
     assert "train_seconds" not in record and record["curve"] == []
+    from ftc.experiments.adaptive import cli  # it has no learning curve to write
+
+    with pytest.raises(ValueError, match="holds no learning curve"):
+        cli.cmd_evaluate(cli.parser().parse_args(
+            ["evaluate", "--checkpoint", str(out), "--curve", str(tmp_path / "curve.csv")]))
+    assert not (tmp_path / "curve.csv").exists()
