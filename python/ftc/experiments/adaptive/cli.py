@@ -72,8 +72,8 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
                        "longer than --horizon)",
     "recheck_rule": "what a rechecked plan does after its hold: closed (every valve) or "
                     "balance (the balance rule in closed loop to --recheck-horizon, a "
-                    "continuation that keeps balancing; a Python loop, several times the "
-                    "recheck's cost)",
+                    "continuation that keeps balancing, run in C++; its labels cost about three "
+                    "times the default teacher's)",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
