@@ -813,3 +813,63 @@ def test_merge_students_flies_several_checkpoints_as_the_mean_of_their_logits(tm
         cli.cmd_evaluate(cli.parser().parse_args(
             ["evaluate", "--checkpoint", str(out), "--curve", str(tmp_path / "curve.csv")]))
     assert not (tmp_path / "curve.csv").exists()
+
+
+EVENT_SCENARIO = """name = "engine-jump"
+tank_factor = [inf, inf, inf, inf, inf, inf]
+engine_factor = [inf, inf]
+degradation = "stepwise"
+steps_per_interval = 512
+
+[[event]]
+at_step = 1
+engine = 1
+factor = 4.0
+"""
+
+
+def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tmp_path):
+    import importlib.util
+
+    from ftc.learning.history_policy import StudentConfig
+
+    spec = importlib.util.spec_from_file_location(
+        "adaptive_regret", Path(__file__).resolve().parents[2] / "scripts" / "adaptive_regret.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    path = tmp_path / "engine-jump.toml"
+    path.write_text(EVENT_SCENARIO)
+    scenario = _core.load_scenario(str(path))
+    teacher = PoolTeacher(2, 6)
+    # the teacher flying itself chooses its own best setting: regret exactly 0
+    reward_t, regret_t, phases_t = script.regrets(teacher, teacher, scenario, 0, 4, 50, 2)
+    assert regret_t.tolist() == [0.0, 0.0] and not phases_t.any()
+    # all closed is the best setting while the plant is healthy (interval 0), not once an
+    # engine burns four times its demand (interval 1): it loses reward and shows regret there
+    reward_c, regret_c, phases_c = script.regrets(None, teacher, scenario, 0, 4, 50, 2)
+    assert regret_c[0] == 0.0 and regret_c[1] > 0.0 and reward_c[1] < reward_t[1]
+    # every valued step is counted once in each breakdown
+    assert phases_c.sum() == pytest.approx(regret_c.sum(), rel=1e-12)
+    torch.manual_seed(0)
+    student = HistoryPolicy(StudentConfig(window=4, hidden=(16, 8), head="joint"))
+    reward_s, regret_s, phases_s = script.regrets(student, teacher, scenario, 0, 4, 50, 2)
+    assert (regret_s >= 0).all() and phases_s.sum() == pytest.approx(regret_s.sum(), rel=1e-12)
+    # the command line: CSV out, and clear errors that write nothing
+    checkpoint = tmp_path / "s.pt"
+    torch.save({"policy": student.record()}, checkpoint)
+    out = tmp_path / "regret.csv"
+    assert script.main([str(path), "--checkpoint", str(checkpoint), "--intervals", "2",
+                        "--every", "4", "--hold", "2", "--horizon", "6", "--extra-holds",
+                        "--out", str(out)]) == 0
+    rows = [r.split(",") for r in out.read_text().splitlines()[2:]]
+    assert [float(r[3]) for r in rows if r[0] == "interval"] == pytest.approx(
+        regret_s.tolist(), abs=1e-4)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(SystemExit, match="cannot read .*bad.pt"):
+        script.main([str(path), "--checkpoint", str(tmp_path / "bad.pt"),
+                     "--out", str(tmp_path / "x.csv")])
+    with pytest.raises(SystemExit):  # a student needs its checkpoint
+        script.main([str(path), "--out", str(tmp_path / "x.csv")])
+    with pytest.raises(SystemExit):
+        script.main([str(tmp_path / "missing.toml"), "--policy", "closed"])
+    assert not (tmp_path / "x.csv").exists()
