@@ -1,40 +1,51 @@
 """Where a policy loses against the adaptive student's teacher (docs/adaptive.md,
 "Variants"): the policy flies one scenario from full tanks in the batched
-pool for 10 intervals of 512 steps (``--intervals``), and at every ``--every``-th step the
+pool for 10 intervals (``--intervals``), and at every ``--every``-th step the
 teacher (the planner on the plant's true physics, told the stuck valves the
-policy's own commands have shown, as in training) values all 64 settings;
-the policy's regret there is what its setting loses against the teacher's
-best plan over the horizon (0 where it chose as the teacher would).
+policy's own commands have shown, or every stuck valve, as the student was
+trained) values all 64 settings; the policy's regret there is what its
+setting loses against the teacher's best plan over the horizon (0 where it
+chose as the teacher would).
 
 Prints, and with ``--out`` writes as CSV, the policy's reward per step and
 its summed regret per interval, and its summed regret by steps since the
-last refill (the plant refills its tanks when they run dry), in bins of
-``--bin`` steps: where in the life and where in each tank cycle the policy
-departs from its teacher.
+tanks were last filled (when they run dry, and at each interval's start), in
+bins of ``--bin`` steps: where in the life and where in each tank cycle the
+policy departs from its teacher. The teacher is the one the checkpoint was
+trained with (its config; a merged checkpoint's inputs must agree), unless
+the teacher's flags say otherwise.
 
-    python scripts/adaptive_regret.py SCENARIO.toml --checkpoint C.pt --seed 11 \\
-        --recheck 4 --recheck-horizon 30 --recheck-rule balance
+    python scripts/adaptive_regret.py SCENARIO.toml --checkpoint C.pt --seed 11
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
+import io
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from ftc.common.atomic import atomic_write_text
+from ftc.common.errors import StorageError
 from ftc.learning.history_policy import TrainingConfig
 
-INTERVALS, STEPS = 10, 512
+INTERVALS = 10
+TEACHER = ("hold", "horizon", "extra_holds", "second_stage", "recheck", "recheck_horizon",
+           "recheck_rule", "teacher_stuck")
 
 
 def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
-            intervals: int = INTERVALS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            intervals: int = INTERVALS, seen_only: bool = True
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(reward per step (intervals,), summed regret per interval, summed regret
-    per bin of steps since the last refill) of ``policy`` (a HistoryPolicy,
-    the PoolTeacher itself, or None for all valves closed)."""
+    per bin of steps since the tanks were last filled) of ``policy``: a
+    HistoryPolicy, the teacher itself, a function of the levels (1, 6) ->
+    valves (1, 6), or None for all valves closed. seen_only: the teacher is
+    told the stuck valves the policy's commands have shown (else every one)."""
     from ftc.learning.history_policy import HistoryPolicy, HistoryWindow
     from ftc.learning.stuck import StuckMemory
     from ftc.plant.vector import FuelTransferVectorEnv
@@ -47,27 +58,30 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
         window = HistoryWindow(1, policy.config.window, policy.config.stuck_memory)
         window.start(levels)
     seen = StuckMemory(1)
+    steps = scenario.steps_per_interval
     reward, regret = np.zeros(intervals), np.zeros(intervals)
     by_phase: dict[int, float] = {}
     since = 0
-    bits = 1 << np.arange(6)
-    for t in range(intervals * STEPS):
+    bits = 1 << np.arange(6)  # setting a: valve i open iff bit i of a
+    for t in range(intervals * steps):
         labelled = t % every == 0
         if labelled or policy is teacher:
             label, r = teacher.label_with_regrets([0], [scenario], np.array(
-                [env.pool.operating_steps(0)]), levels, seen.stuck)
+                [env.pool.operating_steps(0)]), levels, seen.stuck if seen_only else None)
         if window is not None:
             u = policy.act(window.features())
         elif policy is teacher:
             u = label
+        elif policy is not None:
+            u = np.asarray(policy(levels), np.int8)
         else:
             u = np.zeros((1, 6), np.int8)
         if labelled:
             lost = float(r[0, int(u[0] @ bits)])
-            regret[t // STEPS] += lost
+            regret[t // steps] += lost
             by_phase[since // bin_steps] = by_phase.get(since // bin_steps, 0.0) + lost
         levels, rew, terminated, truncated, info = env.step(u)
-        reward[t // STEPS] += rew[0]
+        reward[t // steps] += rew[0]
         done = terminated | truncated
         since = 0 if done[0] else since + 1
         if window is not None:
@@ -77,42 +91,78 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
     phases = np.zeros(max(by_phase) + 1 if by_phase else 0)
     for k, v in by_phase.items():
         phases[k] = v
-    return reward / STEPS, regret, phases
+    return reward / steps, regret, phases
+
+
+def _load_student(path: Path) -> tuple[dict, dict | None]:
+    """(the checkpoint's policy record, the teacher's options it was trained
+    with, None where it names none)."""
+    import torch
+
+    try:
+        record = torch.load(path, weights_only=True)
+    except Exception as e:  # torch.load raises many kinds on a corrupt file
+        raise SystemExit(f"adaptive_regret: error: cannot read {path}: "
+                         f"{type(e).__name__}: {e}") from None
+    if not isinstance(record, dict) or "policy" not in record:
+        raise SystemExit(f"adaptive_regret: error: {path} is not an adaptive-policy checkpoint "
+                         "(no 'policy' record)")
+    configs = ([m.get("config") for m in record["merged_from"]] if "merged_from" in record
+               else [record.get("config")])
+    teachers = [{k: (list(c[k]) if isinstance(c[k], (list, tuple)) else c[k]) for k in TEACHER}
+                for c in configs if isinstance(c, dict) and all(k in c for k in TEACHER)]
+    if len(teachers) < len(configs):
+        return record["policy"], None
+    if any(t != teachers[0] for t in teachers):
+        raise SystemExit(f"adaptive_regret: error: {path}: its students were trained with "
+                         "different teachers; name the teacher with its flags")
+    return record["policy"], teachers[0]
 
 
 def main(argv: list[str] | None = None) -> int:
-    defaults = TrainingConfig()
+    defaults = dataclasses.asdict(TrainingConfig())
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("scenario", type=Path, help="a scenario file (TOML)")
     p.add_argument("--checkpoint", type=Path,
                    help="the student's checkpoint (train's cache file or merge_students'); "
-                        "needed with --policy student")
+                        "needed with --policy student, and names the teacher otherwise")
     p.add_argument("--policy", choices=("student", "teacher", "closed"), default="student",
                    help="what flies: the student, the teacher itself (its regret is 0) or "
                         "all valves closed (default student)")
     p.add_argument("--seed", type=int, default=0, help="the plant's seed (default 0)")
+    p.add_argument("--intervals", type=int, default=INTERVALS,
+                   help=f"the scenario's intervals flown (default {INTERVALS})")
     p.add_argument("--every", type=int, default=2,
                    help="the teacher values every this many steps (default 2)")
-    p.add_argument("--intervals", type=int, default=INTERVALS,
-                   help=f"intervals of {STEPS} steps flown (default {INTERVALS})")
     p.add_argument("--bin", type=int, default=10,
-                   help="steps since the last refill per bin (default 10)")
-    p.add_argument("--hold", type=int, default=defaults.hold)
-    p.add_argument("--horizon", type=int, default=defaults.horizon)
-    p.add_argument("--extra-holds", type=int, nargs="*", default=list(defaults.extra_holds))
-    p.add_argument("--second-stage", type=int, default=defaults.second_stage)
-    p.add_argument("--recheck", type=int, default=defaults.recheck)
-    p.add_argument("--recheck-horizon", type=int, default=defaults.recheck_horizon)
-    p.add_argument("--recheck-rule", default=defaults.recheck_rule)
+                   help="steps since the tanks were last filled, per bin (default 10)")
+    teacher = p.add_argument_group(
+        "the teacher", "default: the checkpoint's training config, else train's defaults")
+    teacher.add_argument("--hold", type=int, help="steps its plans hold a setting")
+    teacher.add_argument("--horizon", type=int, help="its planning horizon, steps")
+    teacher.add_argument("--extra-holds", type=int, nargs="*", help="more hold lengths")
+    teacher.add_argument("--second-stage", type=int, help="settings valued by two-stage plans")
+    teacher.add_argument("--recheck", type=int, help="settings valued again over "
+                         "--recheck-horizon")
+    teacher.add_argument("--recheck-horizon", type=int, help="the recheck's horizon")
+    teacher.add_argument("--recheck-rule", choices=("closed", "balance"),
+                         help="what a rechecked plan does after its hold")
+    teacher.add_argument("--teacher-stuck", choices=("seen", "all"),
+                         help="the stuck valves it is told: those the policy's commands "
+                              "showed, or all")
     p.add_argument("--out", type=Path, help="write the figures as CSV here")
     a = p.parse_args(argv)
     if min(a.every, a.bin, a.intervals) < 1:
         p.error(f"--every, --bin and --intervals must be >= 1, got {a.every}, {a.bin} "
                 f"and {a.intervals}")
+    if a.seed < 0:
+        p.error(f"--seed must be >= 0, got {a.seed}")
     if a.policy == "student" and a.checkpoint is None:
         p.error("--policy student needs --checkpoint")
     if not a.scenario.is_file():
         p.error(f"{a.scenario}: no such file")
+    if a.out is not None and not a.out.parent.is_dir():
+        p.error(f"--out {a.out}: no directory {a.out.parent}")
 
     import torch
 
@@ -125,46 +175,48 @@ def main(argv: list[str] | None = None) -> int:
         scenario = _core.load_scenario(str(a.scenario))
     except Exception as e:  # the parser names the file, line and key
         raise SystemExit(f"adaptive_regret: error: {e}") from None
+    record, trained = _load_student(a.checkpoint) if a.checkpoint else (None, None)
+    options = {k: (trained or defaults)[k] for k in TEACHER}
+    options.update({k: getattr(a, k) for k in TEACHER if getattr(a, k) is not None})
+    if min(options["hold"], options["horizon"], options["recheck_horizon"]) < 1:
+        p.error("--hold, --horizon and --recheck-horizon must be >= 1")
     try:
-        teacher = PoolTeacher(a.hold, a.horizon, extra_holds=tuple(a.extra_holds),
-                              second_stage=a.second_stage, recheck=a.recheck, recheck_horizon=a.recheck_horizon,
-                              recheck_rule=a.recheck_rule)
+        planner = PoolTeacher(options["hold"], options["horizon"],
+                              extra_holds=tuple(options["extra_holds"]),
+                              second_stage=options["second_stage"], recheck=options["recheck"],
+                              recheck_horizon=options["recheck_horizon"],
+                              recheck_rule=options["recheck_rule"])
     except ValueError as e:
         raise SystemExit(f"adaptive_regret: error: the teacher: {e}") from None
-    policy = None if a.policy == "closed" else teacher
+    policy = {"closed": None, "teacher": planner}.get(a.policy)
     if a.policy == "student":
         try:
-            policy = HistoryPolicy.from_record(
-                torch.load(a.checkpoint, weights_only=True)["policy"])
-        except Exception as e:  # torch.load raises many kinds on a corrupt file
-            raise SystemExit(f"adaptive_regret: error: cannot read {a.checkpoint}: "
+            policy = HistoryPolicy.from_record(record)
+        except (KeyError, ValueError, RuntimeError) as e:
+            raise SystemExit(f"adaptive_regret: error: {a.checkpoint}: not a student: "
                              f"{type(e).__name__}: {e}") from None
-    reward, regret, phases = regrets(policy, teacher, scenario, a.seed, a.every, a.bin,
-                                     a.intervals)
-    print(f"adaptive_regret: {a.policy} on {a.scenario.stem}, plant seed {a.seed}, "
-          f"teacher every {a.every} steps")
+    reward, regret, phases = regrets(policy, planner, scenario, a.seed, a.every, a.bin,
+                                     a.intervals, options["teacher_stuck"] == "seen")
+    print(f"adaptive_regret: {a.policy} on {a.scenario.stem}, plant seed {a.seed}, valued "
+          f"every {a.every} steps by the teacher {options}")
     print("interval  reward/step  regret")
     for k in range(a.intervals):
         print(f"{k:8d}  {reward[k]:11.3f}  {regret[k]:6.2f}")
-    print("steps since refill  regret")
+    print("steps since filled  regret")
     for k, v in enumerate(phases):
         print(f"{k * a.bin:6d}-{(k + 1) * a.bin - 1:<11d}  {v:6.2f}")
     if a.out:
-        rows = ([{"kind": "interval", "index": k, "reward_per_step": round(reward[k], 4),
-                  "regret": round(regret[k], 4)} for k in range(a.intervals)]
-                + [{"kind": "since_refill", "index": k * a.bin, "reward_per_step": "",
-                    "regret": round(v, 4)} for k, v in enumerate(phases)])
-        tmp = a.out.with_name(a.out.name + ".tmp")
+        text = io.StringIO()
+        text.write("# command: python scripts/adaptive_regret.py "
+                   f"{' '.join(sys.argv[1:] if argv is None else argv)}\n")
+        w = csv.writer(text, lineterminator="\n")
+        w.writerow(["kind", "index", "reward_per_step", "regret"])
+        w.writerows(["interval", k, round(reward[k], 4), round(regret[k], 4)]
+                    for k in range(a.intervals))
+        w.writerows(["since_filled", k * a.bin, "", round(v, 4)] for k, v in enumerate(phases))
         try:
-            with open(tmp, "w", newline="") as f:
-                f.write(f"# command: python scripts/adaptive_regret.py "
-                        f"{' '.join(sys.argv[1:] if argv is None else argv)}\n")
-                w = csv.DictWriter(f, ["kind", "index", "reward_per_step", "regret"])
-                w.writeheader()
-                w.writerows(rows)
-            tmp.replace(a.out)
-        except OSError as e:
-            tmp.unlink(missing_ok=True)
+            atomic_write_text(a.out, text.getvalue())
+        except (OSError, StorageError) as e:
             raise SystemExit(f"adaptive_regret: error: cannot write {a.out}: {e}") from None
     return 0
 

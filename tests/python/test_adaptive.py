@@ -845,7 +845,7 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
     reward_t, regret_t, phases_t = script.regrets(teacher, teacher, scenario, 0, 4, 50, 2)
     assert regret_t.tolist() == [0.0, 0.0] and not phases_t.any()
     # all closed is the best setting while the plant is healthy (interval 0), not once an
-    # engine burns four times its demand (interval 1): it loses reward and shows regret there
+    # engine is degraded (factor 4, interval 1): it loses reward and shows regret there
     reward_c, regret_c, phases_c = script.regrets(None, teacher, scenario, 0, 4, 50, 2)
     assert regret_c[0] == 0.0 and regret_c[1] > 0.0 and reward_c[1] < reward_t[1]
     # every valued step is counted once in each breakdown
@@ -854,6 +854,15 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
     student = HistoryPolicy(StudentConfig(window=4, hidden=(16, 8), head="joint"))
     reward_s, regret_s, phases_s = script.regrets(student, teacher, scenario, 0, 4, 50, 2)
     assert (regret_s >= 0).all() and phases_s.sum() == pytest.approx(regret_s.sum(), rel=1e-12)
+    # a teacher whose regret of setting a is a: a policy always commanding valves 1 and 3
+    # (setting 5) valued every 5th step loses 5 per valued step, each in its own interval
+    class Stub:
+        def label_with_regrets(self, envs, scenarios, steps, levels, seen):
+            return np.zeros((1, 6), np.int8), np.arange(64, dtype=np.float32)[None]
+
+    fixed = np.array([[1, 0, 1, 0, 0, 0]], np.int8)
+    _, regret_f, _ = script.regrets(lambda levels: fixed, Stub(), scenario, 0, 5, 50, 2)
+    assert regret_f.tolist() == [5.0 * 103, 5.0 * 102]  # steps 0, 5, ..., 510; 515, ..., 1020
     # the command line: CSV out, and clear errors that write nothing
     checkpoint = tmp_path / "s.pt"
     torch.save({"policy": student.record()}, checkpoint)
@@ -872,4 +881,9 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
         script.main([str(path), "--out", str(tmp_path / "x.csv")])
     with pytest.raises(SystemExit):
         script.main([str(tmp_path / "missing.toml"), "--policy", "closed"])
+    torch.save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(SystemExit, match="not an adaptive-policy checkpoint"):
+        script.main([str(path), "--checkpoint", str(tmp_path / "other.pt")])
+    with pytest.raises(SystemExit):  # an output directory that does not exist: refused first
+        script.main([str(path), "--policy", "closed", "--out", str(tmp_path / "no" / "x.csv")])
     assert not (tmp_path / "x.csv").exists()
