@@ -97,16 +97,12 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
 def _load_student(path: Path) -> tuple[dict, dict | None]:
     """(the checkpoint's policy record, the teacher's options it was trained
     with, None where it names none)."""
-    import torch
+    from ftc.experiments.adaptive.cli import read_checkpoint
 
     try:
-        record = torch.load(path, weights_only=True)
-    except Exception as e:  # torch.load raises many kinds on a corrupt file
-        raise SystemExit(f"adaptive_regret: error: cannot read {path}: "
-                         f"{type(e).__name__}: {e}") from None
-    if not isinstance(record, dict) or "policy" not in record:
-        raise SystemExit(f"adaptive_regret: error: {path} is not an adaptive-policy checkpoint "
-                         "(no 'policy' record)")
+        record = read_checkpoint(path)
+    except ValueError as e:
+        raise SystemExit(f"adaptive_regret: error: {e}") from None
     configs = ([m.get("config") for m in record["merged_from"]] if "merged_from" in record
                else [record.get("config")])
     teachers = [{k: (list(c[k]) if isinstance(c[k], (list, tuple)) else c[k]) for k in TEACHER}

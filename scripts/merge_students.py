@@ -19,21 +19,15 @@ import sys
 from pathlib import Path
 
 from ftc.common.atomic import atomic_torch_save
+from ftc.experiments.adaptive.cli import read_checkpoint
 from ftc.learning.history_policy import HistoryPolicy, ensemble
 
 
 def _load(path: Path) -> dict:
-    import torch
-
     try:
-        record = torch.load(path, weights_only=True)
-    except Exception as e:  # torch.load raises many kinds on a corrupt file
-        raise SystemExit(f"merge_students: error: cannot read {path}: "
-                         f"{type(e).__name__}: {e}") from None
-    if not isinstance(record, dict) or "policy" not in record:
-        raise SystemExit(f"merge_students: error: {path} is not an adaptive-policy checkpoint "
-                         "(no 'policy' record)")
-    return record
+        return read_checkpoint(path)
+    except ValueError as e:
+        raise SystemExit(f"merge_students: error: {e}") from None
 
 
 def main(argv: list[str] | None = None) -> int:

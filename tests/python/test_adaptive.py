@@ -809,6 +809,9 @@ def test_merge_students_flies_several_checkpoints_as_the_mean_of_their_logits(tm
     assert "train_seconds" not in record and record["curve"] == []
     from ftc.experiments.adaptive import cli  # it has no learning curve to write
 
+    with pytest.raises(ValueError, match="cannot read .*bad.pt"):  # evaluate names a corrupt file
+        cli.cmd_evaluate(cli.parser().parse_args(
+            ["evaluate", "--checkpoint", str(tmp_path / "bad.pt"), "--sets", "check"]))
     with pytest.raises(ValueError, match="holds no learning curve"):
         cli.cmd_evaluate(cli.parser().parse_args(
             ["evaluate", "--checkpoint", str(out), "--curve", str(tmp_path / "curve.csv")]))

@@ -157,9 +157,22 @@ def cmd_train(a: argparse.Namespace) -> int:
     return 0
 
 
-def load_record(a: argparse.Namespace) -> tuple[dict[str, Any], Path]:
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """An adaptive-policy checkpoint's record (train's cache file or
+    scripts/merge_students.py's); ValueError naming the file where it cannot
+    be read or holds no student."""
     import torch
 
+    try:
+        record = torch.load(path, weights_only=True)
+    except Exception as e:  # torch.load raises many kinds on a corrupt file
+        raise ValueError(f"cannot read {path}: {type(e).__name__}: {e}") from None
+    if not isinstance(record, dict) or "policy" not in record:
+        raise ValueError(f"{path} is not an adaptive-policy checkpoint (no 'policy' record)")
+    return record
+
+
+def load_record(a: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if a.checkpoint:
         path = Path(a.checkpoint)
     else:
@@ -167,7 +180,7 @@ def load_record(a: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if not path.is_file():
         raise ValueError(f"no checkpoint at {path}: build it with "
                          f"`python -m ftc.experiments.adaptive train`")
-    return torch.load(path, weights_only=True), path
+    return read_checkpoint(path), path
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
