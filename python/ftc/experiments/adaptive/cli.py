@@ -158,9 +158,7 @@ def cmd_train(a: argparse.Namespace) -> int:
 
 
 def read_checkpoint(path: Path) -> dict[str, Any]:
-    """An adaptive-policy checkpoint's record (train's cache file or
-    scripts/merge_students.py's); ValueError naming the file where it cannot
-    be read or holds no student."""
+    """A checkpoint's record (train's or merge_students'); ValueError naming a bad file."""
     import torch
 
     try:
