@@ -46,6 +46,7 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
     HistoryPolicy, the teacher itself, a function of the levels (1, 6) ->
     valves (1, 6), or None for all valves closed. seen_only: the teacher is
     told the stuck valves the policy's commands have shown (else every one)."""
+    from ftc.experiments.adaptive.dagger import settings_of
     from ftc.learning.history_policy import HistoryPolicy, HistoryWindow
     from ftc.learning.stuck import StuckMemory
     from ftc.plant.vector import FuelTransferVectorEnv
@@ -60,9 +61,8 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
     seen = StuckMemory(1)
     steps = scenario.steps_per_interval
     reward, regret = np.zeros(intervals), np.zeros(intervals)
-    by_phase: dict[int, float] = {}
+    phases = np.zeros(0)
     since = 0
-    bits = 1 << np.arange(6)  # setting a: valve i open iff bit i of a
     for t in range(intervals * steps):
         labelled = t % every == 0
         if labelled or policy is teacher:
@@ -77,9 +77,11 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
         else:
             u = np.zeros((1, 6), np.int8)
         if labelled:
-            lost = float(r[0, int(u[0] @ bits)])
+            lost = float(r[0, settings_of(u)[0]])
             regret[t // steps] += lost
-            by_phase[since // bin_steps] = by_phase.get(since // bin_steps, 0.0) + lost
+            if since // bin_steps >= len(phases):
+                phases = np.pad(phases, (0, since // bin_steps + 1 - len(phases)))
+            phases[since // bin_steps] += lost
         levels, rew, terminated, truncated, info = env.step(u)
         reward[t // steps] += rew[0]
         done = terminated | truncated
@@ -88,9 +90,6 @@ def regrets(policy, teacher, scenario, seed: int, every: int, bin_steps: int,
             window.push(levels, u, done, info["valves"])
         seen.see(u, info["valves"])
     env.close()
-    phases = np.zeros(max(by_phase) + 1 if by_phase else 0)
-    for k, v in by_phase.items():
-        phases[k] = v
     return reward / steps, regret, phases
 
 
