@@ -33,6 +33,7 @@ from ftc.experiments.suite import default_suite
 from ftc.learning.history_policy import (TRAINER, HistoryPolicy, HistoryWindow, StudentConfig,
                                          TrainingConfig, checkpoint_file)
 from ftc.plant.link import PlantObservation
+from ftc.plant.vector import FuelTransferVectorEnv
 
 
 def test_window_pairs_levels_with_the_command_that_led_to_them():
@@ -866,6 +867,22 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
     fixed = np.array([[1, 0, 1, 0, 0, 0]], np.int8)
     _, regret_f, _ = script.regrets(lambda levels: fixed, Stub(), scenario, 0, 5, 50, 2)
     assert regret_f.tolist() == [5.0 * 103, 5.0 * 102]  # steps 0, 5, ..., 510; 515, ..., 1020
+    # valued at every step, the bins of steps since filling hold 5 per step whose count
+    # since the last episode end (tanks dry or an interval's end) falls in them: the ends
+    # are read off the plant flown with the same commands
+    env = FuelTransferVectorEnv(1, [scenario], plant_seed=[0], autoreset="same_step",
+                                threads=1, copy=False)
+    env.reset()
+    since, counts, kinds = 0, [], set()
+    for _ in range(1024):
+        counts.append(since)
+        _, _, terminated, truncated, _ = env.step(fixed)
+        kinds |= {"dry"} if terminated[0] else {"interval"} if truncated[0] else set()
+        since = 0 if terminated[0] or truncated[0] else since + 1
+    env.close()
+    assert kinds == {"dry", "interval"}  # both kinds of end occur in these two intervals
+    _, _, phases_f = script.regrets(lambda levels: fixed, Stub(), scenario, 0, 1, 10, 2)
+    assert phases_f.tolist() == (5.0 * np.bincount(np.array(counts) // 10)).tolist()
     # the command line: CSV out, and clear errors that write nothing
     checkpoint = tmp_path / "s.pt"
     torch.save({"policy": student.record()}, checkpoint)
