@@ -28,10 +28,16 @@ double Quantile(std::vector<double> v, double q) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  const char* usage =
+      "usage: bench_forward WEIGHTS [--passes N]\n"
+      "  times the policy node's forward pass of an exported policy (ftc.export), cold and "
+      "warm, packed and dense (N passes each, default 2000)\n";
+  if (argc == 2 && (std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h")) {
+    std::fputs(usage, stdout);
+    return 0;
+  }
   if (argc != 2 && !(argc == 4 && std::string(argv[2]) == "--passes")) {
-    std::fprintf(stderr, "usage: bench_forward WEIGHTS [--passes N]\n"
-                         "  times the policy node's forward pass of an exported policy, cold and "
-                         "warm, packed and dense\n");
+    std::fputs(usage, stderr);
     return 2;
   }
   const int passes = argc == 4 ? std::atoi(argv[3]) : 2000;

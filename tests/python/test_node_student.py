@@ -18,7 +18,7 @@ import pytest
 import torch
 from bus_tap import BusTap
 
-from ftc.common.build_info import plant_binary, policy_node_binary
+from ftc.common.build_info import BUILD_DIR, plant_binary, policy_node_binary
 from ftc.common.errors import UsageError
 from ftc.learning.history_policy import HistoryPolicy, HistoryWindow, StudentConfig, ensemble
 from ftc.learning.ppo import ActorCritic
@@ -300,3 +300,27 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
     assert outcomes[4].reason.endswith("to 6 (a logit per valve) or 64 (a logit per valve "
                                        "setting)")
     assert "bad signature 1" in err
+
+
+def test_bench_forward_times_an_exported_ensemble_and_refuses_bad_input(tmp_path):
+    """build/bench_forward on a two-member student: it finds the members' blocks and
+    prints its timings; --help explains, bad arguments exit 2, a missing file exits 1
+    naming it."""
+    bench = BUILD_DIR / "bench_forward"
+    if not bench.is_file():
+        pytest.skip("build/bench_forward is built by scripts/setup.sh")
+    weights = _export(ensemble([_student(0, stuck_memory=True), _student(1, stuck_memory=True)]),
+                      tmp_path, "pair")
+    run = subprocess.run([str(bench), str(weights), "--passes", "10"], capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert "diagonal blocks per layer 1 2 1" in run.stdout, run.stdout
+    assert re.search(r"packed cold p50 [\d.]+ us p99 [\d.]+ us", run.stdout), run.stdout
+    shown = subprocess.run([str(bench), "--help"], capture_output=True, text=True, timeout=10)
+    assert shown.returncode == 0 and shown.stdout.startswith("usage: bench_forward WEIGHTS")
+    for bad in ([], [str(weights), "--passes", "5"], [str(weights), "--pases", "10"]):
+        refused = subprocess.run([str(bench), *bad], capture_output=True, text=True, timeout=10)
+        assert refused.returncode == 2 and refused.stderr.strip(), (bad, refused)
+    missing = subprocess.run([str(bench), str(tmp_path / "none.txt")], capture_output=True,
+                             text=True, timeout=10)
+    assert missing.returncode == 1 and "none.txt" in missing.stderr, missing.stderr
