@@ -307,8 +307,7 @@ def test_bench_forward_times_an_exported_ensemble_and_refuses_bad_input(tmp_path
     prints its timings; --help explains, bad arguments exit 2, a missing file exits 1
     naming it."""
     bench = BUILD_DIR / "bench_forward"
-    if not bench.is_file():
-        pytest.skip("build/bench_forward is built by scripts/setup.sh")
+    assert bench.is_file(), f"{bench} missing: scripts/setup.sh builds it"
     weights = _export(ensemble([_student(0, stuck_memory=True), _student(1, stuck_memory=True)]),
                       tmp_path, "pair")
     run = subprocess.run([str(bench), str(weights), "--passes", "10"], capture_output=True,
