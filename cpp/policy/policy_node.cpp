@@ -120,7 +120,7 @@ class Node {
         policy_(std::move(policy)) {
     auto* state = lcm_->subscribe(prefix + "STATE", &Node::OnState, this);
     state->setQueueCapacity(1000);  // ~250 kB of states
-    // a valid push is at most 1 MB (policy_t::MAX_PARAMS); LCM drops what
+    // a valid push is at most 2 MB (policy_v2_t::MAX_PARAMS); LCM drops what
     // arrives beyond 8 queued ones before the node sees it (bounded memory)
     lcm_->subscribe(prefix + "POLICY", &Node::OnPolicy, this)->setQueueCapacity(8);
     if (!key.empty()) {

@@ -405,7 +405,7 @@ TEST(PushWire, APolicyV2IsCheckedBeforeDecodingAndToldFromAPolicyT) {
   hostile[at + 2] = 0xb2;
   hostile[at + 3] = 0x80;
   EXPECT_FALSE(DecodePolicyV2(hostile.data(), hostile.size(), &out, &why));
-  EXPECT_EQ(why, "num_params is 250000000 (allowed: 0..262144)");
+  EXPECT_EQ(why, "num_params is 250000000 (allowed: 0..524288)");
   EXPECT_FALSE(DecodePolicyV2(buf.data(), buf.size() - 1, &out, &why));
   policy_t old{};
   old.num_widths = 2;

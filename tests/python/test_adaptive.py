@@ -364,7 +364,8 @@ def test_bad_input_to_the_commands_is_one_line_and_exit_2(tmp_path, capsys):
     assert main(["train", "--distribution", str(tmp_path / "none.toml")]) == 2
     assert main(["evaluate", "--policy", "teacher", "--second-stage", "65"]) == 2
     assert main(["evaluate", "--policy", "teacher", "--recheck", "-1"]) == 2
-    assert main(["evaluate", "--policy", "teacher", "--recheck", "4", "--horizon", "10"]) == 2
+    assert main(["evaluate", "--policy", "teacher", "--recheck", "4", "--recheck-horizon", "10",
+                 "--horizon", "10"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 6 and all(line.startswith("adaptive: error: ") for line in err)
     assert "--iterations must be >= 1" in err[0] and "train`" in err[1] and "none.toml" in err[2]
@@ -889,7 +890,7 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
     out = tmp_path / "regret.csv"
     assert script.main([str(path), "--checkpoint", str(checkpoint), "--intervals", "2",
                         "--every", "4", "--hold", "2", "--horizon", "6", "--extra-holds",
-                        "--out", str(out)]) == 0
+                        "--recheck", "0", "--out", str(out)]) == 0
     rows = [r.split(",") for r in out.read_text().splitlines()[2:]]
     assert [float(r[3]) for r in rows if r[0] == "interval"] == pytest.approx(
         regret_s.tolist(), abs=1e-4)

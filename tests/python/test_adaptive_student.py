@@ -344,7 +344,7 @@ def test_a_recheck_with_the_balance_rule_labels_the_best_of_its_closed_loop_valu
     with pytest.raises(ValueError, match="recheck_rule must be one of"):
         TrainingConfig(recheck_rule="hold")
     with pytest.raises(ValueError, match="needs a recheck"):
-        TrainingConfig(recheck_rule="balance")
+        TrainingConfig(recheck=0, recheck_rule="balance")
     with pytest.raises(ValueError, match="holds must be >= 1"):
         PoolTeacher(2, 6, extra_holds=(0,), recheck=4, recheck_horizon=12)
     with pytest.raises(ValueError, match="holds must be >= 1"):
@@ -360,6 +360,21 @@ def test_the_teacher_a_training_distils_is_the_one_its_config_names():
     assert [p.hold for p in teacher.planners] == [3, 1, 5]
     assert teacher.horizon == 7 and teacher.second_stage == 3
     assert teacher.recheck == 5 and teacher.recheck_horizon == 11
+    assert teacher.recheck_rule == "balance"  # the default's
+
+
+def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refused():
+    from ftc.experiments.adaptive.cli import config_of, parser
+
+    def config(*flags: str) -> TrainingConfig:
+        return config_of(parser().parse_args(["train", *flags]))
+
+    assert config() == TrainingConfig() and config().recheck_rule == "balance"
+    off = config("--recheck", "0")  # nothing rechecked: no rule to continue with
+    assert (off.recheck, off.recheck_rule) == (0, "closed")
+    assert config("--recheck", "2", "--recheck-rule", "closed").recheck_rule == "closed"
+    with pytest.raises(ValueError, match="recheck_rule 'balance' needs a recheck"):
+        config("--recheck", "0", "--recheck-rule", "balance")
 
 
 def test_a_teachers_second_stage_and_recheck_are_bounded():
@@ -442,7 +457,7 @@ def test_evaluate_scores_the_teacher_it_is_asked_for_without_a_checkpoint(tmp_pa
     common = ["evaluate", "--policy", "teacher", "--cache", str(tmp_path / "empty"), "--sets",
               "heldout", "--heldout-results",
               str(distribution.SCENARIO_DIR / "reference" / "heldout.csv"),
-              "--heldout-scenarios", scenario, "--seeds", "0"]
+              "--heldout-scenarios", scenario, "--seeds", "0", "--recheck", "0"]
     scores = {}
     for hold, horizon in ((3, 10), (1, 1)):
         out = tmp_path / f"{hold}x{horizon}.csv"

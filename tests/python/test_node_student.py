@@ -118,12 +118,12 @@ def _replay(student: HistoryPolicy, bus: BusTap, reverse: bool = False,
 
 @pytest.mark.quick
 @pytest.mark.parametrize("head,members,memory", [("valves", 1, False), ("joint", 1, False),
-                                                 ("joint", 3, False), ("joint", 3, True)])
+                                                 ("joint", 3, False), ("joint", 4, True)])
 def test_the_node_flies_the_student_with_pythons_actions_on_every_step(tmp_path, scenarios,
                                                                        head, members, memory):
-    # three members: the default's shape, whose middle layer the node flies as
-    # three packed blocks (the zeros between them skipped); with the stuck memory,
-    # on a plant whose valves stick early (one open, one closed)
+    # several members: a middle layer the node flies as packed blocks (the zeros
+    # between them skipped); four with the stuck memory, the default's shape, on a
+    # plant whose valves stick early (one open, one closed)
     student = (_student(0, head=head, stuck_memory=memory) if members == 1
                else ensemble([_student(seed, head=head, stuck_memory=memory)
                               for seed in range(members)]).eval())
@@ -265,6 +265,10 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
     first = _export(_student(3), tmp_path, "first")
     window, widths, params = pw.student_layers(_student(4))
     joint = pw.student_layers(_student(5, head="joint"))
+    # the default's shape: four members with the stuck memory, 375,872 floats (1.5 MB)
+    default = pw.student_layers(ensemble([_student(seed, head="joint", stuck_memory=True)
+                                          for seed in range(4)]))
+    assert default[1] == [156, 512, 512, 64] and len(default[2]) == 375_872
     second = tmp_path / "second.txt"
     pw.write_weights(second, widths, params, version=2, window=window)
     node = subprocess.Popen([str(policy_node_binary()), "--policy", str(first), "--lcm-url", url,
@@ -284,7 +288,8 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
             pw.policy_message(widths, params, 5, window=5),  # 144 inputs are not 5 steps
             pw.policy_message(*pw.actor_layers(ActorCritic()), 6),  # policy_t, as before
             pw.policy_message(joint[1], joint[2], 7, window=joint[0]),  # the joint head
-            pw.policy_message([144, 65], np.zeros(145 * 65, np.float32), 8, window=12))]
+            pw.policy_message([144, 65], np.zeros(145 * 65, np.float32), 8, window=12),
+            pw.policy_message(default[1], default[2], 9, window=12, stuck_memory=True))]
     finally:
         node.send_signal(signal.SIGINT)
         out, err = node.communicate(timeout=10)
@@ -292,7 +297,8 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
     assert unsigned == 1 and "no answer" in unsigned_err  # refused, its answer signed
     assert "policy version 2 in use (widths 144-128-128-6, window 12, " in err
     assert [(o.version, o.accepted) for o in outcomes] == [(4, False), (5, False), (6, True),
-                                                           (7, True), (8, False)], err
+                                                           (7, True), (8, False), (9, True)], err
+    assert "policy version 9 in use (widths 156-512-512-64, window 12, " in err
     assert outcomes[0].reason.startswith("checksum mismatch")
     assert outcomes[1].reason == "widths must run from 60 (a window of 5 steps of levels and " \
                                  "valves) to 6 (a logit per valve) or 64 (a logit per " \

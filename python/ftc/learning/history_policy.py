@@ -135,7 +135,7 @@ class TrainingConfig:
     iterations: int = 8
     envs: int = 48
     life_intervals: int = 10
-    label_fraction: float = 0.2
+    label_fraction: float = 0.4
     dagger: bool = True
     epochs: int = 4
     batch: int = 512
@@ -150,11 +150,11 @@ class TrainingConfig:
     horizon: int = 6
     extra_holds: tuple[int, ...] = (1, 3, 6)
     second_stage: int = 0
-    recheck: int = 0
-    recheck_horizon: int = 10
-    recheck_rule: str = "closed"
+    recheck: int = 4
+    recheck_horizon: int = 30
+    recheck_rule: str = "balance"
     seed: int = 0
-    members: int = 3
+    members: int = 4
     privileged: float = 0.0
     privileged_params: float = 0.0
     stuck_memory: bool = True

@@ -73,7 +73,7 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "recheck_rule": "what a rechecked plan does after its hold: closed (every valve) or "
                     "balance (the balance rule in closed loop to --recheck-horizon, a "
                     "continuation that keeps balancing, run in C++; its labels cost about three "
-                    "times the default teacher's)",
+                    "times a closing teacher's); closed where --recheck is 0 unless given",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",
@@ -108,15 +108,17 @@ def _config_options(p: argparse.ArgumentParser) -> None:
                            help=f"{OPTION_HELP[f.name]} (default "
                                 f"{' '.join(map(str, value)) or 'none'})")
         else:
-            p.add_argument(flag, type=type(value), default=value,
+            p.add_argument(flag, type=type(value),  # no rule given: config_of chooses
+                           default=None if f.name == "recheck_rule" else value,
                            metavar="K" if f.name in ("second_stage", "recheck") else None,
                            help=f"{OPTION_HELP[f.name]} (default {value})")
 
 
 def config_of(a: argparse.Namespace) -> TrainingConfig:
     values = {f.name: getattr(a, f.name) for f in dataclasses.fields(TrainingConfig)}
-    values["hidden"] = tuple(values["hidden"])
-    values["extra_holds"] = tuple(values["extra_holds"])
+    values["hidden"], values["extra_holds"] = tuple(values["hidden"]), tuple(values["extra_holds"])
+    if values["recheck_rule"] is None:  # --recheck 0 alone: no rechecked plan to continue
+        values["recheck_rule"] = TrainingConfig.recheck_rule if values["recheck"] else "closed"
     for name in ("iterations", "envs", "life_intervals", "epochs", "batch", "max_samples",
                  "window", "hold", "horizon", "recheck_horizon"):
         if values[name] < 1:
@@ -196,16 +198,15 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         raise ValueError(f"--curve is the student's learning curve: not with --policy {a.policy}")
     record: dict[str, Any] = {}
     if a.policy == "teacher":  # the planner alone: no checkpoint
-        # the teacher a training with these options distils (refused: a hold, horizon or
-        # extra hold below 1, a second stage or recheck out of range)
+        # the teacher these options distil (config_of refuses holds or rechecks out of range)
         policy: Any = PoolTeacher.from_config(config_of(a))
         holds = " or ".join(str(p.hold) for p in policy.planners)
         staged = (f", its {a.second_stage} best settings also held {a.hold} steps, then any "
                   "setting" if a.second_stage else "")
         if a.recheck:
-            staged += f", its {a.recheck} best valued again over {a.recheck_horizon}"
-            if a.recheck_rule != "closed":
-                staged += f" (then the {a.recheck_rule} rule)"
+            rule = policy.recheck_rule
+            staged += (f", its {a.recheck} best valued again over {a.recheck_horizon}"
+                       + ("" if rule == "closed" else f" (then the {rule} rule)"))
         what = (f"teacher (the planner holding {holds} over {a.horizon}{staged}, told "
                 + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"
                    else "every stuck valve)"))
@@ -471,11 +472,10 @@ def parser() -> argparse.ArgumentParser:
                            help="what to score: the checkpoint's student, the teacher (the "
                                 "planner on the true physics with --hold, --horizon, "
                                 "--extra-holds, --second-stage and --recheck, told the "
-                                "stuck valves "
-                                "--teacher-stuck says: all, or seen, those its own commands "
-                                "showed; no checkpoint needed; "
-                                "--hold 3 --horizon 10 --extra-holds with no value is "
-                                "oracle-mpc's) or the balance rule")
+                                "stuck valves --teacher-stuck says: all, or seen, those its "
+                                "own commands showed; no checkpoint needed; --hold 3 "
+                                "--horizon 10 --extra-holds --recheck 0 is oracle-mpc's) or "
+                                "the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
