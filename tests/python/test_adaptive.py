@@ -908,3 +908,20 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
     with pytest.raises(SystemExit):  # an output directory that does not exist: refused first
         script.main([str(path), "--policy", "closed", "--out", str(tmp_path / "no" / "x.csv")])
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_the_learning_curve_figure_names_its_teacher_and_is_written_whole(tmp_path):
+    from ftc.experiments.adaptive import evaluate
+
+    config = dataclasses.asdict(TrainingConfig())  # as a checkpoint records it
+    assert evaluate.curve_title(config) == (
+        "adaptive-policy: DAgger from the planner holding 2, 1, 3 or 6 steps over 6, its 4 best "
+        "rechecked over 30 (balance after the hold), 4 members one after another")
+    plain = {"hold": 3, "horizon": 10, "extra_holds": [], "recheck": 0, "members": 1}
+    assert evaluate.curve_title(plain) == ("adaptive-policy: DAgger from the planner holding 3 "
+                                           "steps over 10")
+    curve = [{"env_steps": 100 * i, "seconds": 2.0 * i, "suite_mean_score": 0.5 + 0.1 * i,
+              "suite_worst_score": 0.3 + 0.1 * i} for i in range(3)]
+    path = tmp_path / "figures" / "curve.png"
+    evaluate.draw_curve(curve, path, {"config": config})
+    assert path.read_bytes().startswith(b"\x89PNG") and list(path.parent.iterdir()) == [path]

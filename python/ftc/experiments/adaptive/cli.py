@@ -256,7 +256,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                          f"student on the suite (seed 0); training {record['train_seconds']:.0f} s "
                          f"wall, load average at its end {record['load_average'][0]:.1f}", curve)
             if a.figure:
-                draw_curve(curve, Path(a.figure), record)
+                evaluate.draw_curve(curve, Path(a.figure), record)
     except OSError as e:
         print(f"adaptive: error: cannot write: {e}", file=sys.stderr)
         return EXIT_STORAGE
@@ -398,34 +398,6 @@ def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
               f"{row['env_steps']} steps  "
               f"{row['seconds']:.0f} s  suite mean {s.mean():.3f}  worst {s.min():.3f}")
     return out
-
-
-def draw_curve(curve: list[dict[str, Any]], path: Path, record: dict[str, Any]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
-    for ax, x, label in ((axes[0], "env_steps", "environment steps"),
-                         (axes[1], "seconds", "training wall time, s")):
-        xs = [r[x] for r in curve]
-        ax.plot(xs, [r["suite_mean_score"] for r in curve], "o-", label="mean over scenarios")
-        ax.plot(xs, [r["suite_worst_score"] for r in curve], "s--", label="worst scenario")
-        ax.axhline(0.9, color="gray", lw=0.8, ls=":")
-        ax.set_xlabel(label)
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("normalized score (suite, per scenario)")
-    axes[0].legend(loc="lower right")
-    c = record["config"]
-    members = int(c.get("members", 1))
-    fig.suptitle(f"adaptive-policy: DAgger from the planner holding {c['hold']} steps over "
-                 f"{c['horizon']}" + (f", {members} members one after another" if members > 1
-                                      else ""))
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def parser() -> argparse.ArgumentParser:

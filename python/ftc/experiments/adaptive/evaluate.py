@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ftc.common.atomic import atomic_write_bytes
 from ftc.common.paths import SCENARIO_DIR
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.suite import write_suite
@@ -167,3 +168,49 @@ def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
                          "reward_per_step": float(r[i, FIRST_SCORED:].mean()),
                          "reference_gain_per_step": float(gain[i])})
     return rows
+
+
+def curve_title(config: dict[str, Any]) -> str:
+    """The learning curve figure's title: the teacher and the members of a
+    checkpoint's training ``config``."""
+    *first, last = [str(h) for h in [config["hold"], *config.get("extra_holds", [])]]
+    holds = f"{', '.join(first)} or {last}" if first else last
+    title = (f"adaptive-policy: DAgger from the planner holding {holds} steps over "
+             f"{config['horizon']}")
+    if config.get("recheck"):
+        title += (f", its {config['recheck']} best rechecked over {config['recheck_horizon']} "
+                  f"({config.get('recheck_rule', 'closed')} after the hold)")
+    members = int(config.get("members", 1))
+    return title + (f", {members} members one after another" if members > 1 else "")
+
+
+def draw_curve(curve: list[dict[str, Any]], path: Path, record: dict[str, Any]) -> None:
+    """The learning curve's figure (PNG): the suite's mean and worst scenario
+    against the plant steps and the members' training seconds, written whole
+    or not at all."""
+    import io
+    import textwrap
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    for ax, x, label in ((axes[0], "env_steps", "environment steps"),
+                         (axes[1], "seconds", "training time, s (the members' own, added up)")):
+        xs = [r[x] for r in curve]
+        ax.plot(xs, [r["suite_mean_score"] for r in curve], "o-", label="mean over scenarios")
+        ax.plot(xs, [r["suite_worst_score"] for r in curve], "s--", label="worst scenario")
+        ax.axhline(0.9, color="gray", lw=0.8, ls=":")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("normalized score (suite, per scenario)")
+    axes[0].legend(loc="lower right")
+    fig.suptitle(textwrap.fill(curve_title(record["config"]), 100), fontsize=10)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buf.getvalue())
