@@ -173,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     record, trained = _load_student(a.checkpoint) if a.checkpoint else (None, None)
     options = {k: (trained or defaults)[k] for k in TEACHER}
     options.update({k: getattr(a, k) for k in TEACHER if getattr(a, k) is not None})
+    if not options["recheck"] and a.recheck_rule is None:  # as train's --recheck 0 alone
+        options["recheck_rule"] = "closed"
     if min(options["hold"], options["horizon"], options["recheck_horizon"]) < 1:
         p.error("--hold, --horizon and --recheck-horizon must be >= 1")
     try:

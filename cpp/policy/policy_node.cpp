@@ -76,9 +76,10 @@ constexpr auto kSessionLost = std::chrono::seconds(2);
 // fragment at its allocation's size) did not always hold while the node was
 // not scheduled on a loaded machine, and a push with one fragment lost is lost
 // whole (measured under a load of 11 to 14: 3 of 6 runs of
-// test_node_student.py lost a push, 0 of 4 with this buffer). 4 MB holds
-// several maximal pushes (1 MB each).
-constexpr int kReceiveBufferBytes = 4 << 20;
+// test_node_student.py lost a push, 0 of 4 with a buffer of 4 MB). The
+// default student's push is 1.5 MB, ~1,100 fragments; 8 MB holds several
+// such pushes at once (the kernel grants it up to net.core.rmem_max).
+constexpr int kReceiveBufferBytes = 8 << 20;
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 

@@ -910,7 +910,7 @@ def test_adaptive_regret_is_zero_for_the_teacher_and_counts_every_valued_step(tm
     assert not (tmp_path / "x.csv").exists()
 
 
-def test_the_learning_curve_figure_names_its_teacher_and_is_written_whole(tmp_path):
+def test_the_learning_curve_figure_names_its_teacher_and_is_written_whole(tmp_path, monkeypatch):
     from ftc.experiments.adaptive import evaluate
 
     config = dataclasses.asdict(TrainingConfig())  # as a checkpoint records it
@@ -925,3 +925,18 @@ def test_the_learning_curve_figure_names_its_teacher_and_is_written_whole(tmp_pa
     path = tmp_path / "figures" / "curve.png"
     evaluate.draw_curve(curve, path, {"config": config})
     assert path.read_bytes().startswith(b"\x89PNG") and list(path.parent.iterdir()) == [path]
+    # a figure that fails half-written leaves the old file as it was
+    import matplotlib.figure
+
+    def half_then_fail(self, target, **kwargs):
+        if hasattr(target, "write"):
+            target.write(b"\x89PNG half")
+        else:
+            Path(target).write_bytes(b"\x89PNG half")
+        raise OSError("disk full")
+
+    path.write_bytes(b"old")
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half_then_fail)
+    with pytest.raises(OSError, match="disk full"):
+        evaluate.draw_curve(curve, path, {"config": config})
+    assert path.read_bytes() == b"old" and list(path.parent.iterdir()) == [path]

@@ -373,8 +373,12 @@ def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refus
     off = config("--recheck", "0")  # nothing rechecked: no rule to continue with
     assert (off.recheck, off.recheck_rule) == (0, "closed")
     assert config("--recheck", "2", "--recheck-rule", "closed").recheck_rule == "closed"
-    with pytest.raises(ValueError, match="recheck_rule 'balance' needs a recheck"):
+    with pytest.raises(ValueError, match="--recheck-rule balance continues rechecked plans: "
+                                         "not with --recheck 0"):
         config("--recheck", "0", "--recheck-rule", "balance")
+    with pytest.raises(ValueError, match=r"--horizon \(30\) with --recheck 4 \(--recheck 0 "
+                                         "turns the recheck off\)"):
+        config("--horizon", "30")
 
 
 def test_a_teachers_second_stage_and_recheck_are_bounded():

@@ -65,8 +65,9 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
                     "the teacher's CPU)",
     "recheck": "the teacher values this many of its best settings again over "
                "--recheck-horizon steps, each by its best plan held --hold or any "
-               "--extra-holds steps, then all closed, and labels the best of them, so that "
-               "a choice whose gain outlasts --horizon is settled by it (0: none)",
+               "--extra-holds steps, then continued as --recheck-rule says, and labels the "
+               "best of them, so that a choice whose gain outlasts --horizon is settled by it "
+               "(0: none)",
     "recheck_horizon": "the horizon of --recheck, longer than --horizon, cut at the "
                        "interval's end (nothing is rechecked where the cut leaves it no "
                        "longer than --horizon)",
@@ -129,7 +130,11 @@ def config_of(a: argparse.Namespace) -> TrainingConfig:
                              f"(settings), got {values[name]}")
     if values["recheck"] and values["recheck_horizon"] <= values["horizon"]:
         raise ValueError(f"--recheck-horizon ({values['recheck_horizon']}) must be longer than "
-                         f"--horizon ({values['horizon']}) with --recheck")
+                         f"--horizon ({values['horizon']}) with --recheck {values['recheck']} "
+                         "(--recheck 0 turns the recheck off)")
+    if not values["recheck"] and values["recheck_rule"] != "closed":
+        raise ValueError(f"--recheck-rule {values['recheck_rule']} continues rechecked plans: "
+                         "not with --recheck 0")
     if any(h < 1 for h in values["extra_holds"]):
         raise ValueError(f"--extra-holds must be >= 1 each, got {list(values['extra_holds'])}")
     if not 0.0 <= values["label_fraction"] <= 1.0 or not values["lr"] > 0:
