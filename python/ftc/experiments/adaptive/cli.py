@@ -208,9 +208,10 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         holds = " or ".join(str(p.hold) for p in policy.planners)
         staged = (f", its {a.second_stage} best settings also held {a.hold} steps, then any "
                   "setting" if a.second_stage else "")
-        if a.recheck:
+        if policy.recheck:
             rule = policy.recheck_rule
-            staged += (f", its {a.recheck} best valued again over {a.recheck_horizon}"
+            staged += (f", its {policy.recheck} best valued again over "
+                       f"{policy.recheck_horizon}"
                        + ("" if rule == "closed" else f" (then the {rule} rule)"))
         what = (f"teacher (the planner holding {holds} over {a.horizon}{staged}, told "
                 + ("the stuck valves its commands showed)" if a.teacher_stuck == "seen"

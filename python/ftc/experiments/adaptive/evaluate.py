@@ -212,5 +212,4 @@ def draw_curve(curve: list[dict[str, Any]], path: Path, record: dict[str, Any]) 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, buf.getvalue())  # its directory made too
