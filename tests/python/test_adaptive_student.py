@@ -480,6 +480,30 @@ def test_evaluate_scores_the_teacher_it_is_asked_for_without_a_checkpoint(tmp_pa
     assert "--curve is the student's learning curve" in capsys.readouterr().err
 
 
+def test_evaluate_per_interval_writes_each_scored_intervals_reward(tmp_path):
+    import csv
+
+    from ftc.experiments.adaptive.cli import main
+
+    scenario = str(distribution.SCENARIO_DIR / "heldout" / "stuck-open.toml")
+    out = {}
+    for extra in ([], ["--per-interval"]):
+        out[bool(extra)] = tmp_path / f"{len(extra)}.csv"
+        assert main(["evaluate", "--policy", "balance", "--sets", "heldout", "--heldout-results",
+                     str(distribution.SCENARIO_DIR / "reference" / "heldout.csv"),
+                     "--heldout-scenarios", scenario, "--seeds", "0",
+                     "--out", str(out[bool(extra)])] + extra) == 0
+    (plain,) = csv.DictReader(line for line in open(out[False]) if not line.startswith("#"))
+    (row,) = csv.DictReader(line for line in open(out[True]) if not line.startswith("#"))
+    assert "reward_1" not in plain  # only when asked
+    per = [float(row[f"reward_{k}"]) for k in range(1, 10)]
+    assert "reward_0" not in row and "reward_10" not in row  # intervals 1-9, the scored ones
+    # the per-step mean over intervals 1-9 is their mean (each rounded to 1e-4 in the file)
+    assert np.mean(per) == pytest.approx(float(row["reward_per_step"]), abs=1e-4)
+    assert row["score"] == plain["score"]  # the same run otherwise
+    assert max(per) - min(per) > 0.1  # a degrading plant: the intervals differ
+
+
 @pytest.mark.slow
 def test_the_no_teacher_ablation_saves_ppos_actor_in_the_students_layout(tmp_path):
     import importlib.util

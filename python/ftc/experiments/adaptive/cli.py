@@ -233,7 +233,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                                    heldout=Path(a.heldout_results) if a.heldout_results else None,
                                    heldout_files=[Path(f) for f in a.heldout_scenarios] or None,
                                    teacher_stuck=a.teacher_stuck if a.policy == "teacher"
-                                   else "all")
+                                   else "all", per_interval=a.per_interval)
         rows += [{**r, "set": a.heldout_name} if which == "heldout" else r for r in scored]
     for which in (a.heldout_name if w == "heldout" else w for w in a.sets):
         defined = [r for r in rows if r["set"] == which and np.isfinite(r["score"])]
@@ -252,8 +252,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             write_result(a.out, f"{what}, per-scenario normalized score "
                          "(intervals 1-9 against the shipped reference and closed rewards) "
                          "in the batched pool, 10 x 512 steps",
-                         [{**r, "score": round(r["score"], 4) if np.isfinite(r["score"]) else "",
-                           "reward_per_step": round(r["reward_per_step"], 4),
+                         [{**{k: round(v, 4) if k.startswith("reward") else v
+                              for k, v in r.items()},
+                           "score": round(r["score"], 4) if np.isfinite(r["score"]) else "",
                            "reference_gain_per_step": round(r["reference_gain_per_step"], 4)}
                           for r in rows])
         if a.curve:
@@ -455,6 +456,9 @@ def parser() -> argparse.ArgumentParser:
                                 "--horizon 10 --extra-holds --recheck 0 is oracle-mpc's) or "
                                 "the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
+            s.add_argument("--per-interval", action="store_true",
+                           help="--out also holds each scored interval's reward per step "
+                                "(reward_1 to reward_9), to see where a policy loses")
             s.add_argument("--curve", default="", help="the learning curve (CSV)")
             s.add_argument("--figure", default="", help="the learning curve's figure (PNG)")
     return p

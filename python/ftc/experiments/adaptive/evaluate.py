@@ -145,9 +145,11 @@ def scores(r: np.ndarray, reference: np.ndarray, closed: np.ndarray) -> np.ndarr
 
 def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
              heldout: Path | None = None, heldout_files: Sequence[Path] | None = None,
-             teacher_stuck: str = "all") -> list[dict[str, Any]]:
+             teacher_stuck: str = "all", per_interval: bool = False) -> list[dict[str, Any]]:
     """Rows (set, scenario, seed, score (NaN where undefined), reward per step
-    of intervals 1-9, and the reference's over closed's per step there) of
+    of intervals 1-9, and the reference's over closed's per step there; with
+    ``per_interval``, each scored interval's reward per step too, reward_1 to
+    reward_9, to read beside the reference's and closed's own) of
     ``policy`` on the suite, the check set or the held-out set (``heldout_files``,
     default ``scenarios/heldout/``; its reference and closed rewards from the
     benchmark results.csv ``heldout``), each seed."""
@@ -166,7 +168,9 @@ def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
         for i, name in enumerate(names):
             rows.append({"set": which, "scenario": name, "seed": seed, "score": float(sc[i]),
                          "reward_per_step": float(r[i, FIRST_SCORED:].mean()),
-                         "reference_gain_per_step": float(gain[i])})
+                         "reference_gain_per_step": float(gain[i]),
+                         **({f"reward_{k}": float(r[i, k])
+                             for k in range(FIRST_SCORED, r.shape[1])} if per_interval else {})})
     return rows
 
 
