@@ -352,6 +352,35 @@ def test_a_recheck_with_the_balance_rule_labels_the_best_of_its_closed_loop_valu
     assert RECHECK_RULES == TEACHER_RECHECK_RULES  # the config's and the teacher's
 
 
+def test_the_best_recheck_keeps_the_better_continuation_and_always_rechecks_all_closed():
+    scenario = _core.load_scenario(str(distribution.SCENARIO_DIR / "single.toml"))
+    levels = np.random.default_rng(5).uniform(0.05, 1.0, (6, 6))
+    steps = np.full(6, 4596)  # 12 steps left in the interval
+    holds = [2, 1, 3]
+    teacher = PoolTeacher(2, 6, extra_holds=(1, 3), recheck=2, recheck_horizon=12,
+                          recheck_rule="best")
+    short = PoolTeacher(2, 6, extra_holds=(1, 3))
+    u, regrets = teacher.label_with_regrets([0] * 6, [scenario], steps, levels)
+    oracle = OracleEvaluator(scenario, closed_form=True)
+    oracle.set_step(4596)
+    plans = np.concatenate([HoldPlanner(h, 12).candidates(12) for h in holds])
+    added = 0
+    for k in range(6):
+        totals = short._setting_totals(oracle, levels[k], 6)
+        top = np.sort(np.argsort(-totals, kind="stable")[:2])
+        added += 0 not in top
+        top = np.union1d(top, [0])  # all closed: always among the rechecked
+        balance = hold_then_rule(oracle, levels[k], top, holds, 12).max(axis=0)
+        closed_after = oracle(levels[k], plans).reshape(len(holds), 64)[:, top].max(axis=0)
+        values = np.maximum(balance, closed_after)  # each plan's better continuation
+        label = int(top[np.argmax(values)])
+        assert u[k].tolist() == [(label >> i) & 1 for i in range(6)]
+        np.testing.assert_allclose(regrets[k][top], values.max() - values, atol=1e-5)
+        assert (np.delete(regrets[k], top) > 0).all()
+    assert added  # a state where all closed was not among the best two, rechecked anyway
+    assert "best" in RECHECK_RULES
+
+
 def test_the_teacher_a_training_distils_is_the_one_its_config_names():
     # dagger.train and evaluate --policy teacher build their teacher this way
     teacher = PoolTeacher.from_config(TrainingConfig(hold=3, horizon=7, extra_holds=(1, 5),
@@ -360,7 +389,7 @@ def test_the_teacher_a_training_distils_is_the_one_its_config_names():
     assert [p.hold for p in teacher.planners] == [3, 1, 5]
     assert teacher.horizon == 7 and teacher.second_stage == 3
     assert teacher.recheck == 5 and teacher.recheck_horizon == 11
-    assert teacher.recheck_rule == "balance"  # the default's
+    assert teacher.recheck_rule == "best"  # the default's
 
 
 def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refused():
@@ -369,7 +398,7 @@ def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refus
     def config(*flags: str) -> TrainingConfig:
         return config_of(parser().parse_args(["train", *flags]))
 
-    assert config() == TrainingConfig() and config().recheck_rule == "balance"
+    assert config() == TrainingConfig() and config().recheck_rule == "best"
     off = config("--recheck", "0")  # nothing rechecked: no rule to continue with
     assert (off.recheck, off.recheck_rule) == (0, "closed")
     assert config("--recheck", "2", "--recheck-rule", "closed").recheck_rule == "closed"

@@ -42,7 +42,7 @@ CACHE_VERSION = 1  # bump when the checkpoint record's layout changes
 HEADS = {"valves": NUM_TANKS, "joint": 2 ** NUM_TANKS}  # outputs of each head
 INPUTS = ("window", "rates")  # the training-time input parametrizations (TrainingConfig.inputs)
 TEACHER_STUCK = ("all", "seen")  # which stuck valves the teacher plans with (TrainingConfig)
-RECHECK_RULES = ("closed", "balance")  # after a rechecked hold (TrainingConfig; the teacher's own)
+RECHECK_RULES = ("closed", "balance", "best")  # after a rechecked hold (TrainingConfig, teacher)
 
 
 @dataclass(frozen=True)
@@ -114,9 +114,10 @@ class TrainingConfig:
     values by their two-stage plans (held ``hold`` steps, then any setting to
     the horizon), 0 for none; recheck: how many of the best settings the
     teacher values again over recheck_horizon steps (their plans held each
-    hold length, then all closed; the label the best of them), 0 for none;
-    recheck_rule: what a rechecked plan does after its hold, "closed" or
-    "balance" (the balance rule in closed loop);
+    hold length, then continued as recheck_rule says; the label the best of
+    them), 0 for none; recheck_rule: what a rechecked plan does after its
+    hold, "closed" (every valve), "balance" (the balance rule in closed loop)
+    or "best" (the better of the two, with all closed always rechecked too);
     seed: draws,
     pool plants, initial weights and minibatches; members: students trained one after another with seeds seed,
     seed + 1, ... (each its own plants, labels and weights) and flown as one
@@ -152,7 +153,7 @@ class TrainingConfig:
     second_stage: int = 0
     recheck: int = 4
     recheck_horizon: int = 30
-    recheck_rule: str = "balance"
+    recheck_rule: str = "best"
     seed: int = 0
     members: int = 4
     privileged: float = 0.0

@@ -71,10 +71,12 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "recheck_horizon": "the horizon of --recheck, longer than --horizon, cut at the "
                        "interval's end (nothing is rechecked where the cut leaves it no "
                        "longer than --horizon)",
-    "recheck_rule": "what a rechecked plan does after its hold: closed (every valve) or "
+    "recheck_rule": "what a rechecked plan does after its hold: closed (every valve), "
                     "balance (the balance rule in closed loop to --recheck-horizon, a "
                     "continuation that keeps balancing, run in C++; its labels cost about three "
-                    "times a closing teacher's); closed where --recheck is 0 unless given",
+                    "times a closing teacher's) or best (each plan valued by the better of the "
+                    "two, all closed always rechecked too); closed where --recheck is 0 unless "
+                    "given",
     "seed": "draws, pool plants, initial weights and minibatches",
     "members": "students trained with seeds seed, seed+1, ... and flown as one network "
                "whose logits are their mean",

@@ -19,7 +19,11 @@ outlasts the short horizon is then told from one that only looks as good
 over it. With ``recheck_rule`` "balance", the rechecked plans are held, then
 the balance rule's (:func:`ftc.control.agents.balance.balance_valves`) in
 closed loop to the longer horizon instead of all closed: a continuation
-that keeps balancing, as a policy would, rather than doing nothing.
+that keeps balancing, as a policy would, rather than doing nothing. With
+"best", each rechecked plan is valued by the better of the two
+continuations, and all closed (setting 0) is always among the rechecked
+settings: where doing nothing is nearly optimal, late in a degraded life,
+a plan has to beat it over the longer horizon to be chosen.
 It is used for training only: the student never sees it at run time.
 """
 
@@ -34,7 +38,8 @@ from ftc.control.planning.physics.evaluators import OracleEvaluator
 from ftc.control.planning.planners import HoldPlanner, two_stage_candidates, valve_settings
 from ftc.learning.stuck import charge_commanded
 
-RECHECK_RULES = ("closed", "balance")  # what a rechecked plan does after its hold
+RECHECK_RULES = ("closed", "balance", "best")  # what a rechecked plan does after its hold
+CLOSED = 0  # the setting with every valve closed
 
 
 class PoolTeacher:
@@ -47,8 +52,9 @@ class PoolTeacher:
     horizon; 0: none); recheck: how many of the best settings are valued
     again over ``recheck_horizon`` steps (0: none; the label is then the best
     of them); recheck_rule: what a rechecked plan does after its hold, "closed"
-    (every valve) or "balance" (the balance rule in closed loop:
-    :func:`hold_then_rule`); closed_form: the rollouts step the conduit in closed
+    (every valve), "balance" (the balance rule in closed loop:
+    :func:`hold_then_rule`) or "best" (the better of the two, all closed always
+    rechecked too); closed_form: the rollouts step the conduit in closed
     form (``_core.BatchRollout``'s exact_active_conduit, several times faster
     than CVODE, within its tolerances)."""
 
@@ -172,22 +178,26 @@ class PoolTeacher:
         own): the ``recheck`` settings of the largest ``totals`` (ties at the
         cut to the lower code) valued by their best plan over ``horizon``
         steps, held each hold length then all closed (with ``recheck_rule``
-        "balance": then the balance rule in closed loop), less the best of those
-        (so 0 for the label); every other setting at minus the larger of its
+        "balance": then the balance rule in closed loop; "best": the better of
+        the two, and setting 0, all closed, rechecked too), less the best of
+        those (so 0 for the label); every other setting at minus the larger of its
         own regret in ``totals`` and the largest regret among the rechecked,
         and below 0, so that the label is always a rechecked setting. The
         recheck values hold plans only: with a second stage, its values choose
         which settings are rechecked, not the label among them."""
         best = best_settings(totals, self.recheck)
-        if self.recheck_rule == "balance":
+        if self.recheck_rule == "best":  # doing nothing is always a candidate
+            best = np.union1d(best, [CLOSED])
+        long = np.full(len(best), -np.inf)
+        if self.recheck_rule in ("balance", "best"):
             long = hold_then_rule(evaluator, x0, best, [p.hold for p in self.planners],
                                   horizon).max(axis=0)
-        else:
+        if self.recheck_rule in ("closed", "best"):
             plans = self._hold_plans(horizon).reshape(len(self.planners), -1, horizon,
                                                       NUM_TANKS)
             plans = plans[:, best].reshape(-1, horizon, NUM_TANKS)
-            long = np.asarray(evaluator(x0, plans), np.float64).reshape(len(self.planners), -1)
-            long = long.max(axis=0)
+            closed = np.asarray(evaluator(x0, plans), np.float64).reshape(len(self.planners), -1)
+            long = np.maximum(long, closed.max(axis=0))
         if not np.isfinite(long).any():  # every long plan refused: the short values stand
             return totals
         rechecked = long - long.max()  # a refused long plan stays -inf
