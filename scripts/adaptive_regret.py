@@ -31,7 +31,7 @@ import numpy as np
 
 from ftc.common.atomic import atomic_write_text
 from ftc.common.errors import StorageError
-from ftc.learning.history_policy import TrainingConfig
+from ftc.learning.history_policy import RECHECK_RULES, TrainingConfig
 
 INTERVALS = 10
 TEACHER = ("hold", "horizon", "extra_holds", "second_stage", "recheck", "recheck_horizon",
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     teacher.add_argument("--recheck", type=int, help="settings valued again over "
                          "--recheck-horizon")
     teacher.add_argument("--recheck-horizon", type=int, help="the recheck's horizon")
-    teacher.add_argument("--recheck-rule", choices=("closed", "balance"),
+    teacher.add_argument("--recheck-rule", choices=RECHECK_RULES,
                          help="what a rechecked plan does after its hold")
     teacher.add_argument("--teacher-stuck", choices=("seen", "all"),
                          help="the stuck valves it is told: those the policy's commands "
