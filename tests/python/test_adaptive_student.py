@@ -406,7 +406,7 @@ def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refus
                                          "not with --recheck 0"):
         config("--recheck", "0", "--recheck-rule", "balance")
     with pytest.raises(ValueError, match=r"--horizon \(30\) with --recheck 4 \(--recheck 0 "
-                                         "turns the recheck off\)"):
+                                         r"turns the recheck off\)"):
         config("--horizon", "30")
 
 
