@@ -182,8 +182,10 @@ def curve_title(config: dict[str, Any]) -> str:
     title = (f"adaptive-policy: DAgger from the planner holding {holds} steps over "
              f"{config['horizon']}")
     if config.get("recheck"):
+        rule = config.get("recheck_rule", "closed")
+        after = "the better of balance and closed" if rule == "best" else rule
         title += (f", its {config['recheck']} best rechecked over {config['recheck_horizon']} "
-                  f"({config.get('recheck_rule', 'closed')} after the hold)")
+                  f"({after} after the hold)")
     members = int(config.get("members", 1))
     return title + (f", {members} members one after another" if members > 1 else "")
 
