@@ -153,7 +153,7 @@ class TrainingConfig:
     second_stage: int = 0
     recheck: int = 4
     recheck_horizon: int = 30
-    recheck_rule: str = "balance"
+    recheck_rule: str = "best"
     seed: int = 0
     members: int = 4
     privileged: float = 0.0
