@@ -22,9 +22,9 @@ from ftc.experiments.adaptive import distribution
 TEACHERS = {  # name -> PoolTeacher options (hold 2 over 6, holds 1, 3 and 6 too)
     "no recheck (earlier default)": {},
     "recheck 4 over 10 (closed)": {"recheck": 4, "recheck_horizon": 10},
-    "recheck 4 over 30 (balance, default)": {"recheck": 4, "recheck_horizon": 30,
-                                    "recheck_rule": "balance"},
-    "recheck 4 over 30 (best)": {"recheck": 4, "recheck_horizon": 30,
+    "recheck 4 over 30 (balance, balancing default)": {"recheck": 4, "recheck_horizon": 30,
+                                                       "recheck_rule": "balance"},
+    "recheck 4 over 30 (best, default)": {"recheck": 4, "recheck_horizon": 30,
                                           "recheck_rule": "best"},
 }
 BASE = "no recheck (earlier default)"

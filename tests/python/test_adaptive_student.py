@@ -389,7 +389,7 @@ def test_the_teacher_a_training_distils_is_the_one_its_config_names():
     assert [p.hold for p in teacher.planners] == [3, 1, 5]
     assert teacher.horizon == 7 and teacher.second_stage == 3
     assert teacher.recheck == 5 and teacher.recheck_horizon == 11
-    assert teacher.recheck_rule == "balance"  # the default's
+    assert teacher.recheck_rule == "best"  # the default's
 
 
 def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refused():
@@ -398,7 +398,7 @@ def test_recheck_0_alone_turns_the_recheck_off_and_a_rule_given_with_it_is_refus
     def config(*flags: str) -> TrainingConfig:
         return config_of(parser().parse_args(["train", *flags]))
 
-    assert config() == TrainingConfig() and config().recheck_rule == "balance"
+    assert config() == TrainingConfig() and config().recheck_rule == "best"
     off = config("--recheck", "0")  # nothing rechecked: no rule to continue with
     assert (off.recheck, off.recheck_rule) == (0, "closed")
     assert config("--recheck", "2", "--recheck-rule", "closed").recheck_rule == "closed"
