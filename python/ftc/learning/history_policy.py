@@ -131,7 +131,13 @@ class TrainingConfig:
     also reads which valves it has seen stuck (:class:`HistoryWindow`);
     teacher_stuck: which stuck valves the teacher plans with, "all" (every
     one, from its event on) or "seen" (those in the student's stuck memory
-    at that step, the others as healthy: what the student can know)."""
+    at that step, the others as healthy: what the student can know);
+    explore, explore_hold: in the student-driven plants, the chance per step
+    that a perturbation begins, a random valve setting held for 1 to
+    explore_hold steps in place of the student's (the teacher labels those
+    states as any other: noise injection, so that the data hold states off
+    both the student's and the teacher's paths and the way back from them),
+    0 for none."""
 
     iterations: int = 8
     envs: int = 48
@@ -160,6 +166,8 @@ class TrainingConfig:
     privileged_params: float = 0.0
     stuck_memory: bool = True
     teacher_stuck: str = "seen"
+    explore: float = 0.0
+    explore_hold: int = 64
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
@@ -192,6 +200,9 @@ class TrainingConfig:
                              f"got {[self.hold, *self.extra_holds]}")
         if self.members < 1:
             raise ValueError(f"TrainingConfig: members must be >= 1, got {self.members}")
+        if not 0.0 <= self.explore <= 1.0 or self.explore_hold < 1:
+            raise ValueError(f"TrainingConfig: explore must be in [0, 1] and explore_hold >= 1, "
+                             f"got {self.explore} and {self.explore_hold}")
         if self.teacher_stuck not in TEACHER_STUCK:
             raise ValueError(f"TrainingConfig: teacher_stuck must be one of "
                              f"{list(TEACHER_STUCK)}, got {self.teacher_stuck!r}")

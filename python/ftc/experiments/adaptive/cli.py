@@ -93,6 +93,10 @@ OPTION_HELP = {  # TrainingConfig's fields, as its docstring describes them
     "teacher_stuck": "which stuck valves the teacher plans with: all (every one from its "
                      "event on) or seen (those in the student's stuck memory, the others as "
                      "healthy)",
+    "explore": "in the plants the student drives, the chance per step that a perturbation "
+               "begins: a random valve setting held in place of the student's for 1 to "
+               "--explore-hold steps, the states labelled as any other (0: none)",
+    "explore_hold": "the longest perturbation of --explore, steps",
 }
 
 

@@ -143,6 +143,7 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
     window = HistoryWindow(config.envs, config.window, config.stuck_memory)
     window.start(obs)
     driven = np.arange(config.envs) < round(beta * config.envs)  # by the teacher
+    perturb = Perturbation(config, iteration, ~driven) if config.explore > 0 else None
     xs, ys, gs, zs, ps, reward, student_reward = [], [], [], [], [], 0.0, []
     keep_regrets = config.head == "joint"
     events = [s.events for s in scenarios]  # a property that copies: read once
@@ -166,18 +167,54 @@ def collect(policy: HistoryPolicy, teacher: PoolTeacher, dist: TrainingDistribut
                 ps.append(np.stack([true_parameters(scenarios[i], op)
                                     for i, op in zip(envs, ops)]))
             u[driven] = labels[driven[envs]]
+        if perturb is not None:
+            perturb.apply(u)
         obs, r, terminated, truncated, info = env.step(u)
         reward += float(r.mean())
         if (~driven).any():
             student_reward.append(float(r[~driven].mean()))
         window.push(obs, u, terminated | truncated, info["valves"])
+        if perturb is not None:
+            perturb.end(terminated | truncated)
     env.close()
     return {"x": np.concatenate(xs), "y": np.concatenate(ys),
             "regrets": np.concatenate(gs) if keep_regrets else None,
             "stuck": np.concatenate(zs) if zs else None,
             "params": np.concatenate(ps) if ps else None, "steps": steps * config.envs,
             "reward_per_step": reward / steps,
-            "student_reward_per_step": float(np.mean(student_reward)) if student_reward else None}
+            "student_reward_per_step": float(np.mean(student_reward)) if student_reward else None,
+            "perturbed": perturb.steps / (steps * config.envs) if perturb is not None else None}
+
+
+class Perturbation:
+    """TrainingConfig.explore's noise: in the plants ``eligible`` (those the
+    student drives), each step not yet perturbed begins a perturbation with
+    chance ``explore``: a random valve setting held for 1 to ``explore_hold``
+    steps (uniform) in place of the commands. Its own random stream, so that
+    ``explore`` 0 leaves every other draw as it was."""
+
+    def __init__(self, config: TrainingConfig, iteration: int, eligible: np.ndarray) -> None:
+        self.rng = np.random.default_rng([config.seed, iteration, 2])
+        self.chance, self.longest, self.eligible = config.explore, config.explore_hold, eligible
+        self.setting = np.zeros((len(eligible), NUM_TANKS), np.int8)
+        self.left = np.zeros(len(eligible), np.int64)  # steps the perturbation still holds
+        self.steps = 0  # perturbed steps, all plants
+
+    def apply(self, u: np.ndarray) -> None:
+        """Replaces the commands ``u`` (N, 6) of the perturbed plants, in place."""
+        start = self.eligible & (self.left == 0) & (self.rng.random(len(u)) < self.chance)
+        n = int(start.sum())
+        if n:
+            self.setting[start] = self.rng.integers(0, 2, size=(n, NUM_TANKS), dtype=np.int8)
+            self.left[start] = self.rng.integers(1, self.longest + 1, size=n)
+        on = self.left > 0
+        u[on] = self.setting[on]
+        self.left[on] -= 1
+        self.steps += int(on.sum())
+
+    def end(self, done: np.ndarray) -> None:
+        """Plants whose episode ended start the next one unperturbed."""
+        self.left[done] = 0
 
 
 def settings_of(valves: np.ndarray) -> np.ndarray:
@@ -330,7 +367,9 @@ def train(dist: TrainingDistribution, config: TrainingConfig,
             f"{row['seconds']:.0f} s  loss {stats['loss']:.4f}  agreement "
             f"{stats['action_agreement']:.3f}  reward/step {rollouts['reward_per_step']:.3f}"
             + (f"  stuck BCE {stats['stuck_bce']:.4f}" if "stuck_bce" in stats else "")
-            + (f"  parameters error {stats['params_mse']:.4f}" if "params_mse" in stats else ""))
+            + (f"  parameters error {stats['params_mse']:.4f}" if "params_mse" in stats else "")
+            + (f"  perturbed {rollouts['perturbed']:.3f}" if rollouts["perturbed"] is not None
+               else ""))
     return {"policy": policy.record(), "snapshots": snapshots, "curve": curve,
             "config": config.to_json(), "distribution": dist.text}
 
