@@ -88,6 +88,8 @@ void History::Start(const std::array<double, kTanks>& level) {
     std::copy(step, step + kStepFeatures, slots_.data() + k * kStepFeatures);
   newest_ = 0;
   level_ = level;
+  ++era_;
+  pushes_ = 0;
 }
 
 void History::Push(const std::array<double, kTanks>& level,
@@ -98,6 +100,7 @@ void History::Push(const std::array<double, kTanks>& level,
   Scale(level, step);
   for (int i = 0; i < kTanks; ++i) step[kTanks + i] = valves[i] ? 1.0f : -1.0f;
   level_ = level;
+  ++pushes_;
   for (int i = 0; i < kTanks; ++i) {
     const bool commanded = valves[i] != 0, held = applied[i] != 0;
     if (commanded == held) continue;  // followed its command: says nothing
@@ -220,22 +223,57 @@ struct Policy::Net {
 
   // The logits of `input`: tanh after every layer but the last.
   const Eigen::RowVectorXf& Forward() {
-    const float* x = input.data();
+    Layer& first = layers.front();
+    const int bi = first.in / first.blocks, bo = first.out / first.blocks;
+    for (int k = 0; k < first.blocks; ++k)
+      first.z.segment(k * bo, bo).noalias() =
+          Eigen::Map<const Eigen::RowVectorXf>(input.data() + k * bi, bi) * first.w[k];
+    return Rest();
+  }
+
+  // The same, the first layer's rows from `skip` to `skip + count` read from
+  // `partial` (their products with the inputs there, summed beforehand).
+  const Eigen::RowVectorXf& ForwardWith(const Eigen::RowVectorXf& partial, int skip, int count) {
+    Layer& first = layers.front();
+    const learn::MatrixRM& w = first.w[0];
+    const Eigen::Map<const Eigen::RowVectorXf> x(input.data(), first.in);
+    first.z = partial;
+    first.z.noalias() += x.head(skip) * w.topRows(skip);
+    const int tail = first.in - skip - count;
+    if (tail > 0) first.z.noalias() += x.tail(tail) * w.bottomRows(tail);
+    return Rest();
+  }
+
+  // The rows `skip` to `skip + count` of the first layer times `x` (count floats).
+  void Partial(const float* x, int skip, int count, Eigen::RowVectorXf* out) const {
+    out->noalias() = Eigen::Map<const Eigen::RowVectorXf>(x, count) *
+                     layers.front().w[0].middleRows(skip, count);
+  }
+
+  // The first layer's bias and tanh, then every other layer (tanh after all but the last).
+  const Eigen::RowVectorXf& Rest() {
     for (std::size_t l = 0; l < layers.size(); ++l) {
       Layer& layer = layers[l];
-      const int bi = layer.in / layer.blocks, bo = layer.out / layer.blocks;
-      for (int k = 0; k < layer.blocks; ++k)
-        layer.z.segment(k * bo, bo).noalias() =
-            Eigen::Map<const Eigen::RowVectorXf>(x + k * bi, bi) * layer.w[k];
+      if (l > 0) {
+        const float* x = layers[l - 1].z.data();
+        const int bi = layer.in / layer.blocks, bo = layer.out / layer.blocks;
+        for (int k = 0; k < layer.blocks; ++k)
+          layer.z.segment(k * bo, bo).noalias() =
+              Eigen::Map<const Eigen::RowVectorXf>(x + k * bi, bi) * layer.w[k];
+      }
       layer.z += layer.b;
       if (l + 1 < layers.size()) layer.z = layer.z.array().tanh().matrix();
-      x = layer.z.data();
     }
     return layers.back().z;
   }
 
   std::vector<Layer> layers;
   learn::MatrixRM input;
+  // Prepare's sums, for the history of this era after this many pushes
+  Eigen::RowVectorXf partial;
+  std::uint64_t partial_era = 0, partial_pushes = 0;
+  bool has_partial = false;
+  std::vector<float> older;  // Prepare's input: the steps that will be slots 1..W-1
 };
 
 Policy::Policy(int window, std::vector<int> widths, std::vector<float> params,
@@ -269,11 +307,33 @@ std::array<std::int8_t, kTanks> Policy::Act(const History& history) {
   if (window_ == 0) return Act(history.level());
   history.Newest(window_, net_->input.data());  // row-major (1, 12 W): the slots in order
   if (stuck_memory_) history.Memory(net_->input.data() + kStepFeatures * window_);
-  return Decide();
+  Net& net = *net_;
+  const bool prepared = net.has_partial && net.partial_era == history.era() &&
+                        net.partial_pushes + 1 == history.pushes();
+  prepared_acts_ += prepared;
+  return Decide(prepared);
 }
 
-std::array<std::int8_t, kTanks> Policy::Decide() {
-  const auto& logits = net_->Forward();
+bool Policy::Preparable() const {
+  return window_ > 1 && net_->layers.front().blocks == 1;
+}
+
+void Policy::Prepare(const History& history) {
+  if (!Preparable()) return;
+  Net& net = *net_;
+  const int count = kStepFeatures * (window_ - 1);
+  net.older.resize(static_cast<std::size_t>(count));
+  history.Newest(window_ - 1, net.older.data());  // slots 0..W-2: after a push, 1..W-1
+  net.Partial(net.older.data(), kStepFeatures, count, &net.partial);
+  net.partial_era = history.era();
+  net.partial_pushes = history.pushes();
+  net.has_partial = true;
+}
+
+std::array<std::int8_t, kTanks> Policy::Decide(bool prepared) {
+  const auto& logits = prepared ? net_->ForwardWith(net_->partial, kStepFeatures,
+                                                    kStepFeatures * (window_ - 1))
+                                : net_->Forward();
   if (widths_.back() == kSettings) return JointValves(logits.data());
   std::array<std::int8_t, kTanks> u{};
   for (int i = 0; i < kTanks; ++i) u[i] = logits[i] > 0.0f ? 1 : 0;

@@ -93,11 +93,16 @@ class History final {
   // The levels of slot 0, in metres, as published.
   const std::array<double, kTanks>& level() const { return level_; }
 
+  // Which history this is: Start begins a new era, Push counts within it.
+  std::uint64_t era() const { return era_; }
+  std::uint64_t pushes() const { return pushes_; }
+
  private:
   static void Scale(const std::array<double, kTanks>& level, float* out);
 
   std::vector<float> slots_;  // kMaxWindow x kStepFeatures, a ring
   int newest_ = 0;            // the ring index of slot 0
+  std::uint64_t era_ = 0, pushes_ = 0;
   std::array<double, kTanks> level_{};
   std::array<float, kStuckFeatures> stuck_;
 };
@@ -129,6 +134,22 @@ class Policy {
   // its stuck memory if the policy reads it), or its newest levels for window 0.
   std::array<std::int8_t, kTanks> Act(const History& history);
 
+  // Between two states: sums the first layer's products of the steps the
+  // next Act will read from this history once one more step is pushed (its
+  // slots 0..W-2, then 1..W-1), so that Act then multiplies the new step and
+  // the stuck memory alone, off the weights of the other W-1 steps (with the
+  // default student, 11 of its first layer's 13 parts: 0.3 of its weights'
+  // bytes). Act uses the sums only for that very next push of that history
+  // (same era, one push later), else it runs the whole layer. The sums are
+  // taken in another order than the whole layer's: the logits move by float32
+  // roundings (~1e-6 of their terms), as between any two BLAS kernels. A
+  // policy of window 0 or 1, or with a first layer of several blocks, has
+  // nothing to prepare.
+  void Prepare(const History& history);
+
+  // How many Acts used Prepare's sums.
+  std::int64_t prepared_acts() const { return prepared_acts_; }
+
   // The valves of the joint head's kSettings logits: the bits of the first
   // largest one's index (valve i open iff bit i is set).
   static std::array<std::int8_t, kTanks> JointValves(const float* logits);
@@ -147,7 +168,8 @@ class Policy {
  private:
   Policy(int window, std::vector<int> widths, std::vector<float> params, std::int64_t version,
          bool stuck_memory);
-  std::array<std::int8_t, kTanks> Decide();
+  std::array<std::int8_t, kTanks> Decide(bool prepared = false);
+  bool Preparable() const;
 
   struct Net;  // the layers (policy.cpp)
   int window_;
@@ -156,6 +178,7 @@ class Policy {
   std::vector<float> params_;
   std::int64_t version_;
   std::unique_ptr<Net> net_;
+  std::int64_t prepared_acts_ = 0;
 };
 
 }  // namespace ftc::policy

@@ -162,6 +162,7 @@ class Node {
 
   void set_warm_lead(std::chrono::microseconds lead) { warm_lead_ = lead; }
   std::int64_t warmups() const { return warmups_; }
+  std::int64_t prepared_steps() const { return prepared_steps_ + policy_->prepared_acts(); }
 
   std::int64_t steps() const { return steps_; }
   std::int64_t misses() const { return misses_; }
@@ -356,6 +357,7 @@ class Node {
       Ack(m.version, m.utime, why);
       return;
     }
+    prepared_steps_ += policy_->prepared_acts();
     policy_ = std::move(next);  // between two states: the next one is acted on by it
     std::cerr << "policy_node: policy version " << policy_->version() << " in use ("
               << Shape(*policy_) << ")\n";
@@ -397,6 +399,9 @@ class Node {
     Publish(command_channel_, cmd);
     latencies_us_.push_back(
         std::chrono::duration<double, std::micro>(Clock::now() - received_).count());
+    // off the deadline, before the next state: the first layer's products of
+    // the steps the next state's window keeps (Policy::Prepare)
+    policy_->Prepare(history_);
     last_sent_seq_ = cmd.seq;
     pending_.reset();
     warmed_ = false;
@@ -451,6 +456,7 @@ class Node {
   std::chrono::microseconds warm_lead_{0}, period_{0};
   bool warmed_ = true;  // none before the first state is acted on
   std::int64_t warmups_ = 0;
+  std::int64_t prepared_steps_ = 0;  // of the policies flown before the current one
   volatile int warm_sink_ = 0;  // the warm-up's result, kept so it is computed
 };
 
@@ -548,6 +554,9 @@ int main(int argc, char** argv) {
     std::cerr << "policy_node: refused messages: " << node.refused() << "\n";
   if (node.warmups())
     std::cerr << "policy_node: " << node.warmups() << " warm-ups before states\n";
+  if (node.prepared_steps())
+    std::cerr << "policy_node: " << node.prepared_steps() << " of " << node.steps()
+              << " steps acted on with the first layer's older steps summed before they came\n";
   if (node.watchdog_states())
     std::cerr << "policy_node: " << node.watchdog_states()
               << " states with the plant's watchdog tripped\n";

@@ -337,7 +337,7 @@ def test_the_student_is_pushed_signed_and_bad_pushes_are_refused_by_name(tmp_pat
 
 def test_bench_forward_times_an_exported_ensemble_and_refuses_bad_input(tmp_path):
     """build/bench_forward on a two-member student: it finds the members' blocks and
-    prints its timings; --help explains, bad arguments exit 2, a missing file exits 1
+    prints its timings, the node's prepared way among them; --help explains, bad arguments exit 2, a missing file exits 1
     naming it."""
     bench = BUILD_DIR / "bench_forward"
     assert bench.is_file(), f"{bench} missing: scripts/setup.sh builds it"
@@ -347,7 +347,9 @@ def test_bench_forward_times_an_exported_ensemble_and_refuses_bad_input(tmp_path
                          text=True, timeout=60)
     assert run.returncode == 0, run.stderr
     assert "diagonal blocks per layer 1 2 1" in run.stdout, run.stdout
-    assert re.search(r"packed cold p50 [\d.]+ us p99 [\d.]+ us", run.stdout), run.stdout
+    for way in ("dense", "packed", "prepared"):
+        assert re.search(rf"^{way} +cold p50 [\d.]+ us p99 [\d.]+ us", run.stdout, re.M), run.stdout
+    assert re.search(r"^prepared / packed: cold p50 [\d.]+", run.stdout, re.M), run.stdout
     shown = subprocess.run([str(bench), "--help"], capture_output=True, text=True, timeout=10)
     assert shown.returncode == 0 and shown.stdout.startswith("usage: bench_forward WEIGHTS")
     for bad in ([], [str(weights), "--passes", "5"], [str(weights), "--pases", "10"]):
