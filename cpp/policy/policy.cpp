@@ -330,6 +330,13 @@ void Policy::Prepare(const History& history) {
   net.has_partial = true;
 }
 
+void Policy::Warm() {
+  if (net_->has_partial)
+    net_->ForwardWith(net_->partial, kStepFeatures, kStepFeatures * (window_ - 1));
+  else
+    net_->Forward();
+}
+
 std::array<std::int8_t, kTanks> Policy::Decide(bool prepared) {
   const auto& logits = prepared ? net_->ForwardWith(net_->partial, kStepFeatures,
                                                     kStepFeatures * (window_ - 1))

@@ -147,6 +147,12 @@ class Policy {
   // nothing to prepare.
   void Prepare(const History& history);
 
+  // Runs the pass the next Act will run, on whatever input the last one left,
+  // its result dropped: the weights that pass reads (with Prepare's sums, the
+  // first layer's rows of the new step and of the stuck memory, and the layers
+  // after it) come into the cache.
+  void Warm();
+
   // How many Acts used Prepare's sums.
   std::int64_t prepared_acts() const { return prepared_acts_; }
 

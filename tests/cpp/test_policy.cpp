@@ -398,6 +398,7 @@ std::vector<double> ChainLogits(const std::vector<int>& widths, const std::vecto
 }
 
 TEST(Policy, APreparedStepHasTheWholeLayersActionsAndIsUsedForTheNextPushOnly) {
+  // (and a warm-up between changes neither)
   // window 4 with the stuck memory (60 inputs), 16 tanh units, the valves head;
   // weights from [-1, 1] by a fixed generator
   const std::vector<int> widths{60, 16, 6};
@@ -437,6 +438,7 @@ TEST(Policy, APreparedStepHasTheWholeLayersActionsAndIsUsedForTheNextPushOnly) {
       h.Push(levels(), valves(), valves());  // (applied valves at random: stuck memory moves)
     }
     expected += ready;
+    if (step % 2) prepared->Warm();  // the node's warm-up: changes nothing the Act computes
     const auto a = prepared->Act(h);
     const auto b = whole->Act(h);
     std::vector<float> x(60);
