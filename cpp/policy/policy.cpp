@@ -88,8 +88,6 @@ void History::Start(const std::array<double, kTanks>& level) {
     std::copy(step, step + kStepFeatures, slots_.data() + k * kStepFeatures);
   newest_ = 0;
   level_ = level;
-  ++era_;
-  pushes_ = 0;
 }
 
 void History::Push(const std::array<double, kTanks>& level,
@@ -100,7 +98,6 @@ void History::Push(const std::array<double, kTanks>& level,
   Scale(level, step);
   for (int i = 0; i < kTanks; ++i) step[kTanks + i] = valves[i] ? 1.0f : -1.0f;
   level_ = level;
-  ++pushes_;
   for (int i = 0; i < kTanks; ++i) {
     const bool commanded = valves[i] != 0, held = applied[i] != 0;
     if (commanded == held) continue;  // followed its command: says nothing
@@ -179,7 +176,7 @@ struct Policy::Net {
   };
 
   Net(const std::vector<int>& widths, const std::vector<float>& params)
-      : input(1, widths.front()) {
+      : input(learn::MatrixRM::Zero(1, widths.front())) {
     std::size_t offset = 0;
     for (std::size_t l = 0; l + 1 < widths.size(); ++l) {
       Layer layer;
@@ -269,11 +266,10 @@ struct Policy::Net {
 
   std::vector<Layer> layers;
   learn::MatrixRM input;
-  // Prepare's sums, for the history of this era after this many pushes
+  // Prepare's sums, and the steps they were taken of (the next window's slots 1..W-1)
   Eigen::RowVectorXf partial;
-  std::uint64_t partial_era = 0, partial_pushes = 0;
   bool has_partial = false;
-  std::vector<float> older;  // Prepare's input: the steps that will be slots 1..W-1
+  std::vector<float> older;
 };
 
 Policy::Policy(int window, std::vector<int> widths, std::vector<float> params,
@@ -308,8 +304,9 @@ std::array<std::int8_t, kTanks> Policy::Act(const History& history) {
   history.Newest(window_, net_->input.data());  // row-major (1, 12 W): the slots in order
   if (stuck_memory_) history.Memory(net_->input.data() + kStepFeatures * window_);
   Net& net = *net_;
-  const bool prepared = net.has_partial && net.partial_era == history.era() &&
-                        net.partial_pushes + 1 == history.pushes();
+  const bool prepared =
+      net.has_partial && std::memcmp(net.input.data() + kStepFeatures, net.older.data(),
+                                     net.older.size() * sizeof(float)) == 0;
   prepared_acts_ += prepared;
   return Decide(prepared);
 }
@@ -325,8 +322,6 @@ void Policy::Prepare(const History& history) {
   net.older.resize(static_cast<std::size_t>(count));
   history.Newest(window_ - 1, net.older.data());  // slots 0..W-2: after a push, 1..W-1
   net.Partial(net.older.data(), kStepFeatures, count, &net.partial);
-  net.partial_era = history.era();
-  net.partial_pushes = history.pushes();
   net.has_partial = true;
 }
 

@@ -359,6 +359,7 @@ class Node {
     }
     prepared_steps_ += policy_->prepared_acts();
     policy_ = std::move(next);  // between two states: the next one is acted on by it
+    if (acted_) policy_->Prepare(history_);  // its own sums of the history kept
     std::cerr << "policy_node: policy version " << policy_->version() << " in use ("
               << Shape(*policy_) << ")\n";
     Ack(m.version, m.utime, "");

@@ -397,36 +397,33 @@ std::vector<double> ChainLogits(const std::vector<int>& widths, const std::vecto
   return x;
 }
 
-TEST(Policy, APreparedStepHasTheWholeLayersActionsAndIsUsedForTheNextPushOnly) {
-  // (and a warm-up between changes neither)
-  // window 4 with the stuck memory (60 inputs), 16 tanh units, the valves head;
-  // weights from [-1, 1] by a fixed generator
-  const std::vector<int> widths{60, 16, 6};
-  std::mt19937 rng(11);
-  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
-  std::vector<float> p((60 + 1) * 16 + (16 + 1) * 6);
-  for (float& v : p) v = u(rng);
-  std::string error;
-  auto prepared = Policy::Make(4, widths, p, 1, &error, true);
-  auto whole = Policy::Make(4, widths, p, 1, &error, true);
-  ASSERT_TRUE(prepared && whole) << error;
+// Flies `prepared` (Prepare after every step, a warm-up before every other
+// one) and `whole` (neither) on one random history of 3,000 steps, with new
+// episodes and double pushes among them, and holds both to the double-precision
+// logits. Returns how many steps had Prepare's sums ready for them (the step
+// before prepared them and exactly one push followed).
+std::int64_t FlyPreparedAndWhole(Policy* prepared, Policy* whole, const std::vector<int>& widths,
+                                 const std::vector<float>& p, std::mt19937* rng) {
+  const int window = prepared->window();
+  const int inputs = widths.front();
   History h;
   std::uniform_real_distribution<double> level(0.0, 1.0);
   auto levels = [&] {
     std::array<double, kTanks> l{};
-    for (double& v : l) v = level(rng);
+    for (double& v : l) v = level(*rng);
     return l;
   };
   auto valves = [&] {
     std::array<std::int8_t, kTanks> v{};
-    for (auto& b : v) b = static_cast<std::int8_t>(rng() & 1);
+    for (auto& b : v) b = static_cast<std::int8_t>((*rng)() & 1);
     return v;
   };
+  prepared->Warm();  // before anything was acted on: changes nothing below
   h.Start(levels());
-  std::int64_t expected = 0, compared = 0;
-  bool ready = false;  // Prepare was called and one push followed in the same era
+  std::int64_t ready_steps = 0, compared = 0;
+  bool ready = false;
   for (int step = 0; step < 3000; ++step) {
-    const auto kind = rng() % 20;
+    const auto kind = (*rng)() % 20;
     if (kind == 0) {  // a new episode: the sums are of another history
       h.Start(levels());
       ready = false;
@@ -437,13 +434,13 @@ TEST(Policy, APreparedStepHasTheWholeLayersActionsAndIsUsedForTheNextPushOnly) {
     } else {
       h.Push(levels(), valves(), valves());  // (applied valves at random: stuck memory moves)
     }
-    expected += ready;
+    ready_steps += ready;
     if (step % 2) prepared->Warm();  // the node's warm-up: changes nothing the Act computes
     const auto a = prepared->Act(h);
     const auto b = whole->Act(h);
-    std::vector<float> x(60);
-    h.Newest(4, x.data());
-    h.Memory(x.data() + 48);
+    std::vector<float> x(static_cast<std::size_t>(inputs));
+    h.Newest(window, x.data());
+    if (prepared->stuck_memory()) h.Memory(x.data() + kStepFeatures * window);
     const auto logits = ChainLogits(widths, p, std::vector<double>(x.begin(), x.end()));
     for (int i = 0; i < kTanks; ++i) {
       // float32 against double: logits of order 1 agree to ~1e-6; a sign is
@@ -456,17 +453,73 @@ TEST(Policy, APreparedStepHasTheWholeLayersActionsAndIsUsedForTheNextPushOnly) {
     prepared->Prepare(h);
     ready = true;
   }
-  EXPECT_EQ(prepared->prepared_acts(), expected);
-  EXPECT_GT(expected, 2400);  // about 0.9 of the steps
-  EXPECT_EQ(whole->prepared_acts(), 0);
   EXPECT_GT(compared, 17000);
-  // nothing to prepare for a window of 1 or of levels alone
+  EXPECT_EQ(whole->prepared_acts(), 0);
+  return ready_steps;
+}
+
+TEST(Policy, APreparedStepHasTheWholeLayersActionsAndIsUsedForTheNextPushOnly) {
+  // (and a warm-up between changes neither). Windows of 4 with the stuck
+  // memory (60 inputs) and without (48), 16 tanh units, the valves head;
+  // weights from [-1, 1] by a fixed generator.
+  for (const bool memory : {true, false}) {
+    const std::vector<int> widths{memory ? 60 : 48, 16, 6};
+    std::mt19937 rng(memory ? 11 : 12);
+    std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+    std::vector<float> p(static_cast<std::size_t>((widths[0] + 1) * 16 + (16 + 1) * 6));
+    for (float& v : p) v = u(rng);
+    std::string error;
+    auto prepared = Policy::Make(4, widths, p, 1, &error, memory);
+    auto whole = Policy::Make(4, widths, p, 1, &error, memory);
+    ASSERT_TRUE(prepared && whole) << error;
+    const auto ready = FlyPreparedAndWhole(prepared.get(), whole.get(), widths, p, &rng);
+    EXPECT_EQ(prepared->prepared_acts(), ready) << memory;
+    EXPECT_GT(ready, 2400) << memory;  // about 0.9 of the steps
+  }
+}
+
+TEST(Policy, PreparedSumsServeOnlyTheStepsTheyWereTakenOf) {
+  // 48-16-6, window 4, no memory
+  const std::vector<int> widths{48, 16, 6};
+  std::mt19937 rng(13);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> p(static_cast<std::size_t>(49 * 16 + 17 * 6));
+  for (float& v : p) v = u(rng);
+  std::string error;
+  auto policy = Policy::Make(4, widths, p, 1, &error);
+  auto whole = Policy::Make(4, widths, p, 1, &error);
+  ASSERT_TRUE(policy && whole) << error;
+  // another history, one push after as many pushes as the prepared one: the
+  // whole layer runs, with the whole layer's actions
+  History a, b;
+  a.Start({0.1, 0.2, 0.3, 0.4, 0.5, 0.6});
+  b.Start({0.6, 0.5, 0.4, 0.3, 0.2, 0.1});
+  policy->Prepare(a);
+  b.Push({0.2, 0.2, 0.2, 0.8, 0.8, 0.8}, {1, 1, 1, 0, 0, 0});
+  EXPECT_EQ(policy->Act(b), whole->Act(b));
+  EXPECT_EQ(policy->prepared_acts(), 0);
+  a.Push({0.2, 0.2, 0.2, 0.8, 0.8, 0.8}, {1, 1, 1, 0, 0, 0});
+  EXPECT_EQ(policy->Act(a), whole->Act(a));
+  EXPECT_EQ(policy->prepared_acts(), 1);
+  // nothing to prepare for a window of 1, or for a first layer of blocks
   auto one = Policy::Make(1, {12, 6}, std::vector<float>(13 * 6, 0.5f), 1, &error);
   ASSERT_TRUE(one) << error;
-  one->Prepare(h);
-  h.Push(levels(), valves());
-  one->Act(h);
+  one->Prepare(a);
+  a.Push({0.3, 0.3, 0.3, 0.3, 0.3, 0.3}, {0, 0, 0, 0, 0, 0});
+  one->Act(a);
   EXPECT_EQ(one->prepared_acts(), 0);
+  std::vector<float> blocks(static_cast<std::size_t>(49 * 16 + 17 * 6), 0.0f);
+  for (int r = 0; r < 48; ++r)  // two blocks of 24 x 8: rows 0-23 to units 0-7, 24-47 to 8-15
+    for (int c = 0; c < 16; ++c)
+      if (r / 24 == c / 8) blocks[static_cast<std::size_t>(r * 16 + c)] = u(rng);
+  for (std::size_t i = 48 * 16; i < blocks.size(); ++i) blocks[i] = u(rng);
+  auto split = Policy::Make(4, widths, blocks, 1, &error);
+  ASSERT_TRUE(split) << error;
+  EXPECT_EQ(split->blocks(), (std::vector<int>{2, 1}));
+  split->Prepare(a);
+  a.Push({0.4, 0.4, 0.4, 0.4, 0.4, 0.4}, {1, 1, 1, 1, 1, 1});
+  split->Act(a);
+  EXPECT_EQ(split->prepared_acts(), 0);
 }
 
 TEST(PushWire, APolicyV2IsCheckedBeforeDecodingAndToldFromAPolicyT) {
