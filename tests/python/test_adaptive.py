@@ -919,9 +919,11 @@ def test_the_learning_curve_figure_names_its_teacher_and_is_written_whole(tmp_pa
     config = dataclasses.asdict(TrainingConfig())  # as a checkpoint records it
     assert evaluate.curve_title(config) == (
         "adaptive-policy: DAgger from the planner holding 2, 1, 3 or 6 steps over 6, its 4 best "
-        "rechecked over 30 (the better of balance and closed after the hold), 4 members one "
+        "rechecked over 30 (the better of balance and closed after the hold), perturbed (a "
+        "random setting held 1 to 64 steps, begun with chance 0.004 a step), 4 members one "
         "after another")
-    balance = {**config, "recheck_rule": "balance"}
+    balance = {**config, "recheck_rule": "balance", "explore": 0.0}
+    assert "perturbed" not in evaluate.curve_title(balance)
     assert "(balance after the hold)" in evaluate.curve_title(balance)
     plain = {"hold": 3, "horizon": 10, "extra_holds": [], "recheck": 0, "members": 1}
     assert evaluate.curve_title(plain) == ("adaptive-policy: DAgger from the planner holding 3 "

@@ -166,7 +166,7 @@ class TrainingConfig:
     privileged_params: float = 0.0
     stuck_memory: bool = True
     teacher_stuck: str = "seen"
-    explore: float = 0.0
+    explore: float = 0.004
     explore_hold: int = 64
 
     def __post_init__(self) -> None:

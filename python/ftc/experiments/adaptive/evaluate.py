@@ -175,8 +175,8 @@ def evaluate(policy: Any, which: str, seeds: Sequence[int] = (0,),
 
 
 def curve_title(config: dict[str, Any]) -> str:
-    """The learning curve figure's title: the teacher and the members of a
-    checkpoint's training ``config``."""
+    """The learning curve figure's title: the teacher, the perturbations and the
+    members of a checkpoint's training ``config``."""
     *first, last = [str(h) for h in [config["hold"], *config.get("extra_holds", [])]]
     holds = f"{', '.join(first)} or {last}" if first else last
     title = (f"adaptive-policy: DAgger from the planner holding {holds} steps over "
@@ -186,6 +186,9 @@ def curve_title(config: dict[str, Any]) -> str:
         after = "the better of balance and closed" if rule == "best" else rule
         title += (f", its {config['recheck']} best rechecked over {config['recheck_horizon']} "
                   f"({after} after the hold)")
+    if config.get("explore"):
+        title += (f", perturbed (a random setting held 1 to {config['explore_hold']} steps, "
+                  f"begun with chance {config['explore']:g} a step)")
     members = int(config.get("members", 1))
     return title + (f", {members} members one after another" if members > 1 else "")
 
