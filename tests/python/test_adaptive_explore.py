@@ -75,8 +75,10 @@ def test_only_the_eligible_plants_are_perturbed_and_a_finished_episode_ends_its_
 
 
 def tiny_config(**kw) -> TrainingConfig:
-    return TrainingConfig(envs=4, life_intervals=1, window=2, hidden=(8,), hold=2, horizon=3,
-                          extra_holds=(), recheck=0, recheck_rule="closed", members=1, **kw)
+    """A tiny training, without perturbations unless ``kw`` asks for them."""
+    return TrainingConfig(**{"envs": 4, "life_intervals": 1, "window": 2, "hidden": (8,),
+                             "hold": 2, "horizon": 3, "extra_holds": (), "recheck": 0,
+                             "recheck_rule": "closed", "members": 1, "explore": 0.0, **kw})
 
 
 def rollouts(config: TrainingConfig, beta: float) -> dict:
@@ -106,6 +108,7 @@ def test_the_teachers_plants_and_every_other_draw_are_untouched_by_the_perturbat
 def test_bad_perturbation_options_are_one_clear_error(tmp_path, capsys):
     from ftc.experiments.adaptive.cli import main
 
+    assert TrainingConfig().explore == 0.004 and TrainingConfig().explore_hold == 64  # default
     for bad in ({"explore": -0.1}, {"explore": 1.5}, {"explore_hold": 0}):
         with pytest.raises(ValueError, match="explore must be in"):
             TrainingConfig(**bad)
