@@ -228,23 +228,28 @@ struct Policy::Net {
     return Rest();
   }
 
-  // The same, the first layer's rows from `skip` to `skip + count` read from
-  // `partial` (their products with the inputs there, summed beforehand).
-  const Eigen::RowVectorXf& ForwardWith(const Eigen::RowVectorXf& partial, int skip, int count) {
+  // The same, the first layer's rows of the window's older steps (slots 1..W-1)
+  // read from Prepare's sums.
+  const Eigen::RowVectorXf& ForwardPrepared() {
     Layer& first = layers.front();
     const learn::MatrixRM& w = first.w[0];
     const Eigen::Map<const Eigen::RowVectorXf> x(input.data(), first.in);
     first.z = partial;
-    first.z.noalias() += x.head(skip) * w.topRows(skip);
-    const int tail = first.in - skip - count;
-    if (tail > 0) first.z.noalias() += x.tail(tail) * w.bottomRows(tail);
+    first.z.noalias() += x.head(kStepFeatures) * w.topRows(kStepFeatures);
+    const int tail = first.in - kStepFeatures - static_cast<int>(older.size());
+    if (tail > 0) first.z.noalias() += x.tail(tail) * w.bottomRows(tail);  // the stuck memory
     return Rest();
   }
 
-  // The rows `skip` to `skip + count` of the first layer times `x` (count floats).
-  void Partial(const float* x, int skip, int count, Eigen::RowVectorXf* out) const {
-    out->noalias() = Eigen::Map<const Eigen::RowVectorXf>(x, count) *
-                     layers.front().w[0].middleRows(skip, count);
+  // Sums the first layer's products of `history`'s slots 0..W-2, which become
+  // slots 1..W-1 after the next push (a dense first layer).
+  void Prepare(const History& history, int window) {
+    older.resize(static_cast<std::size_t>(kStepFeatures * (window - 1)));
+    history.Newest(window - 1, older.data());
+    partial.noalias() =
+        Eigen::Map<const Eigen::RowVectorXf>(older.data(), static_cast<Eigen::Index>(older.size())) *
+        layers.front().w[0].middleRows(kStepFeatures, static_cast<Eigen::Index>(older.size()));
+    has_partial = true;
   }
 
   // The first layer's bias and tanh, then every other layer (tanh after all but the last).
@@ -316,26 +321,18 @@ bool Policy::Preparable() const {
 }
 
 void Policy::Prepare(const History& history) {
-  if (!Preparable()) return;
-  Net& net = *net_;
-  const int count = kStepFeatures * (window_ - 1);
-  net.older.resize(static_cast<std::size_t>(count));
-  history.Newest(window_ - 1, net.older.data());  // slots 0..W-2: after a push, 1..W-1
-  net.Partial(net.older.data(), kStepFeatures, count, &net.partial);
-  net.has_partial = true;
+  if (Preparable()) net_->Prepare(history, window_);
 }
 
 void Policy::Warm() {
   if (net_->has_partial)
-    net_->ForwardWith(net_->partial, kStepFeatures, kStepFeatures * (window_ - 1));
+    net_->ForwardPrepared();
   else
     net_->Forward();
 }
 
 std::array<std::int8_t, kTanks> Policy::Decide(bool prepared) {
-  const auto& logits = prepared ? net_->ForwardWith(net_->partial, kStepFeatures,
-                                                    kStepFeatures * (window_ - 1))
-                                : net_->Forward();
+  const auto& logits = prepared ? net_->ForwardPrepared() : net_->Forward();
   if (widths_.back() == kSettings) return JointValves(logits.data());
   std::array<std::int8_t, kTanks> u{};
   for (int i = 0; i < kTanks; ++i) u[i] = logits[i] > 0.0f ? 1 : 0;
