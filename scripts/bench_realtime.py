@@ -75,18 +75,24 @@ DEFAULT_CACHE = "~/.cache/ftc/adaptive"  # where `python -m ftc.experiments.adap
 
 
 def run_rate(weights: Path, rate: float, steps: int, log: Path,
-             key_file: Path | None = None, name: str = "node", fifo: int = 0) -> dict:
+             key_file: Path | None = None, name: str = "node", fifo: int = 0,
+             pin: tuple[int, int] | None = None) -> dict:
     """One node run; with ``fifo`` the plant and the node under SCHED_FIFO at that
-    priority (chrt), as a real-time deployment schedules its control loop."""
+    priority (chrt), as a real-time deployment schedules its control loop; with
+    ``pin`` (plant CPU, node CPU) each held on its own CPU (taskset), as a
+    deployment that keeps its control loop's core to itself."""
     url, prefix = private_lcm_url(), private_prefix()
     keyed = ["--key-file", str(key_file)] if key_file else []
     chrt = ["chrt", "-f", str(fifo)] if fifo else []
-    plant = subprocess.Popen([*chrt, str(plant_binary()), "--scenario", str(REPO / "scenarios" /
+    plant_cpu = ["taskset", "-c", str(pin[0])] if pin else []
+    node_cpu = ["taskset", "-c", str(pin[1])] if pin else []
+    plant = subprocess.Popen([*plant_cpu, *chrt, str(plant_binary()), "--scenario",
+                              str(REPO / "scenarios" /
                               "single.toml"), "--mode", "realtime", "--rate", str(rate),
                               "--watchdog", "1", "--lcm-url", url, "--prefix", prefix, *keyed],
                              stderr=subprocess.DEVNULL)
     try:
-        out = subprocess.run([*chrt, str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
+        out = subprocess.run([*node_cpu, *chrt, str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
                               url, "--prefix", prefix, "--steps", str(steps),
                               "--latency-log", str(log), *keyed], capture_output=True, text=True,
                              timeout=steps / rate + 60)
@@ -101,7 +107,8 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
         if "deadline miss" in line:
             print(f"bench_realtime: {name} at {rate:g} Hz: {line}", file=sys.stderr)
     row = _row(name, rate, n, misses, p50, p99, worst,
-               scheduler=f"fifo {fifo}" if fifo else "other")
+               scheduler=(f"fifo {fifo}" if fifo else "other")
+               + (f", pinned {pin[0]}/{pin[1]}" if pin else ""))
     row["auth_us_per_step"] = m.group(6)
     return row
 
@@ -145,19 +152,24 @@ def run_python(controller: str, rate: float, out: Path) -> dict:
 
 
 def _node_runs(controllers: list[str], rates: list[float], repeats: int) -> list:
-    """(controller, rate) in the order to run: per rate, node and node-signed
-    alternating ABBA over ``repeats`` pairs when both are asked for (so a change
-    of the machine's load falls on both alike), else each once."""
-    nodes = [c for c in controllers if c.startswith("node")]
+    """(controller, rate) in the order to run: per rate, ``repeats`` rounds of
+    the node controllers, each round in the reverse order of the one before
+    (ABBA for a pair), so that a change of the machine's load falls on all
+    alike."""
+    nodes = list(dict.fromkeys(c for c in controllers if c.startswith("node")))
     order = []
     for rate in sorted(rates):
-        if set(nodes) == {"node", "node-signed"}:
-            for k in range(repeats):
-                pair = ["node", "node-signed"] if k % 2 == 0 else ["node-signed", "node"]
-                order += [(c, rate) for c in pair]
-        else:
-            order += [(c, rate) for c in dict.fromkeys(nodes)]
+        for k in range(repeats):
+            order += [(c, rate) for c in (nodes if k % 2 == 0 else nodes[::-1])]
     return order
+
+
+def pin_cpus() -> tuple[int, int]:
+    """(plant CPU, node CPU) for --pin: the first two this process may run on."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        raise SystemExit(f"bench_realtime: --pin needs two CPUs; this process may use {cpus}")
+    return cpus[0], cpus[1]
 
 
 def signing_cost(rows: list[dict]) -> list[dict]:
@@ -219,7 +231,7 @@ def student_name(student: Path | None) -> str:
 def measure(controllers: list[str], steps: int, rates: list[float],
             python_rates: list[float], echo: bool = False,
             repeats: int = 1, student: Path | None = None,
-            fifo: int = 0) -> tuple[list[dict], Any]:
+            fifo: int = 0, pin: bool = False) -> tuple[list[dict], Any]:
     """Every controller at every rate: the table's rows, and the node's latencies
     at its lowest rate with that row (or None)."""
     torch.manual_seed(0)
@@ -234,17 +246,21 @@ def measure(controllers: list[str], steps: int, rates: list[float],
         key_file = Path(tmp) / "bus.key"
         key_file.write_text(new_key().hex())
         key_file.chmod(0o600)
-        runs = [(c, rate, f) for c, rate in _node_runs(controllers, rates, repeats)
-                for f in ((0, fifo) if fifo else (0,))]  # each scheduler beside the other
-        runs += [(c, rate, 0) for c in controllers if not c.startswith("node")
+        cpus = pin_cpus() if pin else None
+        # each scheduler, and each placement, beside the other
+        ways = [(f, where) for where in ((None, cpus) if pin else (None,))
+                for f in ((0, fifo) if fifo else (0,))]
+        runs = [(c, rate, f, where) for c, rate in _node_runs(controllers, rates, repeats)
+                for f, where in ways]
+        runs += [(c, rate, 0, None) for c in controllers if not c.startswith("node")
                  for rate in sorted(python_rates)]
-        for controller, rate, f in runs:
+        for controller, rate, f, where in runs:
             if controller.startswith("node"):
                 log = Path(tmp) / f"latency-{controller}-{rate:g}.txt"
                 rows.append(run_rate(student_file if controller == "node-student" else weights,
                                      rate, steps, log,
                                      key_file if controller == "node-signed" else None,
-                                     name=controller, fifo=f))
+                                     name=controller, fifo=f, pin=where))
                 if first_log is None:
                     first_log = (np.loadtxt(log), rows[-1])
             else:
@@ -274,11 +290,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--python-rates", type=float, nargs="+", default=[20, 50, 100, 200],
                    help="plant rates to try with the Python controllers, Hz")
     p.add_argument("--repeats", type=int, default=1,
-                   help="with node and node-signed: pairs per rate, alternating (default 1)")
+                   help="rounds of the node controllers per rate, each round in the reverse "
+                        "order of the one before (ABBA for node and node-signed; default 1)")
     p.add_argument("--fifo", type=int, default=0, metavar="PRIORITY",
                    help="also run each node run with the plant and the node under SCHED_FIFO "
                         "at this priority (chrt; needs CAP_SYS_NICE), beside the default "
                         "scheduler's run (default 0: not)")
+    p.add_argument("--pin", action="store_true",
+                   help="also run each node run with the plant and the node held on CPUs of "
+                        "their own (taskset: the first two this process may use), beside the "
+                        "unpinned run")
     p.add_argument("--student", type=Path, default=None,
                    help="node-student: the student checkpoint (default: the cached one of "
                         "`python -m ftc.experiments.adaptive train`)")
@@ -295,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     load_start = os.getloadavg()[0]
     rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
                               echo=True, repeats=args.repeats, student=args.student,
-                              fifo=args.fifo)
+                              fifo=args.fifo, pin=args.pin)
     for controller in dict.fromkeys(args.controllers):
         best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
@@ -341,6 +362,8 @@ def main(argv: list[str] | None = None) -> int:
             f"--steps {args.steps} --rates {' '.join(f'{r:g}' for r in args.rates)} "
             f"--python-rates {' '.join(f'{r:g}' for r in args.python_rates)}"
             + (f" --fifo {args.fifo}" if args.fifo else "")
+            + (" --pin" if args.pin else "")
+            + (f" --repeats {args.repeats}" if args.repeats > 1 else "")
             + (f" --student {args.student}" if args.student else "") + "\n"
             f"# commit: {git_revision()}\n"
             f"# date: {time.strftime('%Y-%m-%d', time.gmtime())}, load average "
