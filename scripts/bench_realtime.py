@@ -86,16 +86,16 @@ def run_rate(weights: Path, rate: float, steps: int, log: Path,
     chrt = ["chrt", "-f", str(fifo)] if fifo else []
     plant_cpu = ["taskset", "-c", str(pin[0])] if pin else []
     node_cpu = ["taskset", "-c", str(pin[1])] if pin else []
-    plant = subprocess.Popen([*plant_cpu, *chrt, str(plant_binary()), "--scenario",
-                              str(REPO / "scenarios" /
-                              "single.toml"), "--mode", "realtime", "--rate", str(rate),
-                              "--watchdog", "1", "--lcm-url", url, "--prefix", prefix, *keyed],
+    plant = subprocess.Popen([*plant_cpu, *chrt, str(plant_binary()),
+                              "--scenario", str(REPO / "scenarios" / "single.toml"),
+                              "--mode", "realtime", "--rate", str(rate), "--watchdog", "1",
+                              "--lcm-url", url, "--prefix", prefix, *keyed],
                              stderr=subprocess.DEVNULL)
     try:
-        out = subprocess.run([*node_cpu, *chrt, str(policy_node_binary()), "--policy", str(weights), "--lcm-url",
-                              url, "--prefix", prefix, "--steps", str(steps),
-                              "--latency-log", str(log), *keyed], capture_output=True, text=True,
-                             timeout=steps / rate + 60)
+        out = subprocess.run([*node_cpu, *chrt, str(policy_node_binary()),
+                              "--policy", str(weights), "--lcm-url", url, "--prefix", prefix,
+                              "--steps", str(steps), "--latency-log", str(log), *keyed],
+                             capture_output=True, text=True, timeout=steps / rate + 60)
     finally:
         plant.kill()
         plant.wait()
@@ -231,9 +231,10 @@ def student_name(student: Path | None) -> str:
 def measure(controllers: list[str], steps: int, rates: list[float],
             python_rates: list[float], echo: bool = False,
             repeats: int = 1, student: Path | None = None,
-            fifo: int = 0, pin: bool = False) -> tuple[list[dict], Any]:
+            fifo: int = 0, pin: tuple[int, int] | None = None) -> tuple[list[dict], Any]:
     """Every controller at every rate: the table's rows, and the node's latencies
-    at its lowest rate with that row (or None)."""
+    at its lowest rate with that row (or None); with ``pin`` (plant CPU, node
+    CPU) each node run also pinned, beside the unpinned one."""
     torch.manual_seed(0)
     rows, first_log = [], None
     with tempfile.TemporaryDirectory() as tmp:
@@ -246,9 +247,8 @@ def measure(controllers: list[str], steps: int, rates: list[float],
         key_file = Path(tmp) / "bus.key"
         key_file.write_text(new_key().hex())
         key_file.chmod(0o600)
-        cpus = pin_cpus() if pin else None
         # each scheduler, and each placement, beside the other
-        ways = [(f, where) for where in ((None, cpus) if pin else (None,))
+        ways = [(f, where) for where in ((None, pin) if pin else (None,))
                 for f in ((0, fifo) if fifo else (0,))]
         runs = [(c, rate, f, where) for c, rate in _node_runs(controllers, rates, repeats)
                 for f, where in ways]
@@ -313,10 +313,11 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--repeats must be at least 1, not {args.repeats}")
     if not 0 <= args.fifo <= 99:
         p.error(f"--fifo must be a SCHED_FIFO priority in 1..99 (0: not), not {args.fifo}")
+    cpus = pin_cpus() if args.pin else None
     load_start = os.getloadavg()[0]
     rows, first_log = measure(args.controllers, args.steps, args.rates, args.python_rates,
                               echo=True, repeats=args.repeats, student=args.student,
-                              fifo=args.fifo, pin=args.pin)
+                              fifo=args.fifo, pin=cpus)
     for controller in dict.fromkeys(args.controllers):
         best = highest_rate(rows, controller)
         print(f"bench_realtime: {controller}: highest rate with < 0.1% misses: "
