@@ -137,9 +137,9 @@ class Node {
   // state is due (the last state's arrival plus the states' mean period), and
   // the policy runs the pass the state will take once, its result dropped
   // (Policy::Warm): the weights it reads are back in the cache when it
-  // comes. Between two states at 100 Hz other processes evict them. A cold forward pass of the
-  // three-member student (0.5 MB of weights, packed) took 19 us at p50 and
-  // 29 us at p99 against 4 us warm (this machine, build/bench_forward).
+  // comes. Between two states at 100 Hz other processes evict them. A cold
+  // forward pass of the three-member student (0.5 MB of weights, packed) took
+  // 19 us at p50 and 29 us at p99 against 4 us warm (build/bench_forward).
   bool Spin(int timeout_ms) {
     const auto now = Clock::now();
     if (!open_ || now - heard_ > kSessionLost) Open(now);
