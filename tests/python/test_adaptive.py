@@ -656,14 +656,8 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     # scenarios and this plant (the pool reproduces the benchmark's closed runs to
     # 5e-6 per step, test above; a score is that over a gain of 0.005 per step or
     # more here, so 1e-3)
-    directory = {"heldout": distribution.SCENARIO_DIR / "heldout",
-                 "drawn": distribution.SCENARIO_DIR / "heldout" / "drawn",
-                 "final": distribution.SCENARIO_DIR / "heldout" / "final",
-                 "margin": distribution.SCENARIO_DIR / "heldout" / "margin",
-                 "fresh": distribution.SCENARIO_DIR / "heldout" / "fresh",
-                 "blind": distribution.SCENARIO_DIR / "heldout" / "blind",
-                 "sealed": distribution.SCENARIO_DIR / "heldout" / "sealed",
-                 "sealed2": distribution.SCENARIO_DIR / "heldout" / "sealed2"}[which]
+    heldout = distribution.SCENARIO_DIR / "heldout"
+    directory = heldout if which == "heldout" else heldout / which
     files = sorted(directory.glob("*.toml"))
     reference = distribution.SCENARIO_DIR / "reference" / f"{which}.csv"
     rows = evaluate.evaluate(None, "heldout", seeds=[seed], heldout=reference,
@@ -672,7 +666,7 @@ def test_the_committed_held_out_rewards_are_the_plants(which, seed):
     defined = [r for r in rows if np.isfinite(r["score"])]
     assert len(defined) >= len(rows) - 2
     assert all(abs(r["score"]) < 1e-3 for r in defined), defined
-    if which in ("margin", "fresh", "blind", "sealed", "sealed2"):  # drawn with --min-gain 0.3: well conditioned
+    if which in ("margin", "fresh", "blind", "sealed", "sealed2"):  # drawn with --min-gain 0.3
         assert all(r["reference_gain_per_step"] >= 0.3 for r in rows)
 
 
