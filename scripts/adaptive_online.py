@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ftc.experiments.adaptive import evaluate
-from ftc.experiments.adaptive.cli import write_result
+from ftc.experiments.adaptive.summary import write_result
 
 SUITE = ["single", "multiple", "random-05", "random-10", "random-17"]
 CHECK = ["abrupt", "deadpump", "unseen-continuous", "unseen-noise"]

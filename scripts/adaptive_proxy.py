@@ -74,7 +74,7 @@ def parse_config(text: str, epochs: int) -> TrainingConfig:
 def write_rows(path: str, a: argparse.Namespace, n_train: int, n_val: int,
                rows: list[dict]) -> None:
     """The comparison as a result file (docs/results/): provenance, then the CSV."""
-    from ftc.experiments.adaptive.cli import write_result
+    from ftc.experiments.adaptive.summary import write_result
 
     write_result(path, f"student configurations fitted {a.epochs} epochs on {n_train} teacher "
                        f"labels of 24 plants drawn from the training distribution, scored on "

@@ -28,7 +28,7 @@ import torch
 
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive import evaluate
-from ftc.experiments.adaptive.cli import write_result
+from ftc.experiments.adaptive.summary import write_result
 
 
 def plan_shape(text: str) -> tuple[tuple[int, ...], int]:

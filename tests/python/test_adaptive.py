@@ -7,6 +7,7 @@ and the registered method flying a checkpoint as the trainer's window does.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import math
 import os
@@ -413,7 +414,7 @@ def test_one_command_trains_and_the_method_flies_it_on_the_plant(tmp_path):
     assert (tmp_path / "run" / "metrics.csv").read_text().count("\n") >= 2
 
 
-def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path):
+def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path, capsys):
     from ftc.experiments.adaptive.cli import main
 
     scores = tmp_path / "s.csv"
@@ -422,13 +423,30 @@ def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path):
                       "check,c,0,0.7,2.3\ncheck,d,0,,2.6\n")  # d: undefined
     out = tmp_path / "summary.csv"
     assert main(["summarize", f"mine={scores}", "--out", str(out)]) == 0
-    rows = [ln.split(",") for ln in out.read_text().splitlines() if not ln.startswith("#")]
-    assert rows[0] == ["policy", "set", "runs", "mean score", "worst scenario",
+    rows = list(csv.reader(ln for ln in out.read_text().splitlines() if not ln.startswith("#")))
+    assert rows[0] == ["policy", "set", "runs", "mean score", "95% interval", "worst scenario",
                        "scenarios below 0.60", "undefined runs"]
-    # suite: runs 1.0, 0.8, 0.5 -> mean 0.767; scenario means a 0.9, b 0.5 (below 0.60)
-    assert rows[1] == ["mine", "suite", "3", "0.767", "b (0.500)", "1", "0"]
+    # suite: scenario means a 0.9 (runs 1.0, 0.8), b 0.5 (below 0.60): mean 0.7, each
+    # scenario once. Its interval draws two scenarios, then their runs: all b gives
+    # 0.5 (1 in 4, the low end); 1.0 needs a twice with 1.0 twice (1 in 64, below
+    # the 2.5% tail) and 0.95 or more 5 in 64, so the high end is 0.95.
+    assert rows[1] == ["mine", "suite", "3", "0.7", "[0.500, 0.950]", "b (0.500)", "1", "0"]
     # check: d's undefined score is counted apart, not as a run
-    assert rows[2] == ["mine", "check", "1", "0.7", "c (0.700)", "0", "1"]
+    assert rows[2] == ["mine", "check", "1", "0.7", "[0.700, 0.700]", "c (0.700)", "0", "1"]
+    # a pool of both sets: scenarios a 0.9, b 0.5, c 0.7 each once -> 0.7; three
+    # places drawn from three scenarios are all b 1 time in 27 (above the 2.5%
+    # tail), so the low end is 0.5
+    assert main(["summarize", f"mine={scores}", "--pool", "both=suite,check", "--out",
+                 str(out)]) == 0
+    rows = list(csv.reader(ln for ln in out.read_text().splitlines() if not ln.startswith("#")))
+    assert len(rows) == 4 and rows[3][:4] == ["mine", "both", "4", "0.7"]
+    low, high = (float(x) for x in rows[3][4].strip("[]").split(","))
+    assert low == 0.5 and 0.7 < high < 1.0
+    assert rows[3][5:] == ["b (0.500)", "1", "1"]
+    for bad, says in (("both=suite", "two sets or more"), ("=suite,check", "NAME=SET"),
+                      ("both=suite,sealed", "no policy has results on every one of suite, sealed")):
+        assert main(["summarize", f"mine={scores}", "--pool", bad, "--out", str(out)]) == 2
+        assert says in capsys.readouterr().err
     # by scenario: a column per label, empty where undefined
     other = tmp_path / "o.csv"
     other.write_text("set,scenario,seed,score,reward_per_step,reference_gain_per_step\n"

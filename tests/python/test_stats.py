@@ -92,3 +92,41 @@ def test_the_performance_profile_counts_runs_above_each_threshold():
                                                  np.array([0.0, 0.5, 0.7, 1.0]))
     assert point == pytest.approx([1.0, 0.75, 0.25, 0.0])
     assert low[1] == pytest.approx(0.5) and high[1] == pytest.approx(1.0)
+
+
+def test_the_set_mean_resamples_the_tasks_and_then_their_runs():
+    # tasks a: runs 0, 0 and b: 1, 1. Drawing two tasks with replacement gives a
+    # mean of 0 (a, a: 1 in 4), 1/2 (2 in 4) or 1 (b, b: 1 in 4), so the interval
+    # is [0, 1]; the stratified bootstrap holds the tasks and has no spread here.
+    tasks = [A([0.0, 0.0]), A([1.0, 1.0])]
+    est = stats.set_mean(tasks, stats.BootstrapConfig(reps=4000, seed=3))
+    assert (est.point, est.low, est.high) == (0.5, 0.0, 1.0)
+    fixed = stats.bootstrap(tasks, stats.mean)
+    assert (fixed.low, fixed.high) == pytest.approx((0.5, 0.5))
+    # one task of runs 0 and 2: the second stage resamples its runs (0, 1 or 2)
+    alone = stats.set_mean([A([0.0, 2.0])], stats.BootstrapConfig(reps=4000, seed=3))
+    assert (alone.point, alone.low, alone.high) == (1.0, 0.0, 2.0)
+    with pytest.raises(ValueError, match="no task"):
+        stats.set_mean([])
+
+
+def test_the_set_mean_interval_covers_the_mean_of_the_distribution_the_tasks_come_from():
+    # 300 sets of 12 tasks, each task's mean drawn from N(0.9, 0.1) and two runs
+    # of it with seed noise N(0, 0.02): the interval should hold 0.9 in about 95%
+    # of the sets. A percentile bootstrap of 12 tasks covers less: 0.89 to 0.91
+    # measured with data seeds 11, 12 and 13 (pure NumPy, the same on every CPU).
+    # 300 sets give a binomial sd of 0.017: the lower bound is 3 sd below 0.90.
+    # The stratified bootstrap, which holds the tasks fixed, covers only the
+    # seeds' spread: it held 0.9 in 0.13 to 0.19 of the sets.
+    rng = np.random.default_rng(11)
+    config = stats.BootstrapConfig(reps=1000, seed=0)
+    held = fixed_held = 0
+    for _ in range(300):
+        means = rng.normal(0.9, 0.1, size=12)
+        tasks = [m + rng.normal(0.0, 0.02, size=2) for m in means]
+        est = stats.set_mean(tasks, config)
+        held += est.low <= 0.9 <= est.high
+        fixed = stats.bootstrap(tasks, stats.mean, config)
+        fixed_held += fixed.low <= 0.9 <= fixed.high
+    assert 0.85 <= held / 300 <= 0.99
+    assert fixed_held / 300 < 0.5

@@ -193,6 +193,31 @@ def bootstrap(tasks: Sequence[np.ndarray], statistic: Statistic,
     return _interval(point, statistic(_resample(tasks, config.reps, rng)), config.confidence)
 
 
+def set_mean(tasks: Sequence[np.ndarray],
+             config: BootstrapConfig = BootstrapConfig()) -> Estimate:
+    """The mean over tasks of each task's mean, with a two-stage bootstrap
+    interval: the tasks drawn with replacement, then each drawn task's runs
+    within it.
+
+    For a set of scenarios drawn from a distribution of faults (a held-out
+    check), whose mean stands for the distribution's. The stratified bootstrap
+    holds the tasks fixed, so its interval covers only the seeds' spread; this
+    one also covers which faults happened to be drawn.
+    """
+    if not tasks:
+        raise ValueError("no task has a run score")
+    rng = np.random.default_rng(config.seed)
+    n = len(tasks)
+    drawn = rng.integers(0, n, size=(config.reps, n))  # which task fills each place
+    total = np.zeros(config.reps)
+    for t, runs in enumerate(tasks):  # every place gets runs drawn afresh
+        again = runs[rng.integers(0, len(runs), size=(config.reps, n, len(runs)))].mean(axis=2)
+        total += np.where(drawn == t, again, 0.0).sum(axis=1)
+    samples = total / n
+    point = float(np.mean([t.mean() for t in tasks]))
+    return _interval(point, samples, config.confidence)
+
+
 def aggregates(tasks: Sequence[np.ndarray],
                config: BootstrapConfig = BootstrapConfig()) -> dict[str, Estimate]:
     """Every aggregate of :data:`AGGREGATES` with its interval (one resampling each,

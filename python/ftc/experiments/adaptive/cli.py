@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from ftc.common.atomic import atomic_torch_save, atomic_write_text
-from ftc.common.build_info import git_revision
+from ftc.common.atomic import atomic_torch_save
 from ftc.common.constants import NUM_TANKS
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE
 from ftc.control.agents.balance import balance_valves
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive import dagger, distribution, evaluate
+from ftc.experiments.adaptive.summary import cmd_summarize, write_result
 from ftc.learning.history_policy import HistoryPolicy, TrainingConfig, checkpoint_file
 
 DEFAULT_CACHE = "~/.cache/ftc/adaptive"
@@ -281,118 +281,6 @@ def balance_rule(levels: np.ndarray) -> np.ndarray:
     return np.stack([balance_valves(x) for x in levels])
 
 
-def write_result(path: str, what: str, rows: list[dict[str, Any]],
-                 command: str = "python -m ftc.experiments.adaptive") -> None:
-    """A result file (docs/results/): '#' provenance lines (``command`` followed by
-    this process's arguments), then the CSV."""
-    import csv
-    import io
-    import platform
-
-    buf = io.StringIO()
-    for key, value in (("what", what), ("command", command + " " + " ".join(sys.argv[1:])),
-                       ("commit", git_revision()), ("date", time.strftime("%Y-%m-%d")),
-                       ("machine", f"{platform.processor() or platform.machine()}, "
-                                   f"{os.cpu_count()} cores, load average "
-                                   f"{os.getloadavg()[0]:.1f}")):
-        buf.write(f"# {key}: {value}\n")
-    writer = csv.DictWriter(buf, list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_text(path, buf.getvalue())
-
-
-def _scored(path: str) -> list[dict[str, str]]:
-    """The rows of one of evaluate's result files."""
-    import csv
-
-    try:
-        lines = [ln for ln in Path(path).read_text().splitlines() if not ln.startswith("#")]
-    except OSError as e:
-        raise ValueError(f"{path}: {e}") from None
-    return list(csv.DictReader(lines))
-
-
-def _defined(row: dict[str, str]) -> bool:
-    """A result row's score is defined (empty: the reference earns what closed earns)."""
-    return row["score"] not in ("", "nan")
-
-
-def _by_scenario(results: list[str]) -> list[dict[str, Any]]:
-    """A row per (set, scenario): the reference's gain over closed per step
-    (intervals 1-9) and each label's mean score there (empty: undefined)."""
-    table: dict[tuple[str, str], dict[str, Any]] = {}
-    labels: list[str] = []
-    for given in results:
-        label, _, path = given.rpartition("=")
-        label = label or Path(path).stem
-        labels.append(label)
-        per: dict[tuple[str, str], list[float]] = {}
-        for r in _scored(path):
-            key = (r["set"], r["scenario"])
-            row = table.setdefault(key, {"set": key[0], "scenario": key[1],
-                                         "reference gain per step": ""})
-            if r.get("reference_gain_per_step"):
-                row["reference gain per step"] = r["reference_gain_per_step"]
-            if _defined(r):
-                per.setdefault(key, []).append(float(r["score"]))
-        for key in table:
-            if key in per:
-                table[key][label] = round(float(np.mean(per[key])), 3)
-    return [{**{k: row[k] for k in ("set", "scenario", "reference gain per step")},
-             **{label: row.get(label, "") for label in dict.fromkeys(labels)}}
-            for row in table.values()]
-
-
-def cmd_summarize(a: argparse.Namespace) -> int:
-    """One row per (result file, set): runs, mean and worst score, scenarios
-    below 0.60, undefined runs; or with --by-scenario one per (set, scenario)."""
-    if a.by_scenario:
-        rows = _by_scenario(a.results)
-        try:
-            write_result(a.out, "per-scenario normalized scores (intervals 1-9, against the "
-                         "reference and closed; empty: undefined) and the reference's gain "
-                         "over closed per step, from " +
-                         ", ".join(g.rpartition("=")[2] for g in a.results), rows)
-        except OSError as e:
-            print(f"adaptive: error: cannot write {a.out}: {e}", file=sys.stderr)
-            return EXIT_STORAGE
-        print(f"adaptive: {len(rows)} scenarios written to {a.out}")
-        return 0
-    rows = []
-    for given in a.results:
-        label, _, path = given.rpartition("=")
-        scored = _scored(path)
-        for which in dict.fromkeys(r["set"] for r in scored):
-            # an empty score is undefined (the reference earns what closed earns): not a run
-            cells = [r for r in scored if r["set"] == which and _defined(r)]
-            undefined = sum(r["set"] == which for r in scored) - len(cells)
-            if not cells:
-                raise ValueError(f"{path}: no defined score in set {which}")
-            per_scenario: dict[str, list[float]] = {}
-            for r in cells:
-                per_scenario.setdefault(r["scenario"], []).append(float(r["score"]))
-            means = {k: float(np.mean(v)) for k, v in per_scenario.items()}
-            worst = min(means, key=means.get)
-            rows.append({"policy": label or Path(path).stem, "set": which, "runs": len(cells),
-                         "mean score": round(float(np.mean([float(r["score"]) for r in cells])), 3),
-                         "worst scenario": f"{worst} ({means[worst]:.3f})",
-                         "scenarios below 0.60": sum(v < 0.6 for v in means.values()),
-                         "undefined runs": undefined})
-    try:
-        write_result(a.out, "per-scenario normalized scores summarized per set (intervals 1-9, "
-                     "against the reference and closed), from " +
-                     ", ".join(g.rpartition("=")[2] for g in a.results), rows)
-    except OSError as e:
-        print(f"adaptive: error: cannot write {a.out}: {e}", file=sys.stderr)
-        return EXIT_STORAGE
-    for r in rows:
-        print(f"adaptive: {r['policy']}: {r['set']}: mean {r['mean score']:.3f}, worst "
-              f"{r['worst scenario']}, {r['scenarios below 0.60']} below 0.60"
-              + (f", {r['undefined runs']} runs undefined" if r["undefined runs"] else ""))
-    return 0
-
-
 def learning_curve(record: dict[str, Any]) -> list[dict[str, Any]]:
     """Per iteration: env steps, teacher labels, wall seconds, and the student's
     mean and worst per-scenario score on the suite (seed 0)."""
@@ -424,6 +312,10 @@ def parser() -> argparse.ArgumentParser:
                       help="a row per set and scenario instead: each policy's mean score "
                            "there (a column per label) and the reference's gain over closed "
                            "per step, which tells the scenarios where the score is ill-posed")
+    summ.add_argument("--pool", action="append", default=[], metavar="NAME=SET,SET",
+                      help="also a row per policy over these sets' scenarios together, "
+                           "named NAME (e.g. unseen=sealed,sealed2): one mean and interval "
+                           "for every scenario no choice looked at; repeatable")
     for name, help_ in (("train", "build the checkpoint (a cached one is kept)"),
                         ("evaluate", "score a checkpoint per scenario; the learning curve")):
         s = sub.add_parser(name, help=help_)
