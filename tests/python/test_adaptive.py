@@ -161,6 +161,36 @@ def test_the_teacher_is_oracle_mpc_and_moves_fuel_to_the_light_wing():
     assert teacher.labels == 2
 
 
+def test_oracle_mpcs_planner_is_the_teacher_with_oracle_mpcs_settings_and_nothing_more(tmp_path):
+    import csv
+
+    from ftc.experiments.adaptive.cli import main, oracle_config
+
+    # the default teacher holds 2, 1, 3 or 6 steps and rechecks: oracle-mpc's does neither
+    assert len(PoolTeacher.from_config(TrainingConfig()).planners) > 1
+    teacher = PoolTeacher.from_config(oracle_config(TrainingConfig(extra_holds=(1, 6))))
+    assert [(p.hold, p.horizon) for p in teacher.planners] == [(3, 10)]
+    assert (teacher.recheck, teacher.second_stage) == (0, 0)
+    # scored from the command line, it is the teacher given oracle-mpc's options by hand,
+    # whatever teacher options come with it
+    scenario = str(distribution.SCENARIO_DIR / "heldout" / "stuck-open.toml")
+    common = ["--sets", "heldout", "--heldout-results",
+              str(distribution.SCENARIO_DIR / "reference" / "heldout.csv"),
+              "--heldout-scenarios", scenario, "--seeds", "0"]
+    rows = {}
+    for name, options in (("oracle", ["--policy", "oracle-mpc", "--extra-holds", "1", "6"]),
+                          ("by-hand", ["--policy", "teacher", "--hold", "3", "--horizon", "10",
+                                       "--extra-holds", "--recheck", "0",
+                                       "--teacher-stuck", "all"])):
+        out = tmp_path / f"{name}.csv"
+        assert main(["evaluate", *options, *common, "--out", str(out)]) == 0
+        lines = out.read_text().splitlines()
+        (rows[name],) = csv.DictReader(ln for ln in lines if not ln.startswith("#"))
+        rows[name]["what"] = lines[0]
+    assert rows["oracle"]["score"] == rows["by-hand"]["score"]
+    assert "oracle-mpc's planner (each setting held 3 steps over 10" in rows["oracle"]["what"]
+
+
 def test_the_student_learns_a_rule_of_its_window_from_labels(one_torch_thread):
     # a known answer: valve i opens iff tank i's newest level is below 0.5
     rng = np.random.default_rng(0)

@@ -31,6 +31,7 @@ from ftc.common.atomic import atomic_torch_save
 from ftc.common.constants import NUM_TANKS
 from ftc.common.errors import EXIT_STORAGE, EXIT_USAGE
 from ftc.control.agents.balance import balance_valves
+from ftc.control.agents.mpc_config import MPCConfig
 from ftc.control.planning.physics.teacher import PoolTeacher
 from ftc.experiments.adaptive import dagger, distribution, evaluate
 from ftc.experiments.adaptive.summary import cmd_summarize, write_result
@@ -148,6 +149,13 @@ def config_of(a: argparse.Namespace) -> TrainingConfig:
     return TrainingConfig(**values)
 
 
+def oracle_config(config: TrainingConfig) -> TrainingConfig:
+    """``config`` with the teacher's planner made oracle-mpc's: each setting held
+    H steps then all closed, over L (MPCConfig's defaults), and nothing more."""
+    return dataclasses.replace(config, hold=MPCConfig.hold, horizon=MPCConfig.horizon,
+                               extra_holds=(), second_stage=0, recheck=0, recheck_rule="closed")
+
+
 def cmd_train(a: argparse.Namespace) -> int:
     dist = distribution.load(a.distribution)
     config = config_of(a)
@@ -208,9 +216,13 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     if a.policy != "student" and a.curve:
         raise ValueError(f"--curve is the student's learning curve: not with --policy {a.policy}")
     record: dict[str, Any] = {}
-    if a.policy == "teacher":  # the planner alone: no checkpoint
+    if a.policy == "oracle-mpc":  # its planner, whatever the teacher's options say
+        policy: Any = PoolTeacher.from_config(oracle_config(config_of(a)))
+        what = (f"oracle-mpc's planner (each setting held {policy.planner.hold} steps "
+                f"over {policy.horizon}, told every stuck valve)")
+    elif a.policy == "teacher":  # the planner alone: no checkpoint
         # the teacher these options distil (config_of refuses holds or rechecks out of range)
-        policy: Any = PoolTeacher.from_config(config_of(a))
+        policy = PoolTeacher.from_config(config_of(a))
         holds = " or ".join(str(p.hold) for p in policy.planners)
         staged = (f", its {a.second_stage} best settings also held {a.hold} steps, then any "
                   "setting" if a.second_stage else "")
@@ -345,14 +357,16 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument("--heldout-name", default="heldout",
                            help="the held-out set's name in the output (e.g. drawn)")
             s.add_argument("--seeds", type=int, nargs="+", default=[0])
-            s.add_argument("--policy", default="student", choices=["student", "teacher", "balance"],
+            s.add_argument("--policy", default="student",
+                           choices=["student", "teacher", "oracle-mpc", "balance"],
                            help="what to score: the checkpoint's student, the teacher (the "
                                 "planner on the true physics with --hold, --horizon, "
                                 "--extra-holds, --second-stage and --recheck, told the "
                                 "stuck valves --teacher-stuck says: all, or seen, those its "
-                                "own commands showed; no checkpoint needed; --hold 3 "
-                                "--horizon 10 --extra-holds --recheck 0 is oracle-mpc's) or "
-                                "the balance rule")
+                                "own commands showed; no checkpoint needed), oracle-mpc's "
+                                "planner (the same planner with oracle-mpc's hold and "
+                                "horizon and nothing more, told every stuck valve, whatever "
+                                "those options say) or the balance rule")
             s.add_argument("--out", default="", help="per-scenario scores (CSV)")
             s.add_argument("--per-interval", action="store_true",
                            help="--out also holds each scored interval's reward per step "
