@@ -477,10 +477,21 @@ def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path, capsys):
                       ("both=suite,sealed", "no policy has results on every one of suite, sealed")):
         assert main(["summarize", f"mine={scores}", "--pool", bad, "--out", str(out)]) == 2
         assert says in capsys.readouterr().err
-    # by scenario: a column per label, empty where undefined
+    # --versus: each row's mean minus the other's on the scenarios both define, paired;
+    # other scores c 0.2 (d undefined), so mine's check row is 0.5 above it everywhere
     other = tmp_path / "o.csv"
     other.write_text("set,scenario,seed,score,reward_per_step,reference_gain_per_step\n"
                      "check,c,0,0.2,2.3,0.5\ncheck,d,0,,2.6,0.0\n")
+    assert main(["summarize", f"mine={scores}", f"other={other}", "--versus", "other",
+                 "--out", str(out)]) == 0
+    rows = list(csv.DictReader(ln for ln in out.read_text().splitlines()
+                               if not ln.startswith("#")))
+    assert [(r["policy"], r["set"], r["against other"]) for r in rows] == [
+        ("mine", "suite", ""), ("mine", "check", "+0.500 [+0.500, +0.500]"),
+        ("other", "check", "")]
+    assert main(["summarize", f"mine={scores}", "--versus", "nobody", "--out", str(out)]) == 2
+    assert "--versus 'nobody': no result file has that label" in capsys.readouterr().err
+    # by scenario: a column per label, empty where undefined
     assert main(["summarize", f"mine={scores}", f"other={other}", "--by-scenario", "--out",
                  str(out)]) == 0
     rows = [ln.split(",") for ln in out.read_text().splitlines() if not ln.startswith("#")]

@@ -130,3 +130,19 @@ def test_the_set_mean_interval_covers_the_mean_of_the_distribution_the_tasks_com
         fixed_held += fixed.low <= 0.9 <= fixed.high
     assert 0.85 <= held / 300 <= 0.99
     assert fixed_held / 300 < 0.5
+
+
+def test_the_set_difference_is_paired_on_the_tasks():
+    # y is x plus 0.1 on every task: drawn on the same tasks, the difference is
+    # 0.1 in every resample, where two independent draws of x and y would spread
+    # over [-0.9, 1.1] (tasks 0 and 1 apart)
+    x = [A([0.0, 0.0]), A([1.0, 1.0])]
+    y = [t + 0.1 for t in x]
+    d = stats.set_difference(y, x, stats.BootstrapConfig(reps=2000, seed=1))
+    assert (d.point, d.low, d.high) == pytest.approx((0.1, 0.1, 0.1))
+    # the runs are drawn afresh within each task: one task of runs 0 and 2 against
+    # a constant 1 differs by -1, 0 or 1
+    e = stats.set_difference([A([0.0, 2.0])], [A([1.0])], stats.BootstrapConfig(reps=2000))
+    assert (e.point, e.low, e.high) == (0.0, -1.0, 1.0)
+    with pytest.raises(ValueError, match="the same tasks"):
+        stats.set_difference(x, x[:1])

@@ -207,15 +207,37 @@ def set_mean(tasks: Sequence[np.ndarray],
     if not tasks:
         raise ValueError("no task has a run score")
     rng = np.random.default_rng(config.seed)
-    n = len(tasks)
-    drawn = rng.integers(0, n, size=(config.reps, n))  # which task fills each place
-    total = np.zeros(config.reps)
-    for t, runs in enumerate(tasks):  # every place gets runs drawn afresh
-        again = runs[rng.integers(0, len(runs), size=(config.reps, n, len(runs)))].mean(axis=2)
-        total += np.where(drawn == t, again, 0.0).sum(axis=1)
-    samples = total / n
+    drawn = rng.integers(0, len(tasks), size=(config.reps, len(tasks)))
     point = float(np.mean([t.mean() for t in tasks]))
+    return _interval(point, _set_means(tasks, drawn, rng), config.confidence)
+
+
+def set_difference(tasks: Sequence[np.ndarray], others: Sequence[np.ndarray],
+                   config: BootstrapConfig = BootstrapConfig()) -> Estimate:
+    """:func:`set_mean` of ``tasks`` minus that of ``others``, the same tasks
+    scored for another method (in the same order), with the interval of the
+    same two-stage bootstrap, paired: each resample draws the same tasks for
+    both, then each method's runs within them."""
+    if not tasks or len(tasks) != len(others):
+        raise ValueError(f"set_difference: {len(tasks)} tasks against {len(others)}: the "
+                         "same tasks, at least one, are needed for both")
+    rng = np.random.default_rng(config.seed)
+    drawn = rng.integers(0, len(tasks), size=(config.reps, len(tasks)))
+    point = float(np.mean([t.mean() for t in tasks]) - np.mean([t.mean() for t in others]))
+    samples = _set_means(tasks, drawn, rng) - _set_means(others, drawn, rng)
     return _interval(point, samples, config.confidence)
+
+
+def _set_means(tasks: Sequence[np.ndarray], drawn: np.ndarray,
+               rng: np.random.Generator) -> np.ndarray:
+    """Per resample (a row of ``drawn``: which task fills each place), the mean
+    over the places of the place's task's runs drawn afresh with replacement."""
+    reps, n = drawn.shape
+    total = np.zeros(reps)
+    for t, runs in enumerate(tasks):
+        again = runs[rng.integers(0, len(runs), size=(reps, n, len(runs)))].mean(axis=2)
+        total += np.where(drawn == t, again, 0.0).sum(axis=1)
+    return total / n
 
 
 def aggregates(tasks: Sequence[np.ndarray],

@@ -328,6 +328,10 @@ def parser() -> argparse.ArgumentParser:
                       help="also a row per policy over these sets' scenarios together, "
                            "named NAME (e.g. unseen=sealed,sealed2): one mean and interval "
                            "for every scenario no choice looked at; repeatable")
+    summ.add_argument("--versus", default="", metavar="LABEL",
+                      help="also each row's mean minus LABEL's on the same scenarios, with "
+                           "its 95%% interval from the same bootstrap paired (both drawn on "
+                           "the same scenarios): whether a difference outlasts the draw")
     for name, help_ in (("train", "build the checkpoint (a cached one is kept)"),
                         ("evaluate", "score a checkpoint per scenario; the learning curve")):
         s = sub.add_parser(name, help=help_)

@@ -94,15 +94,18 @@ def _pool(given: str) -> tuple[str, list[str]]:
     return name, members
 
 
+Runs = dict[tuple[str, str], list[float]]  # (set, scenario) -> its runs' scores
+
+
 def _summary_row(label: str, which: str, scored: list[dict[str, str]],
-                 where: str) -> dict[str, Any]:
+                 where: str) -> tuple[dict[str, Any], Runs]:
     """The summary of one policy's runs on a set (or a pool of sets, its scenarios
-    told apart by set): an empty score is undefined (the reference earns what
-    closed earns), counted apart and not as a run."""
+    told apart by set), and those runs per scenario: an empty score is undefined
+    (the reference earns what closed earns), counted apart and not as a run."""
     cells = [r for r in scored if _defined(r)]
     if not cells:
         raise ValueError(f"{where}: no defined score in set {which}")
-    per_scenario: dict[tuple[str, str], list[float]] = {}
+    per_scenario: Runs = {}
     for r in cells:
         per_scenario.setdefault((r["set"], r["scenario"]), []).append(float(r["score"]))
     means = {k: float(np.mean(v)) for k, v in per_scenario.items()}
@@ -113,14 +116,27 @@ def _summary_row(label: str, which: str, scored: list[dict[str, str]],
             "95% interval": f"[{spread.low:.3f}, {spread.high:.3f}]",
             "worst scenario": f"{worst[1]} ({means[worst]:.3f})",
             "scenarios below 0.60": sum(v < 0.6 for v in means.values()),
-            "undefined runs": len(scored) - len(cells)}
+            "undefined runs": len(scored) - len(cells)}, per_scenario
+
+
+def _against(runs: Runs, others: Runs) -> str:
+    """The mean's difference from another policy's on the scenarios both have
+    defined, with its paired 95% interval (stats.set_difference)."""
+    shared = [k for k in runs if k in others]
+    if not shared:
+        return ""
+    d = stats.set_difference([np.array(runs[k]) for k in shared],
+                             [np.array(others[k]) for k in shared])
+    return f"{d.point:+.3f} [{d.low:+.3f}, {d.high:+.3f}]"
 
 
 def cmd_summarize(a: argparse.Namespace) -> int:
     """One row per (result file, set): runs, mean score and its 95% interval
     (the scenarios drawn again, then their runs: stats.set_mean), worst score,
     scenarios below 0.60, undefined runs, and one per (policy, --pool) over the
-    pool's sets together; or with --by-scenario one per (set, scenario)."""
+    pool's sets together; with --versus LABEL, each row's difference from that
+    policy's mean on the same scenarios and its paired interval; or with
+    --by-scenario one per (set, scenario)."""
     if a.by_scenario:
         rows = _by_scenario(a.results)
         try:
@@ -134,7 +150,7 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         print(f"adaptive: {len(rows)} scenarios written to {a.out}")
         return 0
     pools = [_pool(given) for given in a.pool]
-    rows = []
+    summaries: list[tuple[dict[str, Any], Runs]] = []
     by_label: dict[str, list[dict[str, str]]] = {}
     for given in a.results:
         label, _, path = given.rpartition("=")
@@ -142,8 +158,8 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         scored = _scored(path)
         by_label.setdefault(label, []).extend(scored)
         for which in dict.fromkeys(r["set"] for r in scored):
-            rows.append(_summary_row(label, which, [r for r in scored if r["set"] == which],
-                                     path))
+            summaries.append(_summary_row(label, which,
+                                          [r for r in scored if r["set"] == which], path))
     for name, sets in pools:
         pooled = [(label, [r for r in scored if r["set"] in sets])
                   for label, scored in by_label.items()
@@ -151,7 +167,15 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         if not pooled:
             raise ValueError(f"--pool {name}: no policy has results on every one of "
                              f"{', '.join(sets)}")
-        rows += [_summary_row(label, name, cells, name) for label, cells in pooled]
+        summaries += [_summary_row(label, name, cells, name) for label, cells in pooled]
+    if a.versus and a.versus not in by_label:
+        raise ValueError(f"--versus {a.versus!r}: no result file has that label (the labels: "
+                         f"{', '.join(by_label)})")
+    reference = {row["set"]: runs for row, runs in summaries if row["policy"] == a.versus}
+    rows = [row for row, _ in summaries]
+    for row, runs in summaries if a.versus else []:
+        shared = row["set"] in reference and row["policy"] != a.versus
+        row[f"against {a.versus}"] = _against(runs, reference[row["set"]]) if shared else ""
     try:
         write_result(a.out, "per-scenario normalized scores summarized per set (intervals 1-9, "
                      "against the reference and closed), from " +
@@ -163,5 +187,7 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         print(f"adaptive: {r['policy']}: {r['set']}: mean {r['mean score']:.3f} "
               f"{r['95% interval']}, worst "
               f"{r['worst scenario']}, {r['scenarios below 0.60']} below 0.60"
-              + (f", {r['undefined runs']} runs undefined" if r["undefined runs"] else ""))
+              + (f", {r['undefined runs']} runs undefined" if r["undefined runs"] else "")
+              + (f", against {a.versus} {r[f'against {a.versus}']}"
+                 if r.get(f"against {a.versus}") else ""))
     return 0
