@@ -327,7 +327,7 @@ def parser() -> argparse.ArgumentParser:
     summ.add_argument("--pool", action="append", default=[], metavar="NAME=SET,SET",
                       help="also a row per policy over these sets' scenarios together, "
                            "named NAME (e.g. unseen=sealed,sealed2): one mean and interval "
-                           "for every scenario no choice looked at; repeatable")
+                           "over all their scenarios, tighter than any one set's; repeatable")
     summ.add_argument("--versus", default="", metavar="LABEL",
                       help="also each row's mean minus LABEL's on the same scenarios, with "
                            "its 95%% interval from the same bootstrap paired (both drawn on "
