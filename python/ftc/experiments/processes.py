@@ -198,7 +198,7 @@ def _raise_priority() -> None:
         pass
 
 
-def _with_recv_buffer(url: str) -> str:
+def with_recv_buffer(url: str) -> str:
     """url with the largest UDP receive buffer the kernel allows (up to 64 MiB;
     scripts/setup.sh raises net.core.rmem_max to that where it may)."""
     if not url.startswith("udpm://") or "recv_buf_size" in url:
@@ -234,7 +234,7 @@ class LcmLogger:
         # 400 with the default 208 KiB, two runs on two cores).
         self.process = subprocess.Popen(
             [str(recorder_binary()), "--flush-interval", "100",
-             "--channel", f"{prefix}.*", "--lcm-url", _with_recv_buffer(url), str(path)],
+             "--channel", f"{prefix}.*", "--lcm-url", with_recv_buffer(url), str(path)],
             stdin=subprocess.DEVNULL, stdout=self._stderr, stderr=self._stderr,
             start_new_session=True, preexec_fn=die_with_parent(_raise_priority))
         if on_start is not None:
