@@ -474,7 +474,8 @@ def test_summarize_gives_mean_worst_and_count_below_the_floor(tmp_path, capsys):
     assert low == 0.5 and 0.7 < high < 1.0
     assert rows[3][5:] == ["b (0.500)", "1", "1"]
     for bad, says in (("both=suite", "two sets or more"), ("=suite,check", "NAME=SET"),
-                      ("both=suite,sealed", "no policy has results on every one of suite, sealed")):
+                      ("both=suite,sealed", "no policy has results on every one of suite, sealed"),
+                      ("check=suite,check", "a set of the results already has that name")):
         assert main(["summarize", f"mine={scores}", "--pool", bad, "--out", str(out)]) == 2
         assert says in capsys.readouterr().err
     # --versus: each row's mean minus the other's on the scenarios both define, paired;

@@ -160,7 +160,10 @@ def cmd_summarize(a: argparse.Namespace) -> int:
         for which in dict.fromkeys(r["set"] for r in scored):
             summaries.append(_summary_row(label, which,
                                           [r for r in scored if r["set"] == which], path))
+    named = {r["set"] for scored in by_label.values() for r in scored}
     for name, sets in pools:
+        if name in named:
+            raise ValueError(f"--pool {name}: a set of the results already has that name")
         pooled = [(label, [r for r in scored if r["set"] in sets])
                   for label, scored in by_label.items()
                   if set(sets) <= {r["set"] for r in scored}]
