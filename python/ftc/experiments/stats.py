@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -112,8 +112,8 @@ def cell_scores(rows: Sequence[Mapping], first_interval: int = 1,
     return {m: dict(v) for m, v in out.items()}
 
 
-def tasks_of(per_scenario: Mapping[str, Mapping[int, float] | Sequence[float]],
-             scenarios: Sequence[str] | None = None) -> list[np.ndarray]:
+def tasks_of(per_scenario: Mapping[Any, Mapping[int, float] | Sequence[float]],
+             scenarios: Sequence[Any] | None = None) -> list[np.ndarray]:
     """One array of run scores per scenario (in ``scenarios`` order where given;
     scenarios without a run are left out)."""
     names = list(per_scenario) if scenarios is None else [s for s in scenarios

@@ -110,7 +110,7 @@ def _summary_row(label: str, which: str, scored: list[dict[str, str]],
         per_scenario.setdefault((r["set"], r["scenario"]), []).append(float(r["score"]))
     means = {k: float(np.mean(v)) for k, v in per_scenario.items()}
     worst = min(means, key=means.get)
-    spread = stats.set_mean([np.array(v) for v in per_scenario.values()])
+    spread = stats.set_mean(stats.tasks_of(per_scenario))
     return {"policy": label, "set": which, "runs": len(cells),
             "mean score": round(spread.point, 3),
             "95% interval": f"[{spread.low:.3f}, {spread.high:.3f}]",
@@ -125,8 +125,7 @@ def _against(runs: Runs, others: Runs) -> str:
     shared = [k for k in runs if k in others]
     if not shared:
         return ""
-    d = stats.set_difference([np.array(runs[k]) for k in shared],
-                             [np.array(others[k]) for k in shared])
+    d = stats.set_difference(stats.tasks_of(runs, shared), stats.tasks_of(others, shared))
     return f"{d.point:+.3f} [{d.low:+.3f}, {d.high:+.3f}]"
 
 
