@@ -170,14 +170,15 @@ def cmd_summarize(a: argparse.Namespace) -> int:
             raise ValueError(f"--pool {name}: no policy has results on every one of "
                              f"{', '.join(sets)}")
         summaries += [_summary_row(label, name, cells, name) for label, cells in pooled]
-    if a.versus and a.versus not in by_label:
-        raise ValueError(f"--versus {a.versus!r}: no result file has that label (the labels: "
-                         f"{', '.join(by_label)})")
-    reference = {row["set"]: runs for row, runs in summaries if row["policy"] == a.versus}
+    if a.versus:
+        if a.versus not in by_label:
+            raise ValueError(f"--versus {a.versus!r}: no result file has that label (the "
+                             f"labels: {', '.join(by_label)})")
+        reference = {row["set"]: runs for row, runs in summaries if row["policy"] == a.versus}
+        for row, runs in summaries:
+            shared = row["set"] in reference and row["policy"] != a.versus
+            row[f"against {a.versus}"] = _against(runs, reference[row["set"]]) if shared else ""
     rows = [row for row, _ in summaries]
-    for row, runs in summaries if a.versus else []:
-        shared = row["set"] in reference and row["policy"] != a.versus
-        row[f"against {a.versus}"] = _against(runs, reference[row["set"]]) if shared else ""
     try:
         write_result(a.out, "per-scenario normalized scores summarized per set (intervals 1-9, "
                      "against the reference and closed), from " +
